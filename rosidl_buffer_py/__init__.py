@@ -1,0 +1,34 @@
+"""rosidl_buffer_py: zero-copy uint8[] payloads for rclpy on stock ROS 2 Jazzy.
+
+The pieces, each in its own module:
+
+- :mod:`.buffer`: :class:`Buffer`, a payload held in backend memory;
+- :mod:`.backend`: the :class:`BufferBackend` plugin interface and :class:`EndpointInfo`;
+- :mod:`.registry`: backend discovery from entry points, ``acceptable_buffer_backends`` parsing;
+- :mod:`.message_support`: ``msg.data = buffer`` for generated message classes;
+- :mod:`.codec`: the wire format (legacy CDR bytes, or a descriptor behind a marker);
+- :mod:`.image`: numpy views and copies of ``sensor_msgs/Image``.
+"""
+from rosidl_buffer_py.backend import (
+    BufferBackend, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE)
+from rosidl_buffer_py.buffer import Buffer
+from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
+from rosidl_buffer_py.registry import (
+    get_backend, get_installed_backends, parse_acceptable_buffer_backends)
+
+from rosidl_buffer_py import message_support as _message_support
+
+_message_support.enable_common_types()
+
+__all__ = [
+    'Buffer',
+    'BufferBackend',
+    'EndpointInfo',
+    'EndpointKind',
+    'MAX_DESCRIPTOR_SIZE',
+    'buffer_fields',
+    'enable_buffer_fields',
+    'get_backend',
+    'get_installed_backends',
+    'parse_acceptable_buffer_backends',
+]

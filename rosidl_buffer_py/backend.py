@@ -1,0 +1,104 @@
+"""The buffer backend plugin interface, mirroring upstream's C++ ``rosidl::BufferBackend``.
+
+A backend owns a kind of memory (shared memory, GPU memory, ...) and knows how to describe a
+Buffer of that memory in a small *descriptor* that a peer endpoint turns back into a Buffer.
+Backends are Python classes registered as entry points (see :mod:`rosidl_buffer_py.registry`).
+"""
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import List, Mapping, Optional, Sequence, Set, Tuple
+
+from rosidl_buffer_py.buffer import Buffer
+
+#: Largest descriptor a backend may produce, in bytes (as upstream's kMaxBufferDescriptorSize).
+MAX_DESCRIPTOR_SIZE = 4096
+
+#: Length in bytes of an rmw GID, as rclpy's topic endpoint info reports it.
+GID_SIZE = 16
+
+
+class EndpointKind(enum.Enum):
+    """Which side of a topic an endpoint is."""
+
+    PUBLISHER = 'publisher'
+    SUBSCRIPTION = 'subscription'
+
+
+@dataclass(frozen=True)
+class EndpointInfo:
+    """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t)."""
+
+    gid: bytes
+    topic_name: str
+    endpoint_kind: EndpointKind
+    node_name: str = ''
+    node_namespace: str = ''
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:
+            raise ValueError(f'gid must be {GID_SIZE} bytes, got {self.gid!r}')
+        if not isinstance(self.endpoint_kind, EndpointKind):
+            raise TypeError(f'endpoint_kind must be an EndpointKind, got {self.endpoint_kind!r}')
+        object.__setattr__(self, 'gid', bytes(self.gid))
+
+    @property
+    def gid_hex(self) -> str:
+        """The GID as 32 lowercase hex characters (as in per-endpoint channel names)."""
+        return self.gid.hex()
+
+
+class BufferBackend(ABC):
+    """A buffer backend plugin.
+
+    Required: :meth:`get_backend_type`, :meth:`create_descriptor_with_endpoint` and
+    :meth:`from_descriptor_with_endpoint`. The other methods are optional hooks with defaults.
+    Backend methods may be called from several threads (executor and discovery threads).
+    """
+
+    @abstractmethod
+    def get_backend_type(self) -> str:
+        """Return the backend's name: lowercase letters, digits and ``_`` (e.g. ``"demo"``)."""
+
+    def get_backend_metadata(self) -> str:
+        """Return backend-specific information advertised to peers (no ``;`` or ``=``).
+
+        Peers receive it in ``on_discovering_endpoint(endpoint_supported_backends=...)``.
+        """
+        return ''
+
+    @abstractmethod
+    def create_descriptor_with_endpoint(self, buffer: Buffer,
+                                        endpoint_info: EndpointInfo) -> Optional[bytes]:
+        """Describe ``buffer`` for the peer ``endpoint_info``.
+
+        Return the descriptor bytes (at most :data:`MAX_DESCRIPTOR_SIZE`), or ``None`` when this
+        peer cannot use this backend: the message is then sent to it as CPU bytes.
+        """
+
+    @abstractmethod
+    def from_descriptor_with_endpoint(self, descriptor: bytes,
+                                      endpoint_info: EndpointInfo) -> Buffer:
+        """Turn a descriptor received from the publisher ``endpoint_info`` into a Buffer.
+
+        ``descriptor`` comes from the network: validate it and raise ``ValueError`` with a clear
+        message when it is malformed or names memory this process cannot reach.
+        """
+
+    def on_creating_endpoint(self, endpoint_info: EndpointInfo) -> None:
+        """Hook: a local buffer-aware endpoint is being created."""
+
+    def on_discovering_endpoint(
+            self, endpoint_info: EndpointInfo, existing_endpoints: Sequence[EndpointInfo],
+            endpoint_supported_backends: Mapping[str, str]) -> Tuple[bool, List[Set[int]]]:
+        """Hook: a remote buffer-aware endpoint was discovered (or its advertisement changed).
+
+        :param endpoint_supported_backends: backend name -> metadata, as the peer advertises.
+        :return: ``(compatible, groups)``: whether this backend can serve the peer, and groups of
+            endpoint GID hashes that may share transport resources (upstream's contract; may be
+            empty).
+        """
+        return self.get_backend_type() in endpoint_supported_backends, []
+
+    def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
+        """Hook (not in upstream): a remote endpoint went away; drop what was cached for it."""

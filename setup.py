@@ -1,0 +1,82 @@
+"""Build and install rosidl_buffer_py (ament_python layout, also a plain pip package).
+
+The native extension ``rosidl_buffer_py._native`` is compiled from ``src/native``. Where the
+ROS 2 headers and libraries come from is decided by :func:`ros_prefixes` and nowhere else:
+
+1. the running interpreter's prefix (``sys.prefix``), where the PyPI ROS wheels put
+   ``include/<pkg>/`` and ``lib/`` (a venv made by ``./dev``);
+2. then every entry of ``AMENT_PREFIX_PATH``, in order (``/opt/ros/jazzy`` once its
+   ``setup.bash`` is sourced, and colcon workspaces above it).
+
+A prefix counts only if it holds ``include/rmw_fastrtps_cpp``. Nothing else is searched.
+"""
+import os
+import sys
+from pathlib import Path
+
+from setuptools import Extension, find_packages, setup
+
+PACKAGE = 'rosidl_buffer_py'
+HERE = Path(__file__).resolve().parent
+
+
+def ros_prefixes() -> list:
+    """Return the ROS install prefixes to build against, most preferred first."""
+    candidates = [sys.prefix] + [
+        p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    found = []
+    for prefix in candidates:
+        if (Path(prefix) / 'include' / 'rmw_fastrtps_cpp').is_dir() and prefix not in found:
+            found.append(prefix)
+    return found
+
+
+def requirements(name: str) -> list:
+    """Read a requirements file: one requirement a line, `#` starts a comment."""
+    lines = (line.split('#', 1)[0].strip() for line in (HERE / name).read_text().splitlines())
+    return [line for line in lines if line]
+
+
+def native_extension() -> Extension:
+    prefixes = ros_prefixes()
+    include_dirs = [str(Path(p) / 'include') for p in prefixes]
+    library_dirs = [str(Path(p) / 'lib') for p in prefixes]
+    return Extension(
+        f'{PACKAGE}._native',
+        sources=sorted(str(p.relative_to(HERE)) for p in (HERE / 'src' / 'native').glob('*.cpp')),
+        include_dirs=include_dirs,
+        library_dirs=library_dirs,
+        runtime_library_dirs=library_dirs,
+        extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra'],
+        language='c++',
+    )
+
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'demo_buffer_backend',
+                                    'demo_buffer_backend.*', 'launch_free_demos']),
+    ext_modules=[native_extension()],
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+    ],
+    zip_safe=False,
+    maintainer='rosidl_buffer_py maintainers',
+    maintainer_email='maintainers@rosidl-buffer-py.invalid',
+    description='Zero-copy uint8[] payloads for rclpy on stock ROS 2 Jazzy.',
+    license='Apache-2.0',
+    python_requires='>=3.10',
+    # ROS packages (ros-jazzy-*) are not install_requires: with apt ROS they are not pip
+    # distributions. requirements.txt installs them from PyPI; see README.
+    install_requires=[r for r in requirements('requirements.txt') if not r.startswith('ros-')],
+    extras_require={'test': requirements('requirements-test.txt')},
+    tests_require=requirements('requirements-test.txt'),
+    entry_points={
+        'rosidl_buffer_py.backends': [
+            'demo = demo_buffer_backend:DemoBackend',
+        ],
+        'console_scripts': [],
+    },
+)

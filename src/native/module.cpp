@@ -1,0 +1,32 @@
+// rosidl_buffer_py._native: the package's only native extension.
+//
+// Narrow API, documented in src/native/README.md:
+//   BufferBase  - buffer-protocol base class of rosidl_buffer_py.Buffer (Python 3.11 has no
+//                 __buffer__ for Python classes).
+#include "buffer_base.hpp"
+
+namespace
+{
+
+PyModuleDef native_module = {
+  PyModuleDef_HEAD_INIT,
+  "rosidl_buffer_py._native",
+  "Native helpers of rosidl_buffer_py: only what Python cannot do.",
+  -1,
+  nullptr, nullptr, nullptr, nullptr, nullptr,
+};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__native(void)
+{
+  PyObject * module = PyModule_Create(&native_module);
+  if (module == nullptr) {
+    return nullptr;
+  }
+  if (add_buffer_base_type(module) < 0) {
+    Py_DECREF(module);
+    return nullptr;
+  }
+  return module;
+}
