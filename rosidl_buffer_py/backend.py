@@ -85,6 +85,14 @@ class BufferBackend(ABC):
         message when it is malformed or names memory this process cannot reach.
         """
 
+    def allocate(self, nbytes: int) -> Buffer:
+        """Return a new writable Buffer of ``nbytes`` in this backend's memory (not in upstream's
+        C++ interface, which allocates through backend-specific buffer types).
+
+        Used by :func:`rosidl_buffer_py.image.allocate_image_msg` to fill images in place.
+        """
+        raise NotImplementedError(f'buffer backend {self.get_backend_type()!r} cannot allocate')
+
     def on_creating_endpoint(self, endpoint_info: EndpointInfo) -> None:
         """Hook: a local buffer-aware endpoint is being created."""
 

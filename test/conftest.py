@@ -1,0 +1,50 @@
+"""Test-wide isolation: a DDS domain of our own, localhost discovery, nothing left in /dev/shm.
+
+Each pytest run takes a ROS_DOMAIN_ID nobody else on the machine holds (an flock'ed file per
+domain id), so parallel runs never see each other's traffic. Child processes inherit it.
+"""
+import fcntl
+import os
+import random
+
+import pytest
+
+_DOMAIN_LOCK_DIR = '/tmp'
+_domain_lock_file = None
+
+
+def _claim_domain_id() -> int:
+    global _domain_lock_file
+    ids = list(range(1, 101))
+    random.shuffle(ids)
+    for domain_id in ids:
+        f = open(os.path.join(_DOMAIN_LOCK_DIR, f'rosidl_buffer_py_domain_{domain_id}.lock'), 'w')
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        _domain_lock_file = f  # held until the interpreter exits
+        return domain_id
+    raise RuntimeError('no free ROS_DOMAIN_ID in 1..100 (100 concurrent test runs?)')
+
+
+os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
+
+#: Prefixes of everything this project creates in /dev/shm.
+SHM_PREFIXES = ('rbpy_',)
+
+
+def _our_shm_files():
+    return {n for n in os.listdir('/dev/shm') if n.startswith(SHM_PREFIXES)}
+
+
+@pytest.fixture(scope='session', autouse=True)
+def no_shm_leftovers():
+    """Fail the session if it leaves files of ours in /dev/shm."""
+    before = _our_shm_files()
+    yield
+    left = _our_shm_files() - before
+    assert not left, f'tests left files in /dev/shm: {sorted(left)}'
