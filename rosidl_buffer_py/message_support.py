@@ -37,6 +37,7 @@ def _buffer_aware_property(original: property) -> property:
 
     setter.__name__ = original.fset.__name__
     setter.__doc__ = original.fset.__doc__
+    setter.__wrapped__ = original_set
     return property(original.fget, setter, original.fdel, original.__doc__)
 
 
