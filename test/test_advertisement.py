@@ -1,0 +1,65 @@
+"""USER_DATA advertisement format and channel names."""
+import pytest
+
+from rosidl_buffer_py import advertisement, channel
+
+TYPEHASH = b'typehash=RIHS01_' + b'ab' * 32 + b';'
+
+
+def test_round_trip_appended_to_rmw_typehash():
+    data = advertisement.append(TYPEHASH, {'cpu': '', 'demo': 'b00t1d-f5'})
+    assert data == TYPEHASH + b'BUFBE:cpu=;demo=b00t1d-f5;'
+    assert data.startswith(TYPEHASH)  # rmw still finds its typehash first
+    assert advertisement.decode(data) == {'cpu': '', 'demo': 'b00t1d-f5'}
+
+
+def test_append_replaces_an_earlier_advertisement():
+    once = advertisement.append(TYPEHASH, {'cpu': '', 'demo': 'x'})
+    assert advertisement.append(once, {'cpu': ''}) == TYPEHASH + b'BUFBE:cpu=;'
+
+
+def test_cpu_only_subscription_advertises_exactly_cpu():
+    assert advertisement.encode({'cpu': ''}) == b'BUFBE:cpu=;'
+
+
+def test_legacy_endpoint_has_no_advertisement():
+    assert advertisement.decode(TYPEHASH) is None
+    assert advertisement.decode(b'') is None
+
+
+@pytest.mark.parametrize('garbage, expected', [
+    (b'BUFBE:', {}),
+    (b'BUFBE:;;;', {}),
+    (b'BUFBE:cpu=;Bad Name=1;demo=m;', {'cpu': '', 'demo': 'm'}),
+    (b'BUFBE:cpu;demo=a=b;', {'demo': 'a=b'}),
+    (b'BUFBE:\xff\xfe=1;cpu=;', {'cpu': ''}),
+])
+def test_garbled_advertisements_keep_their_valid_entries(garbage, expected):
+    assert advertisement.decode(TYPEHASH + garbage) == expected
+
+
+@pytest.mark.parametrize('backends', [{'Demo': ''}, {'a;b': ''}, {'demo': 'x;y'},
+                                      {'demo': 'caf\u00e9'}, {'demo': 'a\nb'}])
+def test_invalid_names_and_metadata_are_refused(backends):
+    with pytest.raises(advertisement.AdvertisementError):
+        advertisement.encode(backends)
+
+
+def test_channel_topic_uses_full_gids():
+    pub = bytes(range(16))
+    sub = bytes(range(16, 32))
+    name = channel.channel_topic('/camera/image', pub, sub)
+    assert name == ('rt/camera/image/_buf/000102030405060708090a0b0c0d0e0f_'
+                    '101112131415161718191a1b1c1d1e1f')
+    assert channel.is_channel_topic(name)
+    assert not channel.is_channel_topic(channel.dds_topic('/camera/image'))
+    # two endpoints of one participant differ only after the 8-byte prefix: names must differ
+    assert channel.channel_topic('/t', pub, sub) != channel.channel_topic(
+        '/t', pub, sub[:12] + b'\x00' * 4)
+
+
+@pytest.mark.parametrize('topic, pub, sub', [
+    ('camera', bytes(16), bytes(16)), ('/t', bytes(8), bytes(16)), ('/t', bytes(16), bytes(24))])
+def test_bad_channel_arguments(topic, pub, sub):
+    with pytest.raises(ValueError):
+        channel.channel_topic(topic, pub, sub)
