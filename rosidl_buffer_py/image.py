@@ -17,7 +17,7 @@ Byte order: a message's multi-byte pixels are read with the byte order ``is_bige
 :func:`allocate_image_msg` sets ``is_bigendian`` to the host's byte order for multi-byte
 encodings (so views are native-endian) and to 0 for 8-bit encodings, where it is meaningless.
 """
-import array
+import array as _pyarray
 import re
 import sys
 from dataclasses import dataclass
@@ -121,6 +121,11 @@ def _default_is_bigendian(info: EncodingInfo) -> int:
     return int(_HOST_IS_BIG_ENDIAN and info.dtype.itemsize > 1)
 
 
+def _cpu_zeros(nbytes: int) -> _pyarray.array:
+    """Zeroed stock rclpy storage: an ``array.array('B')`` of ``nbytes``."""
+    return _pyarray.array('B', bytes(1)) * nbytes
+
+
 def _check_uint32(name: str, value) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, numpy.integer)):
         raise TypeError(f'{name} must be an int, got {type(value).__name__} {value!r}')
@@ -165,10 +170,10 @@ def _host_memory(msg: Image, *, writable: bool, purpose: str) -> memoryview:
                              'host-addressable, so numpy cannot see it')
         if writable and data.readonly:
             raise ValueError(f'{purpose}: msg.data is {data!r}, which is read-only (e.g. a '
-                             'buffer received from another process); use '
-                             'from_input_msg(msg) for a copy you can modify')
+                             'buffer received from another process); from_input_msg(msg) '
+                             'gives a copy you can modify, allocate_image_msg() a new message')
         view = memoryview(data)
-    elif isinstance(data, array.array):
+    elif isinstance(data, _pyarray.array):
         if data.typecode != 'B':
             raise TypeError(f"{purpose}: msg.data must be array.array('B'), got "
                             f'typecode {data.typecode!r}')
@@ -243,7 +248,7 @@ def allocate_image_msg(height: int, width: int, encoding: str, backend: str = CP
     msg.is_bigendian = _default_is_bigendian(info)
     msg.step = step
     if backend == CPU_BACKEND:
-        msg.data = array.array('B', bytes(1)) * nbytes if nbytes else array.array('B')
+        msg.data = _cpu_zeros(nbytes)
         return msg
     try:
         plugin = get_backend(backend)
@@ -312,13 +317,13 @@ def from_input_msg(msg: Image, clone: bool = True) -> numpy.ndarray:
     return view
 
 
-def _array_channels(array_: numpy.ndarray) -> int:
-    if array_.ndim == 2:
+def _array_channels(array: numpy.ndarray) -> int:
+    if array.ndim == 2:
         return 1
-    if array_.ndim == 3 and array_.shape[2] >= 1:
-        return array_.shape[2]
+    if array.ndim == 3 and array.shape[2] >= 1:
+        return array.shape[2]
     raise ValueError(f'to_msg: the array must have shape (height, width) or (height, width, '
-                     f'channels), got shape {array_.shape}')
+                     f'channels), got shape {array.shape}')
 
 
 def _infer_encoding(base: numpy.dtype, channels: int, shape: Tuple[int, ...]) -> str:
@@ -336,12 +341,12 @@ def _infer_encoding(base: numpy.dtype, channels: int, shape: Tuple[int, ...]) ->
     return f'{depth}C{channels}'
 
 
-def to_msg(msg: Image, array_: numpy.ndarray, *, encoding: Optional[str] = None,
+def to_msg(msg: Image, array: numpy.ndarray, *, encoding: Optional[str] = None,
            step: Optional[int] = None) -> None:
-    """Copy ``array_`` into ``msg.data`` (one copy) and refresh height, width, step and encoding.
+    """Copy ``array`` into ``msg.data`` (one copy) and refresh height, width, step and encoding.
 
     :param msg: The message; its storage is reused when it can be.
-    :param array_: ``(height, width)`` or ``(height, width, channels)``, any strides and byte
+    :param array: ``(height, width)`` or ``(height, width, channels)``, any strides and byte
         order. Its bytes are stored in its own byte order and ``is_bigendian`` is set to match
         (0 for 8-bit data).
     :param encoding: The encoding to store. Default: ``msg.encoding`` if it matches the array's
@@ -357,10 +362,10 @@ def to_msg(msg: Image, array_: numpy.ndarray, *, encoding: Optional[str] = None,
     Buffer is never replaced (that would change its backend): it must hold at least
     ``height * step`` bytes, and bytes past that are left untouched.
     """
-    if not isinstance(array_, numpy.ndarray):
-        raise TypeError(f'to_msg: expected a numpy.ndarray, got {type(array_).__name__}')
-    channels = _array_channels(array_)
-    base = array_.dtype.newbyteorder('=')
+    if not isinstance(array, numpy.ndarray):
+        raise TypeError(f'to_msg: expected a numpy.ndarray, got {type(array).__name__}')
+    channels = _array_channels(array)
+    base = array.dtype.newbyteorder('=')
     if encoding is not None:
         info = encoding_info(encoding)
     else:
@@ -373,17 +378,17 @@ def to_msg(msg: Image, array_: numpy.ndarray, *, encoding: Optional[str] = None,
             if current is not None and current.dtype == base and current.channels == channels:
                 info = current
         if info is None:
-            info = encoding_info(_infer_encoding(base, channels, array_.shape))
+            info = encoding_info(_infer_encoding(base, channels, array.shape))
     if info.dtype != base or info.channels != channels:
         raise ValueError(f'to_msg: encoding {info.encoding!r} holds {info.channels} channel(s) '
-                         f'of {info.dtype}, but the array has dtype {array_.dtype} and shape '
-                         f'{array_.shape} ({channels} channel(s) of {base})')
-    height = _check_uint32('array height', array_.shape[0])
-    width = _check_uint32('array width', array_.shape[1])
+                         f'of {info.dtype}, but the array has dtype {array.dtype} and shape '
+                         f'{array.shape} ({channels} channel(s) of {base})')
+    height = _check_uint32('array height', array.shape[0])
+    width = _check_uint32('array width', array.shape[1])
     step = _resolve_step(info, width, step)
     nbytes = height * step
     is_bigendian = info.dtype.itemsize > 1 and (
-        array_.dtype.byteorder == '>' or (array_.dtype.byteorder == '=' and _HOST_IS_BIG_ENDIAN))
+        array.dtype.byteorder == '>' or (array.dtype.byteorder == '=' and _HOST_IS_BIG_ENDIAN))
 
     data = msg.data
     if isinstance(data, Buffer):
@@ -396,10 +401,10 @@ def to_msg(msg: Image, array_: numpy.ndarray, *, encoding: Optional[str] = None,
         memory = _host_memory(msg, writable=True, purpose='to_msg')
         if memory.nbytes != nbytes:
             memory.release()
-            msg.data = array.array('B', bytes(1)) * nbytes if nbytes else array.array('B')
+            msg.data = _cpu_zeros(nbytes)
             memory = _host_memory(msg, writable=True, purpose='to_msg')
     destination = _array_over(memory, info, height, width, step, is_bigendian, 'to_msg')
-    numpy.copyto(destination, array_.reshape(destination.shape), casting='equiv')
+    numpy.copyto(destination, array.reshape(destination.shape), casting='equiv')
     msg.height = height
     msg.width = width
     msg.step = step

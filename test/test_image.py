@@ -477,6 +477,6 @@ def test_to_msg_resizes_cpu_storage():
     to_msg(msg, numpy.ones((4, 4), numpy.uint8))
     assert isinstance(msg.data, array.array) and len(msg.data) == 16 and msg.data is not old
     assert old_view[0, 0] == 0  # the old storage is left alone
-    to_msg(msg, numpy.ones((1, 2), numpy.uint8))
+    to_msg(msg, array=numpy.ones((1, 2), numpy.uint8))
     assert len(msg.data) == 2  # shrunk too: data is exactly height * step
     assert_serialized(msg, 1, 2, 'mono8', 0, 2, b'\x01\x01')
