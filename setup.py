@@ -39,7 +39,13 @@ def requirements(name: str) -> list:
 
 def native_extension() -> Extension:
     prefixes = ros_prefixes()
-    include_dirs = [str(Path(p) / 'include') for p in prefixes]
+    # ROS packages install their headers as include/<pkg>/<pkg>/...; Fast DDS as include/fastdds.
+    include_dirs = []
+    for prefix in prefixes:
+        include = Path(prefix) / 'include'
+        include_dirs.append(str(include))
+        include_dirs.extend(
+            str(d) for d in sorted(include.iterdir()) if d.is_dir() and (d / d.name).is_dir())
     library_dirs = [str(Path(p) / 'lib') for p in prefixes]
     return Extension(
         f'{PACKAGE}._native',
@@ -47,10 +53,13 @@ def native_extension() -> Extension:
         include_dirs=include_dirs,
         library_dirs=library_dirs,
         runtime_library_dirs=library_dirs,
+        # rcl: rcl_*_get_rmw_handle, rcl_take_serialized_message, rcl_trigger_guard_condition;
+        # rmw: default options, serialized message helpers; rmw_fastrtps_cpp: the rmw_* entry
+        # points and get_datawriter/get_datareader/get_domain_participant; fastrtps: DDS API.
+        libraries=['rcl', 'rmw', 'rmw_fastrtps_cpp', 'fastrtps', 'rcutils'],
         extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra'],
         language='c++',
     )
-
 
 setup(
     name=PACKAGE,

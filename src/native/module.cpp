@@ -3,7 +3,10 @@
 // Narrow API, documented in src/native/README.md:
 //   BufferBase  - buffer-protocol base class of rosidl_buffer_py.Buffer (Python 3.11 has no
 //                 __buffer__ for Python classes).
+//   rmw_fastrtps layer (dds_*.cpp) - endpoint GIDs, USER_DATA, discovery tap, channels below rcl,
+//                 take with publisher GID.
 #include "buffer_base.hpp"
+#include "dds_common.hpp"
 
 namespace
 {
@@ -24,7 +27,7 @@ PyMODINIT_FUNC PyInit__native(void)
   if (module == nullptr) {
     return nullptr;
   }
-  if (add_buffer_base_type(module) < 0) {
+  if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0) {
     Py_DECREF(module);
     return nullptr;
   }

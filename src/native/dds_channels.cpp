@@ -1,0 +1,758 @@
+// Per-endpoint channels below rcl: an rmw publisher/subscription on the node's rmw handle,
+// created with avoid_ros_namespace_conventions (so the given name is the DDS topic name and
+// rcl's name rules, e.g. "no token starting with a digit", do not apply), volatile
+// durability, and exchanging pre-serialized CDR.
+//
+//   ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)
+//     .publish(data)            any C-contiguous buffer; GIL released during the write
+//     .matched_count() -> int   matched subscriptions
+//     .gid, .topic_name, .valid
+//     .destroy()
+//   ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,
+//                       guard_condition=None)
+//     .take() -> (bytes, publisher_gid, info) | None
+//     .matched_count() -> int   matched publishers
+//     .gid, .topic_name, .valid
+//     .destroy()
+//
+// Both pin the node's rclpy handle (rclpy defers destroy_node() until destroy()) and the
+// subscription pins its guard condition, which it triggers from the DDS thread (rmw's
+// on-new-message callback) whenever data arrives.
+#include <cstring>
+#include <mutex>
+#include <string>
+
+#include "dds_common.hpp"
+
+#include "rcl/error_handling.h"
+#include "rcutils/error_handling.h"
+#include "rcl/guard_condition.h"
+#include "rcl/node.h"
+#include "rmw/rmw.h"
+#include "rmw/serialized_message.h"
+#include "rosidl_runtime_c/message_type_support_struct.h"
+#include "fastdds/dds/subscriber/DataReader.hpp"
+#include "rmw_fastrtps_cpp/get_subscriber.hpp"
+#include "rmw_fastrtps_shared_cpp/guid_utils.hpp"
+
+namespace rbpy_dds
+{
+namespace
+{
+
+/// What the rmw on-new-message callback needs; lives until the callback is unset.
+struct NewMessageNotify
+{
+  rcl_guard_condition_t * guard_condition;
+};
+
+void on_new_message(const void * user_data, size_t number_of_events)
+{
+  (void)number_of_events;
+  auto * notify = static_cast<const NewMessageNotify *>(user_data);
+  if (rcl_trigger_guard_condition(notify->guard_condition) != RCL_RET_OK) {
+    rcl_reset_error();
+  }
+}
+
+/// Fields shared by both channel types.
+struct ChannelBase
+{
+  PyObject_HEAD
+  PinnedHandle * node;          // owned
+  rmw_node_t * rmw_node;
+  std::mutex * op_mutex;        // owned; serialises operations against destroy()
+  uint8_t gid[RMW_GID_STORAGE_SIZE];
+  std::string * topic_name;     // owned
+};
+
+struct ChannelPublisherObject
+{
+  ChannelBase base;
+  rmw_publisher_t * publisher;  // nullptr once destroyed
+};
+
+struct ChannelSubscriptionObject
+{
+  ChannelBase base;
+  rmw_subscription_t * subscription;  // nullptr once destroyed
+  PinnedHandle * guard_condition;     // owned; may hold nothing
+  NewMessageNotify * notify;          // owned; nullptr without guard condition
+  rmw_serialized_message_t * buffer;  // owned; reused by take()
+};
+
+int base_alloc(ChannelBase * base)
+{
+  base->node = new (std::nothrow) PinnedHandle();
+  base->op_mutex = new (std::nothrow) std::mutex();
+  base->topic_name = new (std::nothrow) std::string();
+  base->rmw_node = nullptr;
+  std::memset(base->gid, 0, sizeof(base->gid));
+  if (!base->node || !base->op_mutex || !base->topic_name) {
+    PyErr_NoMemory();
+    return -1;
+  }
+  return 0;
+}
+
+void base_free(ChannelBase * base)
+{
+  delete base->node;  // releases the pin (GIL held)
+  delete base->op_mutex;
+  delete base->topic_name;
+  base->node = nullptr;
+  base->op_mutex = nullptr;
+  base->topic_name = nullptr;
+}
+
+/// Common constructor part: pin the node, check the rmw, read the type support.
+int base_setup(
+  ChannelBase * base, PyObject * node_arg, PyObject * type_support_arg, const char * topic_name,
+  int reliability, int history, int depth, const rosidl_message_type_support_t ** type_support,
+  rmw_qos_profile_t * qos)
+{
+  if (base->rmw_node != nullptr) {
+    PyErr_SetString(PyExc_RuntimeError, "channel is already initialized");
+    return -1;
+  }
+  if (!PyCapsule_CheckExact(type_support_arg)) {
+    PyErr_Format(
+      PyExc_TypeError, "type_support must be a message type's _TYPE_SUPPORT capsule, got %.100s "
+      "(call msg_type.__class__.__import_type_support__() first)",
+      Py_TYPE(type_support_arg)->tp_name);
+    return -1;
+  }
+  *type_support = static_cast<const rosidl_message_type_support_t *>(
+    PyCapsule_GetPointer(type_support_arg, PyCapsule_GetName(type_support_arg)));
+  if (*type_support == nullptr) {
+    return -1;
+  }
+  if (topic_name[0] == '\0') {
+    PyErr_SetString(PyExc_ValueError, "topic_name must not be empty");
+    return -1;
+  }
+  if (reliability < 0 || reliability > 2 || history < 0 || history > 2 || depth < 0) {
+    PyErr_Format(
+      PyExc_ValueError, "bad QoS: reliability=%d history=%d depth=%d (rmw enum values: "
+      "reliability 1 reliable / 2 best effort, history 1 keep last / 2 keep all)",
+      reliability, history, depth);
+    return -1;
+  }
+  if (base->node->acquire(node_arg, "node") < 0) {
+    return -1;
+  }
+  rmw_node_t * rmw_node;
+  {
+    GilRelease nogil;
+    rmw_node = rcl_node_get_rmw_handle(static_cast<const rcl_node_t *>(base->node->get()));
+    if (rmw_node == nullptr) {
+      rcl_reset_error();
+    }
+  }
+  if (rmw_node == nullptr) {
+    base->node->release();
+    PyErr_SetString(DdsError, "the rcl node is not valid (already destroyed?)");
+    return -1;
+  }
+  if (check_identifier(rmw_node->implementation_identifier, "node") < 0) {
+    base->node->release();
+    return -1;
+  }
+  *qos = rmw_qos_profile_default;
+  qos->reliability = static_cast<rmw_qos_reliability_policy_t>(reliability);
+  qos->history = static_cast<rmw_qos_history_policy_t>(history);
+  qos->depth = static_cast<size_t>(depth);
+  qos->durability = RMW_QOS_POLICY_DURABILITY_VOLATILE;
+  qos->avoid_ros_namespace_conventions = true;
+  base->topic_name->assign(topic_name);
+  base->rmw_node = rmw_node;
+  return 0;
+}
+
+/// Undo base_setup after a failed creation (GIL held).
+void base_unsetup(ChannelBase * base)
+{
+  base->rmw_node = nullptr;
+  base->node->release();
+}
+
+PyObject * base_gid(PyObject * self, void *)
+{
+  return gid_bytes(reinterpret_cast<ChannelBase *>(self)->gid);
+}
+
+PyObject * base_topic_name(PyObject * self, void *)
+{
+  const std::string & name = *reinterpret_cast<ChannelBase *>(self)->topic_name;
+  return PyUnicode_FromStringAndSize(name.data(), static_cast<Py_ssize_t>(name.size()));
+}
+
+const char * kChannelKwlist[] = {
+  "node", "type_support", "topic_name", "reliability", "history", "depth", "guard_condition",
+  nullptr};
+
+// ------------------------------------------------------------------ ChannelPublisher
+
+PyObject * pub_new(PyTypeObject * type, PyObject *, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(type->tp_alloc(type, 0));
+  if (self == nullptr) {
+    return nullptr;
+  }
+  self->publisher = nullptr;
+  if (base_alloc(&self->base) < 0) {
+    Py_DECREF(self);
+    return nullptr;
+  }
+  return reinterpret_cast<PyObject *>(self);
+}
+
+int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  PyObject * node_arg;
+  PyObject * ts_arg;
+  const char * topic_name;
+  int reliability = RMW_QOS_POLICY_RELIABILITY_RELIABLE;
+  int history = RMW_QOS_POLICY_HISTORY_KEEP_LAST;
+  int depth = 10;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "OOs|iii:ChannelPublisher", const_cast<char **>(kChannelKwlist),
+      &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth))
+  {
+    return -1;
+  }
+  const rosidl_message_type_support_t * ts;
+  rmw_qos_profile_t qos;
+  if (base_setup(
+      &self->base, node_arg, ts_arg, topic_name, reliability, history, depth, &ts, &qos) < 0)
+  {
+    return -1;
+  }
+  rmw_publisher_options_t options = rmw_get_default_publisher_options();
+  rmw_publisher_t * publisher;
+  rmw_gid_t gid;
+  std::string error;
+  {
+    GilRelease nogil;
+    publisher = rmw_create_publisher(
+      self->base.rmw_node, ts, self->base.topic_name->c_str(), &qos, &options);
+    if (publisher == nullptr) {
+      error = take_rmw_error();
+    } else if (rmw_get_gid_for_publisher(publisher, &gid) != RMW_RET_OK) {
+      error = take_rmw_error();
+      if (rmw_destroy_publisher(self->base.rmw_node, publisher) != RMW_RET_OK) {
+        rcutils_reset_error();
+      }
+      publisher = nullptr;
+    }
+  }
+  if (publisher == nullptr) {
+    base_unsetup(&self->base);
+    raise_rmw_error("rmw_create_publisher('" + *self->base.topic_name + "') failed", error);
+    return -1;
+  }
+  std::memcpy(self->base.gid, gid.data, RMW_GID_STORAGE_SIZE);
+  self->publisher = publisher;
+  return 0;
+}
+
+/// Destroy the rmw publisher (GIL held; released inside). Returns 0 or -1 with an exception.
+int pub_do_destroy(ChannelPublisherObject * self)
+{
+  if (self->base.op_mutex == nullptr) {
+    return 0;
+  }
+  rmw_ret_t ret = RMW_RET_OK;
+  std::string error;
+  bool destroyed = false;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->publisher != nullptr) {
+      ret = rmw_destroy_publisher(self->base.rmw_node, self->publisher);
+      if (ret != RMW_RET_OK) {
+        error = take_rmw_error();
+      }
+      self->publisher = nullptr;
+      destroyed = true;
+    }
+  }
+  if (destroyed) {
+    base_unsetup(&self->base);  // unpin the node only after the publisher is gone
+  }
+  if (ret != RMW_RET_OK) {
+    raise_rmw_error("rmw_destroy_publisher failed", error);
+    return -1;
+  }
+  return 0;
+}
+
+void pub_dealloc(PyObject * op)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  PyObject * exc_type, * exc_value, * exc_tb;
+  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
+  if (pub_do_destroy(self) < 0) {
+    PyErr_WriteUnraisable(op);
+  }
+  PyErr_Restore(exc_type, exc_value, exc_tb);
+  base_free(&self->base);
+  PyTypeObject * tp = Py_TYPE(op);
+  tp->tp_free(op);
+  Py_DECREF(tp);
+}
+
+PyObject * pub_destroy(PyObject * op, PyObject *)
+{
+  if (pub_do_destroy(reinterpret_cast<ChannelPublisherObject *>(op)) < 0) {
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+PyObject * pub_publish(PyObject * op, PyObject * data)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  Py_buffer view;
+  if (PyObject_GetBuffer(data, &view, PyBUF_C_CONTIGUOUS) < 0) {
+    return nullptr;
+  }
+  if (view.len < 4) {
+    PyBuffer_Release(&view);
+    PyErr_SetString(
+      PyExc_ValueError, "serialized message too short (needs the 4-byte CDR encapsulation)");
+    return nullptr;
+  }
+  rmw_ret_t ret = RMW_RET_OK;
+  bool valid = true;
+  std::string error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->publisher == nullptr) {
+      valid = false;
+    } else {
+      // rmw only reads the buffer: point it at the caller's memory, no copy here.
+      rmw_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
+      msg.buffer = static_cast<uint8_t *>(view.buf);
+      msg.buffer_length = static_cast<size_t>(view.len);
+      msg.buffer_capacity = static_cast<size_t>(view.len);
+      msg.allocator = rcutils_get_default_allocator();
+      ret = rmw_publish_serialized_message(self->publisher, &msg, nullptr);
+      if (ret != RMW_RET_OK) {
+        error = take_rmw_error();
+      }
+    }
+  }
+  PyBuffer_Release(&view);
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    return nullptr;
+  }
+  if (ret != RMW_RET_OK) {
+    return raise_rmw_error("rmw_publish_serialized_message failed", error);
+  }
+  Py_RETURN_NONE;
+}
+
+PyObject * pub_matched_count(PyObject * op, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  size_t count = 0;
+  rmw_ret_t ret = RMW_RET_OK;
+  bool valid = true;
+  std::string error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->publisher == nullptr) {
+      valid = false;
+    } else {
+      ret = rmw_publisher_count_matched_subscriptions(self->publisher, &count);
+      if (ret != RMW_RET_OK) {
+        error = take_rmw_error();
+      }
+    }
+  }
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    return nullptr;
+  }
+  if (ret != RMW_RET_OK) {
+    return raise_rmw_error("rmw_publisher_count_matched_subscriptions failed", error);
+  }
+  return PyLong_FromSize_t(count);
+}
+
+PyObject * pub_valid(PyObject * op, void *)
+{
+  return PyBool_FromLong(reinterpret_cast<ChannelPublisherObject *>(op)->publisher != nullptr);
+}
+
+PyMethodDef pub_methods[] = {
+  {"publish", pub_publish, METH_O,
+    "publish(data) -> None\n\nWrite serialized CDR (with its 4-byte encapsulation header) from "
+    "any C-contiguous buffer, without copying it in Python; the GIL is released meanwhile."},
+  {"matched_count", pub_matched_count, METH_NOARGS,
+    "matched_count() -> int: subscriptions currently matched."},
+  {"destroy", pub_destroy, METH_NOARGS,
+    "destroy() -> None: delete the rmw publisher and unpin the node (idempotent)."},
+  {nullptr, nullptr, 0, nullptr},
+};
+
+PyGetSetDef pub_getset[] = {
+  {"gid", base_gid, nullptr, "16-byte GID (as in get_publishers_info_by_topic)", nullptr},
+  {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
+  {"valid", pub_valid, nullptr, "False once destroyed", nullptr},
+  {nullptr, nullptr, nullptr, nullptr, nullptr},
+};
+
+PyType_Slot pub_slots[] = {
+  {Py_tp_doc, const_cast<char *>(
+      "ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)\n"
+      "--\n\n"
+      "An rmw_fastrtps publisher below rcl on the node's participant: topic_name is the full\n"
+      "DDS name (e.g. 'rt/camera/image/_buf/<hex>_<hex>'), volatile durability. node is an\n"
+      "rclpy Node (or its handle, or an rcl_node_t* int); type_support is msg_type._TYPE_SUPPORT.")},
+  {Py_tp_new, reinterpret_cast<void *>(pub_new)},
+  {Py_tp_init, reinterpret_cast<void *>(pub_init)},
+  {Py_tp_dealloc, reinterpret_cast<void *>(pub_dealloc)},
+  {Py_tp_methods, pub_methods},
+  {Py_tp_getset, pub_getset},
+  {0, nullptr},
+};
+
+PyType_Spec pub_spec = {
+  "rosidl_buffer_py._native.ChannelPublisher",
+  sizeof(ChannelPublisherObject),
+  0,
+  Py_TPFLAGS_DEFAULT,
+  pub_slots,
+};
+
+// ------------------------------------------------------------------ ChannelSubscription
+
+PyObject * sub_new(PyTypeObject * type, PyObject *, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(type->tp_alloc(type, 0));
+  if (self == nullptr) {
+    return nullptr;
+  }
+  self->subscription = nullptr;
+  self->notify = nullptr;
+  self->buffer = nullptr;
+  self->guard_condition = new (std::nothrow) PinnedHandle();
+  if (self->guard_condition == nullptr || base_alloc(&self->base) < 0) {
+    if (!PyErr_Occurred()) {
+      PyErr_NoMemory();
+    }
+    Py_DECREF(self);
+    return nullptr;
+  }
+  return reinterpret_cast<PyObject *>(self);
+}
+
+int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
+{
+  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
+  PyObject * node_arg;
+  PyObject * ts_arg;
+  const char * topic_name;
+  int reliability = RMW_QOS_POLICY_RELIABILITY_RELIABLE;
+  int history = RMW_QOS_POLICY_HISTORY_KEEP_LAST;
+  int depth = 10;
+  PyObject * gc_arg = Py_None;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "OOs|iiiO:ChannelSubscription", const_cast<char **>(kChannelKwlist),
+      &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth, &gc_arg))
+  {
+    return -1;
+  }
+  const rosidl_message_type_support_t * ts;
+  rmw_qos_profile_t qos;
+  if (base_setup(
+      &self->base, node_arg, ts_arg, topic_name, reliability, history, depth, &ts, &qos) < 0)
+  {
+    return -1;
+  }
+  if (gc_arg != Py_None) {
+    if (self->guard_condition->acquire(gc_arg, "guard_condition") < 0) {
+      base_unsetup(&self->base);
+      return -1;
+    }
+    self->notify = new NewMessageNotify{
+      static_cast<rcl_guard_condition_t *>(self->guard_condition->get())};
+  }
+  self->buffer = new rmw_serialized_message_t(rmw_get_zero_initialized_serialized_message());
+  rmw_subscription_options_t options = rmw_get_default_subscription_options();
+  rmw_subscription_t * subscription;
+  rmw_gid_t gid;
+  std::memset(&gid, 0, sizeof(gid));
+  std::string error;
+  {
+    GilRelease nogil;
+    rcutils_allocator_t allocator = rcutils_get_default_allocator();
+    if (rmw_serialized_message_init(self->buffer, 0, &allocator) != RMW_RET_OK) {
+      rcutils_reset_error();
+    }
+    subscription = rmw_create_subscription(
+      self->base.rmw_node, ts, self->base.topic_name->c_str(), &qos, &options);
+    if (subscription == nullptr) {
+      error = take_rmw_error();
+    } else if (self->notify != nullptr &&
+      rmw_subscription_set_on_new_message_callback(
+        subscription, on_new_message, self->notify) != RMW_RET_OK)
+    {
+      error = "rmw_subscription_set_on_new_message_callback: " + take_rmw_error();
+      if (rmw_destroy_subscription(self->base.rmw_node, subscription) != RMW_RET_OK) {
+        rcutils_reset_error();
+      }
+      subscription = nullptr;
+    }
+  }
+  if (subscription == nullptr) {
+    delete self->notify;
+    self->notify = nullptr;
+    self->guard_condition->release();
+    base_unsetup(&self->base);
+    raise_rmw_error("rmw_create_subscription('" + *self->base.topic_name + "') failed", error);
+    return -1;
+  }
+  // Jazzy's rmw has no rmw_get_gid_for_subscription: the graph reports the DataReader's GUID.
+  {
+    GilRelease nogil;
+    eprosima::fastdds::dds::DataReader * reader = rmw_fastrtps_cpp::get_datareader(subscription);
+    if (reader != nullptr) {
+      rmw_fastrtps_shared_cpp::copy_from_fastrtps_guid_to_byte_array(
+        reader->guid(), self->base.gid);
+    }
+  }
+  self->subscription = subscription;
+  return 0;
+}
+
+int sub_do_destroy(ChannelSubscriptionObject * self)
+{
+  if (self->base.op_mutex == nullptr) {
+    return 0;
+  }
+  rmw_ret_t ret = RMW_RET_OK;
+  std::string error;
+  bool destroyed = false;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->subscription != nullptr) {
+      if (self->notify != nullptr) {
+        // rmw holds its callback mutex while calling us: once this returns, no callback
+        // is running or will run.
+        if (rmw_subscription_set_on_new_message_callback(
+            self->subscription, nullptr, nullptr) != RMW_RET_OK)
+        {
+          rcutils_reset_error();
+        }
+      }
+      ret = rmw_destroy_subscription(self->base.rmw_node, self->subscription);
+      if (ret != RMW_RET_OK) {
+        error = take_rmw_error();
+      }
+      self->subscription = nullptr;
+      destroyed = true;
+    }
+    if (self->buffer != nullptr) {
+      if (self->buffer->buffer != nullptr && rmw_serialized_message_fini(self->buffer) != RMW_RET_OK) {
+        rcutils_reset_error();
+      }
+      delete self->buffer;
+      self->buffer = nullptr;
+    }
+  }
+  if (destroyed) {
+    delete self->notify;
+    self->notify = nullptr;
+    if (self->guard_condition) {
+      self->guard_condition->release();
+    }
+    base_unsetup(&self->base);
+  }
+  if (ret != RMW_RET_OK) {
+    raise_rmw_error("rmw_destroy_subscription failed", error);
+    return -1;
+  }
+  return 0;
+}
+
+void sub_dealloc(PyObject * op)
+{
+  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
+  PyObject * exc_type, * exc_value, * exc_tb;
+  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
+  if (sub_do_destroy(self) < 0) {
+    PyErr_WriteUnraisable(op);
+  }
+  PyErr_Restore(exc_type, exc_value, exc_tb);
+  delete self->notify;
+  delete self->guard_condition;
+  delete self->buffer;
+  base_free(&self->base);
+  PyTypeObject * tp = Py_TYPE(op);
+  tp->tp_free(op);
+  Py_DECREF(tp);
+}
+
+PyObject * sub_destroy(PyObject * op, PyObject *)
+{
+  if (sub_do_destroy(reinterpret_cast<ChannelSubscriptionObject *>(op)) < 0) {
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+PyObject * sub_take(PyObject * op, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
+  rmw_ret_t ret = RMW_RET_OK;
+  bool valid = true;
+  bool taken = false;
+  rmw_message_info_t info = rmw_get_zero_initialized_message_info();
+  std::string error;
+  PyThreadState * ts = PyEval_SaveThread();
+  // Held until the bytes are copied out of the reused buffer (taken with the GIL released,
+  // so no thread ever holds the GIL while waiting for it).
+  std::unique_lock<std::mutex> lock(*self->base.op_mutex);
+  if (self->subscription == nullptr) {
+    valid = false;
+  } else {
+    ret = rmw_take_serialized_message_with_info(
+      self->subscription, self->buffer, &taken, &info, nullptr);
+    if (ret != RMW_RET_OK) {
+      error = take_rmw_error();
+    }
+  }
+  PyEval_RestoreThread(ts);
+  PyObject * result = nullptr;
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelSubscription was destroyed");
+  } else if (ret != RMW_RET_OK) {
+    raise_rmw_error("rmw_take_serialized_message_with_info failed", error);
+  } else if (!taken) {
+    Py_INCREF(Py_None);
+    result = Py_None;
+  } else {
+    PyObject * data = PyBytes_FromStringAndSize(
+      reinterpret_cast<const char *>(self->buffer->buffer),
+      static_cast<Py_ssize_t>(self->buffer->buffer_length));
+    PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
+    PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
+    if (info_dict) {
+      result = PyTuple_Pack(3, data, gid, info_dict);
+    }
+    Py_XDECREF(data);
+    Py_XDECREF(gid);
+    Py_XDECREF(info_dict);
+  }
+  lock.unlock();
+  return result;
+}
+
+PyObject * sub_matched_count(PyObject * op, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
+  size_t count = 0;
+  rmw_ret_t ret = RMW_RET_OK;
+  bool valid = true;
+  std::string error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->subscription == nullptr) {
+      valid = false;
+    } else {
+      ret = rmw_subscription_count_matched_publishers(self->subscription, &count);
+      if (ret != RMW_RET_OK) {
+        error = take_rmw_error();
+      }
+    }
+  }
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelSubscription was destroyed");
+    return nullptr;
+  }
+  if (ret != RMW_RET_OK) {
+    return raise_rmw_error("rmw_subscription_count_matched_publishers failed", error);
+  }
+  return PyLong_FromSize_t(count);
+}
+
+PyObject * sub_valid(PyObject * op, void *)
+{
+  return PyBool_FromLong(
+    reinterpret_cast<ChannelSubscriptionObject *>(op)->subscription != nullptr);
+}
+
+PyMethodDef sub_methods[] = {
+  {"take", sub_take, METH_NOARGS,
+    "take() -> (bytes, publisher_gid, info) | None\n\nTake one serialized message: CDR "
+    "bytes, the writer's 16-byte GID and an rclpy-like message info dict."},
+  {"matched_count", sub_matched_count, METH_NOARGS,
+    "matched_count() -> int: publishers currently matched."},
+  {"destroy", sub_destroy, METH_NOARGS,
+    "destroy() -> None: stop notifications, delete the rmw subscription, unpin the node "
+    "and the guard condition (idempotent)."},
+  {nullptr, nullptr, 0, nullptr},
+};
+
+PyGetSetDef sub_getset[] = {
+  {"gid", base_gid, nullptr, "16-byte GID (as in get_subscriptions_info_by_topic)", nullptr},
+  {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
+  {"valid", sub_valid, nullptr, "False once destroyed", nullptr},
+  {nullptr, nullptr, nullptr, nullptr, nullptr},
+};
+
+PyType_Slot sub_slots[] = {
+  {Py_tp_doc, const_cast<char *>(
+      "ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,\n"
+      "                    guard_condition=None)\n--\n\n"
+      "An rmw_fastrtps subscription below rcl; new data triggers guard_condition (an rclpy\n"
+      "GuardCondition or its handle, pinned until destroy()).")},
+  {Py_tp_new, reinterpret_cast<void *>(sub_new)},
+  {Py_tp_init, reinterpret_cast<void *>(sub_init)},
+  {Py_tp_dealloc, reinterpret_cast<void *>(sub_dealloc)},
+  {Py_tp_methods, sub_methods},
+  {Py_tp_getset, sub_getset},
+  {0, nullptr},
+};
+
+PyType_Spec sub_spec = {
+  "rosidl_buffer_py._native.ChannelSubscription",
+  sizeof(ChannelSubscriptionObject),
+  0,
+  Py_TPFLAGS_DEFAULT,
+  sub_slots,
+};
+
+}  // namespace
+
+int add_dds_channel_types(PyObject * module)
+{
+  PyObject * pub_type = PyType_FromSpec(&pub_spec);
+  if (pub_type == nullptr) {
+    return -1;
+  }
+  if (PyModule_AddObject(module, "ChannelPublisher", pub_type) < 0) {
+    Py_DECREF(pub_type);
+    return -1;
+  }
+  PyObject * sub_type = PyType_FromSpec(&sub_spec);
+  if (sub_type == nullptr) {
+    return -1;
+  }
+  if (PyModule_AddObject(module, "ChannelSubscription", sub_type) < 0) {
+    Py_DECREF(sub_type);
+    return -1;
+  }
+  return 0;
+}
+
+}  // namespace rbpy_dds

@@ -1,0 +1,228 @@
+// Shared helpers of the rmw_fastrtps layer and its registration (see dds_common.hpp).
+#include "dds_common.hpp"
+
+#include <cstring>
+
+#include "rcutils/error_handling.h"
+
+namespace rbpy_dds
+{
+
+PyObject * DdsError = nullptr;
+PyObject * UnsupportedRmwError = nullptr;
+
+int PinnedHandle::acquire(PyObject * arg, const char * what)
+{
+  release();
+  if (arg == nullptr || arg == Py_None) {
+    PyErr_Format(PyExc_TypeError, "%s: expected a pointer int or an rclpy handle, got None", what);
+    return -1;
+  }
+  if (PyLong_Check(arg)) {
+    void * p = PyLong_AsVoidPtr(arg);
+    if (p == nullptr) {
+      if (!PyErr_Occurred()) {
+        PyErr_Format(PyExc_ValueError, "%s: null pointer", what);
+      }
+      return -1;
+    }
+    ptr_ = p;
+    return 0;
+  }
+  // An rclpy entity (Node, Publisher, ...) carries its handle in `.handle`.
+  PyObject * handle = nullptr;
+  if (PyObject_HasAttrString(arg, "pointer")) {
+    handle = arg;
+    Py_INCREF(handle);
+  } else if (PyObject_HasAttrString(arg, "handle")) {
+    handle = PyObject_GetAttrString(arg, "handle");
+    if (handle == nullptr) {
+      return -1;
+    }
+  } else {
+    PyErr_Format(
+      PyExc_TypeError, "%s: expected a pointer int, an rclpy handle or an rclpy entity, got %.100s",
+      what, Py_TYPE(arg)->tp_name);
+    return -1;
+  }
+  // Enter first (raises if rclpy already destroyed it), then read the pointer.
+  PyObject * entered = PyObject_CallMethod(handle, "__enter__", nullptr);
+  if (entered == nullptr) {
+    Py_DECREF(handle);
+    return -1;
+  }
+  Py_DECREF(entered);
+  PyObject * pointer = PyObject_GetAttrString(handle, "pointer");
+  void * p = pointer ? PyLong_AsVoidPtr(pointer) : nullptr;
+  Py_XDECREF(pointer);
+  if (p == nullptr) {
+    if (!PyErr_Occurred()) {
+      PyErr_Format(PyExc_ValueError, "%s: handle holds a null pointer", what);
+    }
+    PyObject * r = PyObject_CallMethod(handle, "__exit__", "OOO", Py_None, Py_None, Py_None);
+    Py_XDECREF(r);
+    Py_DECREF(handle);
+    return -1;
+  }
+  handle_ = handle;
+  ptr_ = p;
+  return 0;
+}
+
+void * PinnedHandle::peek(PyObject * arg, const char * what)
+{
+  if (arg != nullptr && PyLong_Check(arg)) {
+    void * p = PyLong_AsVoidPtr(arg);
+    if (p == nullptr && !PyErr_Occurred()) {
+      PyErr_Format(PyExc_ValueError, "%s: null pointer", what);
+    }
+    return p;
+  }
+  PyObject * handle = nullptr;
+  if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "pointer")) {
+    handle = arg;
+    Py_INCREF(handle);
+  } else if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "handle")) {
+    handle = PyObject_GetAttrString(arg, "handle");
+    if (handle == nullptr) {
+      return nullptr;
+    }
+  } else {
+    PyErr_Format(
+      PyExc_TypeError, "%s: expected a pointer int, an rclpy handle or an rclpy entity, got %.100s",
+      what, arg ? Py_TYPE(arg)->tp_name : "NULL");
+    return nullptr;
+  }
+  PyObject * pointer = PyObject_GetAttrString(handle, "pointer");
+  Py_DECREF(handle);
+  void * p = pointer ? PyLong_AsVoidPtr(pointer) : nullptr;
+  Py_XDECREF(pointer);
+  if (p == nullptr && !PyErr_Occurred()) {
+    PyErr_Format(PyExc_ValueError, "%s: handle holds a null pointer", what);
+  }
+  return p;
+}
+
+void PinnedHandle::release()
+{
+  ptr_ = nullptr;
+  PyObject * handle = handle_;
+  if (handle == nullptr) {
+    return;
+  }
+  handle_ = nullptr;
+  PyObject * exc_type, * exc_value, * exc_tb;
+  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
+  PyObject * r = PyObject_CallMethod(handle, "__exit__", "OOO", Py_None, Py_None, Py_None);
+  if (r == nullptr) {
+    PyErr_WriteUnraisable(handle);
+  }
+  Py_XDECREF(r);
+  Py_DECREF(handle);
+  PyErr_Restore(exc_type, exc_value, exc_tb);
+}
+
+std::string take_rmw_error()
+{
+  if (!rcutils_error_is_set()) {
+    return "unknown error";
+  }
+  std::string s = rcutils_get_error_string().str;
+  rcutils_reset_error();
+  return s;
+}
+
+PyObject * raise_rmw_error(const std::string & what, const std::string & rmw_error)
+{
+  PyErr_Format(DdsError, "%s: %s", what.c_str(), rmw_error.c_str());
+  return nullptr;
+}
+
+PyObject * gid_bytes(const uint8_t * data)
+{
+  return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(data), RMW_GID_STORAGE_SIZE);
+}
+
+PyObject * message_info_dict(const rmw_message_info_t & info)
+{
+  return Py_BuildValue(
+    "{s:L,s:L,s:K,s:K,s:O}",
+    "source_timestamp", static_cast<long long>(info.source_timestamp),
+    "received_timestamp", static_cast<long long>(info.received_timestamp),
+    "publication_sequence_number",
+    static_cast<unsigned long long>(info.publication_sequence_number),
+    "reception_sequence_number",
+    static_cast<unsigned long long>(info.reception_sequence_number),
+    "from_intra_process", info.from_intra_process ? Py_True : Py_False);
+}
+
+int parse_kind(const char * kind, bool * is_publisher)
+{
+  if (std::strcmp(kind, "publisher") == 0 || std::strcmp(kind, "writer") == 0) {
+    *is_publisher = true;
+    return 0;
+  }
+  if (std::strcmp(kind, "subscription") == 0 || std::strcmp(kind, "reader") == 0) {
+    *is_publisher = false;
+    return 0;
+  }
+  PyErr_Format(
+    PyExc_ValueError, "kind must be 'publisher' or 'subscription', got '%s'", kind);
+  return -1;
+}
+
+int check_identifier(const char * identifier, const char * what)
+{
+  if (identifier == nullptr || std::strcmp(identifier, kFastrtpsIdentifier) != 0) {
+    PyErr_Format(
+      UnsupportedRmwError, "%s belongs to rmw implementation '%s'; only '%s' is supported",
+      what, identifier ? identifier : "(none)", kFastrtpsIdentifier);
+    return -1;
+  }
+  return 0;
+}
+
+}  // namespace rbpy_dds
+
+int add_dds_api(PyObject * module)
+{
+  using rbpy_dds::DdsError;
+  using rbpy_dds::UnsupportedRmwError;
+  if (DdsError == nullptr) {
+    DdsError = PyErr_NewExceptionWithDoc(
+      "rosidl_buffer_py._native.DdsError",
+      "A Fast DDS / rmw / rcl call of the native layer failed.", PyExc_RuntimeError, nullptr);
+    if (DdsError == nullptr) {
+      return -1;
+    }
+  }
+  if (UnsupportedRmwError == nullptr) {
+    UnsupportedRmwError = PyErr_NewExceptionWithDoc(
+      "rosidl_buffer_py._native.UnsupportedRmwError",
+      "The entity does not belong to rmw_fastrtps_cpp; use plain rclpy instead.",
+      DdsError, nullptr);
+    if (UnsupportedRmwError == nullptr) {
+      return -1;
+    }
+  }
+  Py_INCREF(DdsError);
+  if (PyModule_AddObject(module, "DdsError", DdsError) < 0) {
+    Py_DECREF(DdsError);
+    return -1;
+  }
+  Py_INCREF(UnsupportedRmwError);
+  if (PyModule_AddObject(module, "UnsupportedRmwError", UnsupportedRmwError) < 0) {
+    Py_DECREF(UnsupportedRmwError);
+    return -1;
+  }
+  if (PyModule_AddStringConstant(module, "RMW_IMPLEMENTATION", rbpy_dds::kFastrtpsIdentifier) < 0) {
+    return -1;
+  }
+  if (rbpy_dds::add_dds_endpoint_functions(module) < 0 ||
+    rbpy_dds::add_dds_discovery_functions(module) < 0 ||
+    rbpy_dds::add_dds_channel_types(module) < 0)
+  {
+    return -1;
+  }
+  return 0;
+}

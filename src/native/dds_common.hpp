@@ -1,0 +1,98 @@
+// Shared helpers of the rmw_fastrtps layer of rosidl_buffer_py._native (the dds_*.cpp files).
+//
+// Everything here runs with the GIL held unless a comment says otherwise.
+#ifndef ROSIDL_BUFFER_PY_NATIVE__DDS_COMMON_HPP_
+#define ROSIDL_BUFFER_PY_NATIVE__DDS_COMMON_HPP_
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <cstdint>
+#include <string>
+
+#include "rmw/types.h"
+
+namespace rbpy_dds
+{
+
+/// The only rmw implementation this layer supports.
+constexpr const char * kFastrtpsIdentifier = "rmw_fastrtps_cpp";
+
+/// Module exceptions: DdsError(RuntimeError) and UnsupportedRmwError(DdsError).
+extern PyObject * DdsError;
+extern PyObject * UnsupportedRmwError;
+
+/// Releases the GIL for its scope. Never touch Python objects inside.
+class GilRelease
+{
+public:
+  GilRelease() : state_(PyEval_SaveThread()) {}
+  ~GilRelease() {PyEval_RestoreThread(state_);}
+  GilRelease(const GilRelease &) = delete;
+  GilRelease & operator=(const GilRelease &) = delete;
+
+private:
+  PyThreadState * state_;
+};
+
+/// A C pointer handed over from Python, optionally pinned.
+///
+/// Accepted forms: an int (the caller guarantees the pointee outlives every use); an rclpy
+/// handle (an object with `.pointer`, e.g. `node.handle`); an rclpy entity whose `.handle` is
+/// such a handle (Node, Publisher, Subscription, GuardCondition). Handles are *pinned*: their
+/// context manager is entered, so rclpy defers destroying the rcl object (destroy_node(),
+/// destroy_publisher(), ...) until release().
+class PinnedHandle
+{
+public:
+  PinnedHandle() = default;
+  ~PinnedHandle() {release();}
+  PinnedHandle(const PinnedHandle &) = delete;
+  PinnedHandle & operator=(const PinnedHandle &) = delete;
+
+  /// Resolve `arg` (GIL held). Returns 0, or -1 with a TypeError/ValueError set.
+  int acquire(PyObject * arg, const char * what);
+  /// Leave the handle's context and drop the reference (GIL held). Idempotent.
+  void release();
+  void * get() const {return ptr_;}
+
+  /// Resolve the pointer of `arg` without pinning it (GIL held). nullptr with an exception.
+  static void * peek(PyObject * arg, const char * what);
+
+private:
+  PyObject * handle_ = nullptr;  // owned, entered; NULL for plain ints
+  void * ptr_ = nullptr;
+};
+
+/// Read and clear the calling thread's rcutils/rmw error string (GIL not needed).
+std::string take_rmw_error();
+
+/// Raise DdsError("<what>: <rmw error>"); returns NULL.
+PyObject * raise_rmw_error(const std::string & what, const std::string & rmw_error);
+
+/// 16-byte GID bytes object.
+PyObject * gid_bytes(const uint8_t * data);
+
+/// rclpy-like message info dict (source_timestamp, received_timestamp,
+/// publication_sequence_number, reception_sequence_number, from_intra_process).
+PyObject * message_info_dict(const rmw_message_info_t & info);
+
+/// Parse an endpoint kind: "publisher"/"writer" -> true, "subscription"/"reader" -> false.
+/// Returns 0 or -1 with ValueError.
+int parse_kind(const char * kind, bool * is_publisher);
+
+/// Raise UnsupportedRmwError unless `identifier` is rmw_fastrtps_cpp. Returns 0 or -1.
+int check_identifier(const char * identifier, const char * what);
+
+// Registration of each part (called from add_dds_api).
+int add_dds_endpoint_functions(PyObject * module);
+int add_dds_discovery_functions(PyObject * module);
+int add_dds_channel_types(PyObject * module);
+
+}  // namespace rbpy_dds
+
+/// Add the rmw_fastrtps layer (functions, ChannelPublisher, ChannelSubscription, exceptions)
+/// to `module`. Returns 0 or -1 with an exception set.
+int add_dds_api(PyObject * module);
+
+#endif  // ROSIDL_BUFFER_PY_NATIVE__DDS_COMMON_HPP_
