@@ -1,0 +1,35 @@
+"""demo_buffer_backend: the ``demo`` buffer backend, payloads in POSIX shared memory.
+
+Image bytes live in /dev/shm segments (``rbpy_demo_<pid>_<hex>``, mode 0600); only a small
+descriptor crosses DDS and the subscriber gets a zero-copy read-only view.
+
+- :mod:`.buffer`: :class:`DemoBuffer` (``from_cpu``, ``allocate``, ``to_array``);
+- :mod:`.backend`: :class:`DemoBackend`, the plugin;
+- :mod:`.pool`: the process-wide slot pool and mapping cache, limits, counters, lifecycle;
+- :mod:`.shm`: segment files, header layout, liveness and scavenging;
+- :mod:`.locks`: Linux OFD byte-range locks;
+- :mod:`.descriptor`: the descriptor wire format and its validation.
+
+Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=)``, the environment
+variables ``RBPY_DEMO_MAX_POOL_BYTES``, ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, or
+``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 32 slots, 5 s.
+"""
+from demo_buffer_backend.backend import DemoBackend
+from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
+from demo_buffer_backend.pool import configure, shutdown, stats
+
+
+def sweep() -> None:
+    """Close unreferenced mappings of removed segments and remove segments of dead owners."""
+    from demo_buffer_backend import pool
+    pool.get_state().sweep()
+
+
+def scavenge() -> int:
+    """Remove every demo segment in /dev/shm whose owner process is gone; return how many."""
+    from demo_buffer_backend import pool
+    return pool.get_state().scavenge()
+
+
+__all__ = ['BACKEND_TYPE', 'DemoBackend', 'DemoBuffer', 'configure', 'scavenge', 'shutdown',
+           'stats', 'sweep']

@@ -1,0 +1,97 @@
+"""DemoBuffer: a Buffer whose bytes live in a demo shared-memory slot (or, as a fallback when the
+pool is exhausted, in private memory, in which case it is sent as CPU bytes)."""
+import array
+from typing import Any, Optional
+
+from rosidl_buffer_py.buffer import Buffer
+
+from demo_buffer_backend import pool
+
+BACKEND_TYPE = 'demo'
+
+
+def _byte_view(data: Any) -> memoryview:
+    """The raw bytes of ``data`` (bytes-like or C-contiguous array of any dtype), no copy."""
+    try:
+        view = memoryview(data)
+    except (TypeError, ValueError):
+        # numpy dtypes the buffer protocol cannot express (datetime64, ...): view them as uint8.
+        flags = getattr(data, 'flags', None)
+        if flags is None or not hasattr(data, 'view'):
+            raise TypeError('DemoBuffer.from_cpu needs bytes, bytearray, memoryview or a numpy '
+                            f'array, got {type(data).__name__}') from None
+        if not flags.c_contiguous:
+            raise ValueError('DemoBuffer.from_cpu needs C-contiguous data') from None
+        import numpy
+        view = memoryview(data.reshape(-1).view(numpy.uint8))
+    if not view.c_contiguous:
+        raise ValueError('DemoBuffer.from_cpu needs C-contiguous data (use '
+                         'numpy.ascontiguousarray first)')
+    if view.nbytes == 0:
+        return memoryview(b'')
+    if view.ndim != 1 or view.format != 'B':
+        view = view.cast('B')
+    return view
+
+
+class DemoBuffer(Buffer):
+    """A ``demo`` Buffer. Make one with :meth:`from_cpu` (one copy into shared memory) or
+    :meth:`allocate` (a writable slot to fill in place); a subscriber gets a read-only one from
+    ``DemoBackend.from_descriptor_with_endpoint``.
+
+    ``memoryview(buf)``, ``numpy.asarray(buf)`` and ``numpy.from_dlpack(buf)`` see the shared
+    memory itself, without a copy. The slot stays reserved as long as the Buffer or any of those
+    views lives. Do not write into a published Buffer: subscribers may be reading it.
+    """
+
+    def __init__(self, host: Any, *, keepalive: Optional[Any] = None) -> None:
+        """Internal: wrap ``host`` memory; ``keepalive`` is the pool's pin or hold (``None`` for
+        private memory). Use :meth:`from_cpu` or :meth:`allocate`."""
+        super().__init__(BACKEND_TYPE, host, keepalive=keepalive)
+        self._in_shm = isinstance(keepalive, (pool.Pin, pool.Hold))
+
+    @classmethod
+    def allocate(cls, nbytes: int) -> 'DemoBuffer':
+        """A writable DemoBuffer of ``nbytes`` (contents unspecified) to fill in place."""
+        if isinstance(nbytes, bool) or not isinstance(nbytes, int):
+            raise TypeError(f'nbytes must be an int, got {type(nbytes).__name__}')
+        if nbytes < 0:
+            raise ValueError(f'nbytes must be >= 0, got {nbytes}')
+        got = pool.get_state().allocate(nbytes)
+        if got is None:
+            return cls(bytearray(nbytes))
+        view, pin = got
+        return cls(view, keepalive=pin)
+
+    @classmethod
+    def from_cpu(cls, data: Any) -> 'DemoBuffer':
+        """A read-only DemoBuffer holding a copy of ``data``'s raw bytes (one memcpy)."""
+        source = _byte_view(data)
+        got = pool.get_state().allocate(source.nbytes)
+        if got is None:
+            return cls(bytes(source))
+        view, pin = got
+        view[:] = source
+        return cls(view.toreadonly(), keepalive=pin)
+
+    @property
+    def in_shm(self) -> bool:
+        """True when the bytes live in a shared-memory slot (False: private fallback memory,
+        which is sent as CPU bytes)."""
+        return self._in_shm
+
+    @property
+    def segment_name(self) -> Optional[str]:
+        """Name of the /dev/shm segment holding the bytes (``None`` for private memory)."""
+        return self._keepalive.name if self._in_shm else None
+
+    @property
+    def generation(self) -> Optional[int]:
+        """Generation of the slot these bytes belong to (``None`` for private memory)."""
+        return self._keepalive.generation if self._in_shm else None
+
+    def to_array(self) -> array.array:
+        """A copy of the bytes as ``array.array('B')`` (what stock rclpy hands out)."""
+        result = array.array('B')
+        result.frombytes(memoryview(self))
+        return result

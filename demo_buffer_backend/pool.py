@@ -1,0 +1,655 @@
+"""The process-wide state of the demo backend: the publisher's slot pool, the subscriber's mapping
+cache, the limits, the counters and the lifecycle (scavenging, atexit, fork).
+
+Publisher side: a pool of slots, one shm segment each, reused while they are free. A slot is free
+when no DemoBuffer of this process pins it, every descriptor created for its current generation
+has been taken (``taken >= sent`` in the header) and no process holds views of it (this process
+gets the exclusive OFD lock on its hold byte). Reuse bumps the generation under that lock. When
+no slot is free the pool grows up to the limits; at the limits, free slots of the wrong size are
+evicted, then slots whose last descriptor was created more than ``reclaim_timeout`` seconds ago
+and never taken are reclaimed (their late takers see a stale generation), and only then does the
+allocation fall back to private memory (the message then travels as CPU bytes).
+
+Subscriber side: segments are mapped once and cached by name. Per segment and process, the
+number of live views is counted; the shared OFD lock on the hold byte is taken on 0 -> 1 and
+dropped on 1 -> 0. A descriptor is accepted only after that lock is held and its generation and
+size match the header; then ``taken`` is incremented under the mutex byte.
+
+All of it is guarded by one lock. Releases triggered by garbage collection (a Buffer and its views
+going away) never wait for that lock: they are queued and run by whoever holds or next takes it.
+"""
+import atexit
+import os
+import threading
+import time
+from typing import Dict, List, Optional, Tuple
+
+from rclpy.logging import get_logger
+
+from demo_buffer_backend import descriptor as desc_codec
+from demo_buffer_backend import locks, shm
+
+#: Defaults of the pool limits; each can be set with its environment variable, with
+#: :func:`configure` or with ``DemoBackend(...)`` keyword arguments.
+DEFAULT_MAX_POOL_BYTES = 512 * 1024 * 1024
+DEFAULT_MAX_SLOTS = 32
+DEFAULT_RECLAIM_TIMEOUT = 5.0
+ENV_MAX_POOL_BYTES = 'RBPY_DEMO_MAX_POOL_BYTES'
+ENV_MAX_SLOTS = 'RBPY_DEMO_MAX_SLOTS'
+ENV_RECLAIM_TIMEOUT = 'RBPY_DEMO_RECLAIM_TIMEOUT'
+
+#: Subscriber-side mappings kept open at most (unreferenced ones beyond this are closed).
+MAX_MAPPINGS = 256
+#: Seconds between sweeps of the mapping cache (closing mappings of removed segments).
+SWEEP_INTERVAL = 1.0
+#: Bounded wait for the shared hold lock while a publisher briefly holds it exclusively.
+_HOLD_RETRIES = (0.0002,) * 10 + (0.002,) * 40
+
+_logger = get_logger('demo_buffer_backend')
+
+
+def _env_number(name: str, default, kind):
+    raw = os.environ.get(name)
+    if raw is None or not raw.strip():
+        return default
+    try:
+        value = kind(raw)
+        if value < 0:
+            raise ValueError
+        return value
+    except ValueError:
+        _logger.warning(f'{name}={raw!r} is not a non-negative {kind.__name__}; using {default}')
+        return default
+
+
+class _Limits:
+    def __init__(self) -> None:
+        self.max_pool_bytes = _env_number(ENV_MAX_POOL_BYTES, DEFAULT_MAX_POOL_BYTES, int)
+        self.max_slots = _env_number(ENV_MAX_SLOTS, DEFAULT_MAX_SLOTS, int)
+        self.reclaim_timeout = _env_number(ENV_RECLAIM_TIMEOUT, DEFAULT_RECLAIM_TIMEOUT, float)
+
+    def as_dict(self) -> dict:
+        return {'max_pool_bytes': self.max_pool_bytes, 'max_slots': self.max_slots,
+                'reclaim_timeout': self.reclaim_timeout}
+
+
+_limits = _Limits()
+
+
+def configure(*, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] = None,
+              reclaim_timeout: Optional[float] = None) -> dict:
+    """Set the process-wide pool limits (``None`` keeps a value); return the limits now in force.
+
+    :param max_pool_bytes: Total data bytes of all slots of this process.
+    :param max_slots: Number of slots (segments) of this process.
+    :param reclaim_timeout: Seconds after which, at the limits, a slot whose descriptors were never
+        all taken (a subscriber that dropped or never read the message) may be reused.
+    """
+    for name, value in (('max_pool_bytes', max_pool_bytes), ('max_slots', max_slots),
+                        ('reclaim_timeout', reclaim_timeout)):
+        if value is not None and (isinstance(value, bool) or not value >= 0):
+            raise ValueError(f'{name} must be a non-negative number, got {value!r}')
+    if max_pool_bytes is not None:
+        _limits.max_pool_bytes = int(max_pool_bytes)
+    if max_slots is not None:
+        _limits.max_slots = int(max_slots)
+    if reclaim_timeout is not None:
+        _limits.reclaim_timeout = float(reclaim_timeout)
+    return _limits.as_dict()
+
+
+class _Slot:
+    """A publisher-side slot: one segment this process created and owns."""
+
+    __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'pins', 'generation',
+                 'last_used', 'closed')
+
+    def __init__(self, name, fd, header, data, capacity):
+        self.name = name
+        self.fd = fd
+        self.header = header
+        self.data = data
+        self.view = memoryview(data)
+        self.capacity = capacity
+        self.pins = 0
+        self.generation = 0
+        self.last_used = 0
+        self.closed = False
+
+
+class Pin:
+    """Keepalive of a publisher-side DemoBuffer: the slot cannot be reused while it lives."""
+
+    __slots__ = ('state', 'slot', 'generation', 'size', 'packed')
+
+    def __init__(self, state, slot, size):
+        self.state = state
+        self.slot = slot
+        self.generation = slot.generation
+        self.size = size
+        self.packed = None  # the descriptor, packed on first use
+
+    @property
+    def name(self) -> str:
+        return self.slot.name
+
+    def __del__(self):
+        try:
+            self.state._defer(self.state._unpin, self.slot)
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+
+class _Mapping:
+    """A subscriber-side mapping of a segment (of any process, this one included)."""
+
+    __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'refs', 'closed')
+
+    def __init__(self, name, fd, header, data, capacity):
+        self.name = name
+        self.fd = fd
+        self.header = header
+        self.data = data
+        self.view = memoryview(data).toreadonly()
+        self.capacity = capacity
+        self.refs = 0
+        self.closed = False
+
+
+class Hold:
+    """Keepalive of a subscriber-side DemoBuffer: this process's hold on the slot's bytes."""
+
+    __slots__ = ('state', 'mapping', 'generation')
+
+    def __init__(self, state, mapping, generation):
+        self.state = state
+        self.mapping = mapping
+        self.generation = generation
+
+    @property
+    def name(self) -> str:
+        return self.mapping.name
+
+    def __del__(self):
+        try:
+            self.state._defer(self.state._release, self.mapping)
+        except Exception:  # pragma: no cover - interpreter shutdown
+            pass
+
+
+_COUNTERS = ('segments_created', 'segments_removed', 'fallbacks', 'descriptors_created',
+             'descriptors_declined', 'taken', 'rejected', 'stale', 'reclaimed', 'scavenged',
+             'mappings_opened', 'mappings_closed')
+
+
+class _Locked:
+    __slots__ = ('state',)
+
+    def __init__(self, state):
+        self.state = state
+
+    def __enter__(self):
+        self.state.lock.acquire()
+
+    def __exit__(self, *exc):
+        self.state.lock.release()
+        self.state._drain()
+
+
+class State:
+    """Everything the demo backend holds in one process."""
+
+    def __init__(self) -> None:
+        self.pid = os.getpid()
+        self.lock = threading.Lock()
+        self.locked = _Locked(self)
+        self.pending: List[tuple] = []
+        self.slots: Dict[str, _Slot] = {}
+        self.pool_bytes = 0
+        self.mappings: Dict[str, _Mapping] = {}
+        self.counters = dict.fromkeys(_COUNTERS, 0)
+        self.closed = False
+        self.started = False
+        self.last_sweep = 0.0
+        self.warned_fallback = False
+
+    # --- deferred releases -----------------------------------------------------------------
+    def _defer(self, func, obj) -> None:
+        self.pending.append((func, obj))
+        self._drain()
+
+    def _drain(self) -> None:
+        # Whoever appends tries the lock after appending; whoever holds the lock drains after
+        # releasing it: one of the two always sees every entry.
+        while self.pending:
+            if not self.lock.acquire(blocking=False):
+                return
+            try:
+                while self.pending:
+                    func, obj = self.pending.pop()
+                    try:
+                        func(obj)
+                    except Exception as exc:  # pragma: no cover - never lose the others
+                        _logger.error(f'demo backend release failed: {exc!r}')
+            finally:
+                self.lock.release()
+
+    def _unpin(self, slot: _Slot) -> None:
+        slot.pins -= 1
+
+    def _release(self, mapping: _Mapping) -> None:
+        mapping.refs -= 1
+        if mapping.refs == 0 and not mapping.closed:
+            locks.unlock(mapping.fd, shm.HOLD_BYTE)
+
+    # --- lifecycle ---------------------------------------------------------------------------
+    def _start(self) -> None:
+        if self.started:
+            return
+        self.started = True
+        self.counters['scavenged'] += shm.scavenge(skip=self.slots)
+
+    def start(self) -> None:
+        with self.locked:
+            self._start()
+
+    def shutdown(self) -> None:
+        """Close every mapping (removing segments whose owner is gone) and remove every segment
+        this process created. Views still alive keep their memory but lose their protection."""
+        with self.locked:
+            self.closed = True
+            for mapping in list(self.mappings.values()):
+                try:
+                    if not shm.owner_alive(mapping.fd):
+                        self.counters['scavenged'] += shm.unlink(mapping.name)
+                except OSError:
+                    pass
+                self._close_mapping(mapping)
+            for slot in list(self.slots.values()):
+                self._remove_slot(slot)
+
+    def forget_after_fork(self) -> None:
+        """In a forked child: drop the parent's resources without touching its segments."""
+        self.closed = True
+        for item in list(self.slots.values()) + list(self.mappings.values()):
+            item.closed = True
+            try:
+                os.close(item.fd)
+            except OSError:
+                pass
+        self.slots = {}
+        self.mappings = {}
+
+    # --- publisher side ----------------------------------------------------------------------
+    def allocate(self, nbytes: int) -> Optional[Tuple[memoryview, Pin]]:
+        """A writable view of ``nbytes`` in a slot and its pin, or ``None``: fall back."""
+        with self.locked:
+            if self.closed:
+                return None
+            self._start()
+            capacity = shm.round_capacity(nbytes)
+            slot = (self._reuse(nbytes, stale_ok=False)
+                    or self._grow(nbytes, capacity, stale_ok=False)
+                    or self._reuse(nbytes, stale_ok=True)
+                    or self._grow(nbytes, capacity, stale_ok=True))
+            if slot is None:
+                self.counters['fallbacks'] += 1
+                if not self.warned_fallback:
+                    self.warned_fallback = True
+                    _logger.warning(
+                        f'demo buffer pool exhausted ({len(self.slots)} slots, {self.pool_bytes} '
+                        f'bytes; limits {_limits.as_dict()}): buffers fall back to private '
+                        'memory and are sent as CPU bytes while subscribers hold the slots '
+                        '(logged once, see demo_buffer_backend.stats()["fallbacks"])')
+                return None
+            slot.pins += 1
+            slot.last_used = time.monotonic_ns()
+            return slot.view[:nbytes], Pin(self, slot, nbytes)
+
+    @staticmethod
+    def _fits(slot: _Slot, nbytes: int) -> bool:
+        return nbytes <= slot.capacity <= 2 * max(nbytes, shm.PAGE_SIZE)
+
+    def _maybe_free(self, slot: _Slot, stale_ok: bool, now_ns: int) -> bool:
+        """Cheap pre-check (no syscall) of whether ``slot`` may be claimed."""
+        if slot.pins:
+            return False
+        if shm.read_u64(slot.header, shm.OFF_TAKEN) >= shm.read_u64(slot.header, shm.OFF_SENT):
+            return True
+        if not stale_ok:
+            return False
+        last = shm.read_u64(slot.header, shm.OFF_LAST_PUBLISH)
+        return now_ns - last >= _limits.reclaim_timeout * 1e9
+
+    def _lock_free(self, slot: _Slot, stale_ok: bool) -> Optional[bool]:
+        """Take the exclusive hold lock of a free slot. Returns None when the slot is not free,
+        else whether it is reclaimed (descriptors never taken). The caller unlocks."""
+        if not locks.try_lock(slot.fd, shm.HOLD_BYTE, exclusive=True):
+            return None  # some process holds views of it
+        # Takers increment `taken` only while holding the shared lock: stable now.
+        untaken = shm.read_u64(slot.header, shm.OFF_TAKEN) < \
+            shm.read_u64(slot.header, shm.OFF_SENT)
+        if untaken and not stale_ok:
+            locks.unlock(slot.fd, shm.HOLD_BYTE)
+            return None
+        return untaken
+
+    def _claim(self, slot: _Slot, nbytes: int, stale_ok: bool) -> bool:
+        untaken = self._lock_free(slot, stale_ok)
+        if untaken is None:
+            return False
+        try:
+            self._set_generation(slot, slot.generation + 1, nbytes)
+        finally:
+            locks.unlock(slot.fd, shm.HOLD_BYTE)
+        if untaken:
+            self.counters['reclaimed'] += 1
+        return True
+
+    @staticmethod
+    def _set_generation(slot: _Slot, generation: int, nbytes: int) -> None:
+        header = slot.header
+        shm.write_u64(header, shm.OFF_SENT, 0)
+        shm.write_u64(header, shm.OFF_TAKEN, 0)
+        shm.write_u64(header, shm.OFF_LAST_PUBLISH, 0)
+        shm.write_u64(header, shm.OFF_OFFSET, 0)
+        shm.write_u64(header, shm.OFF_SIZE, nbytes)
+        shm.write_u64(header, shm.OFF_GENERATION, generation)
+        slot.generation = generation
+
+    def _reuse(self, nbytes: int, stale_ok: bool) -> Optional[_Slot]:
+        now = time.monotonic_ns()
+        candidates = [s for s in self.slots.values()
+                      if self._fits(s, nbytes) and self._maybe_free(s, stale_ok, now)]
+        candidates.sort(key=lambda s: s.last_used)
+        for slot in candidates:
+            if self._claim(slot, nbytes, stale_ok):
+                return slot
+        return None
+
+    def _grow(self, nbytes: int, capacity: int, stale_ok: bool) -> Optional[_Slot]:
+        if capacity > _limits.max_pool_bytes or _limits.max_slots < 1:
+            return None
+        now = time.monotonic_ns()
+        while (len(self.slots) + 1 > _limits.max_slots
+               or self.pool_bytes + capacity > _limits.max_pool_bytes):
+            # Make room by removing free slots (of the wrong size: fitting ones were tried).
+            victims = [s for s in self.slots.values() if self._maybe_free(s, stale_ok, now)]
+            victims.sort(key=lambda s: s.last_used)
+            for victim in victims:
+                untaken = self._lock_free(victim, stale_ok)
+                if untaken is not None:
+                    if untaken:
+                        self.counters['reclaimed'] += 1
+                    self._remove_slot(victim)  # closing the fd drops the lock
+                    break
+            else:
+                return None
+        try:
+            name, fd, header, data = shm.create(capacity)
+        except OSError as exc:
+            _logger.warning(f'cannot create a {capacity}-byte demo shm segment: {exc}',
+                            throttle_duration_sec=10.0)
+            return None
+        slot = _Slot(name, fd, header, data, capacity)
+        self._set_generation(slot, 1, nbytes)
+        self.slots[name] = slot
+        self.pool_bytes += capacity
+        self.counters['segments_created'] += 1
+        return slot
+
+    def _remove_slot(self, slot: _Slot) -> None:
+        slot.closed = True
+        self.slots.pop(slot.name, None)
+        self.pool_bytes -= slot.capacity
+        shm.unlink(slot.name)
+        self.counters['segments_removed'] += 1
+        for closer in (slot.view.release, slot.data.close, slot.header.close):
+            try:
+                closer()
+            except (BufferError, ValueError):
+                pass  # a view is still exported: the mapping goes when it does
+        os.close(slot.fd)
+
+    def describe(self, pin: Pin) -> Optional[bytes]:
+        """Record one more descriptor of ``pin``'s slot and return it (None when stale)."""
+        with self.locked:
+            slot = pin.slot
+            if pin.state is not self or slot.closed or slot.generation != pin.generation:
+                self.counters['descriptors_declined'] += 1
+                return None
+            header = slot.header
+            shm.write_u64(header, shm.OFF_SENT, shm.read_u64(header, shm.OFF_SENT) + 1)
+            shm.write_u64(header, shm.OFF_LAST_PUBLISH, time.monotonic_ns())
+            slot.last_used = time.monotonic_ns()
+            self.counters['descriptors_created'] += 1
+            if pin.packed is None:
+                pin.packed = desc_codec.pack(desc_codec.Descriptor(
+                    slot.name, self.pid, 0, pin.size, pin.generation))
+            return pin.packed
+
+    def decline(self) -> None:
+        with self.locked:
+            self.counters['descriptors_declined'] += 1
+
+    # --- subscriber side ---------------------------------------------------------------------
+    def open_descriptor(self, raw) -> Tuple[memoryview, Hold]:
+        """A read-only view of the bytes ``raw`` names and the hold that protects it."""
+        try:
+            d = desc_codec.unpack(raw)
+        except ValueError:
+            with self.locked:
+                self.counters['rejected'] += 1
+            raise
+        with self.locked:
+            try:
+                if self.closed:
+                    raise ValueError('the demo backend of this process is shut down')
+                return self._open(d)
+            except ValueError:
+                self.counters['rejected'] += 1
+                raise
+
+    def _open(self, d: desc_codec.Descriptor) -> Tuple[memoryview, Hold]:
+        self._start()
+        now = time.monotonic()
+        if now - self.last_sweep >= SWEEP_INTERVAL:
+            self.last_sweep = now
+            self._sweep()
+        mapping = self.mappings.get(d.name) or self._map(d.name)
+        try:
+            size_now = os.fstat(mapping.fd).st_size
+        except OSError as exc:  # pragma: no cover - our own fd
+            raise ValueError(f'cannot stat demo segment {d.name!r}: {exc}') from None
+        if size_now != shm.HEADER_SIZE + mapping.capacity:
+            raise ValueError(f'demo segment {d.name!r} changed size ({size_now} bytes, mapped '
+                             f'{shm.HEADER_SIZE + mapping.capacity})')
+        if d.offset > mapping.capacity or d.size > mapping.capacity - d.offset:
+            raise ValueError(f'demo descriptor range [{d.offset}, {d.offset + d.size}) is outside '
+                             f'segment {d.name!r} ({mapping.capacity} data bytes)')
+        if mapping.refs == 0 and not self._acquire_hold(mapping):
+            self.counters['stale'] += 1
+            raise ValueError(f'demo descriptor for {d.name!r} generation {d.generation} is stale: '
+                             'its publisher is reusing the slot')
+        mapping.refs += 1
+        ok = False
+        try:
+            header = mapping.header
+            generation = shm.read_u64(header, shm.OFF_GENERATION)
+            if generation != d.generation:
+                self.counters['stale'] += 1
+                raise ValueError(f'demo descriptor for {d.name!r} is stale: generation '
+                                 f'{d.generation}, the slot is at generation {generation}')
+            offset = shm.read_u64(header, shm.OFF_OFFSET)
+            size = shm.read_u64(header, shm.OFF_SIZE)
+            if (offset, size) != (d.offset, d.size):
+                raise ValueError(f'demo descriptor names bytes [{d.offset}, {d.offset + d.size}) '
+                                 f'of {d.name!r} but its publisher recorded [{offset}, '
+                                 f'{offset + size}) for generation {generation}')
+            locks.lock_wait(mapping.fd, shm.MUTEX_BYTE, exclusive=True)
+            try:
+                shm.write_u64(header, shm.OFF_TAKEN, shm.read_u64(header, shm.OFF_TAKEN) + 1)
+            finally:
+                locks.unlock(mapping.fd, shm.MUTEX_BYTE)
+            hold = Hold(self, mapping, generation)
+            ok = True
+        finally:
+            if not ok:
+                self._release(mapping)
+        self.counters['taken'] += 1
+        # Keep the cache in LRU order (dicts keep insertion order).
+        self.mappings[d.name] = self.mappings.pop(d.name)
+        return mapping.view[d.offset:d.offset + d.size], hold
+
+    @staticmethod
+    def _acquire_hold(mapping: _Mapping) -> bool:
+        if locks.try_lock(mapping.fd, shm.HOLD_BYTE, exclusive=False):
+            return True
+        for pause in _HOLD_RETRIES:  # the publisher holds it exclusively for a few microseconds
+            time.sleep(pause)
+            if locks.try_lock(mapping.fd, shm.HOLD_BYTE, exclusive=False):
+                return True
+        return False
+
+    def _map(self, name: str) -> _Mapping:
+        try:
+            fd, st = shm.open_existing(name)
+        except FileNotFoundError:
+            raise ValueError(f'demo segment {name!r} does not exist (its publisher removed it or '
+                             'is gone, or it lives in another shm domain)') from None
+        except OSError as exc:
+            raise ValueError(f'cannot open demo segment {name!r}: {exc}') from None
+        header = data = None
+        try:
+            if st.st_size < shm.HEADER_SIZE + shm.PAGE_SIZE:
+                raise ValueError(f'{name!r} ({st.st_size} bytes) is too small for a demo segment')
+            header = shm.map_header(fd)
+            fields = shm.read_header(header)
+            if fields.magic != shm.MAGIC or fields.header_size != shm.HEADER_SIZE:
+                raise ValueError(f'{name!r} is not an initialized demo segment')
+            if fields.capacity != st.st_size - shm.HEADER_SIZE:
+                raise ValueError(f'demo segment {name!r} records capacity {fields.capacity} but '
+                                 f'holds {st.st_size - shm.HEADER_SIZE} data bytes')
+            data = shm.map_data_readonly(fd, fields.capacity)
+        except BaseException as exc:
+            for m in (data, header):
+                if m is not None:
+                    m.close()
+            os.close(fd)
+            if isinstance(exc, OSError):
+                raise ValueError(f'cannot map demo segment {name!r}: {exc}') from None
+            raise
+        mapping = _Mapping(name, fd, header, data, fields.capacity)
+        self.mappings[name] = mapping
+        self.counters['mappings_opened'] += 1
+        if len(self.mappings) > MAX_MAPPINGS:
+            for other in list(self.mappings.values()):
+                if len(self.mappings) <= MAX_MAPPINGS:
+                    break
+                if other.refs == 0 and other is not mapping:
+                    self._close_mapping(other)
+        return mapping
+
+    def _close_mapping(self, mapping: _Mapping) -> None:
+        mapping.closed = True
+        self.mappings.pop(mapping.name, None)
+        self.counters['mappings_closed'] += 1
+        for closer in (mapping.view.release, mapping.data.close, mapping.header.close):
+            try:
+                closer()
+            except (BufferError, ValueError):
+                pass  # a view is still exported: the mapping goes when it does
+        os.close(mapping.fd)
+
+    def _sweep(self) -> None:
+        for mapping in list(self.mappings.values()):
+            try:
+                gone = os.fstat(mapping.fd).st_nlink == 0
+                if not gone and not shm.owner_alive(mapping.fd):
+                    # Its publisher died: whoever notices first removes the file.
+                    self.counters['scavenged'] += shm.unlink(mapping.name)
+                    gone = True
+            except OSError:
+                gone = True
+            if gone and mapping.refs == 0:
+                self._close_mapping(mapping)
+
+    def sweep(self) -> None:
+        """Close unreferenced mappings of removed segments; remove segments of dead owners."""
+        with self.locked:
+            self._sweep()
+
+    def scavenge(self) -> int:
+        with self.locked:
+            removed = shm.scavenge(skip=self.slots)
+            self.counters['scavenged'] += removed
+            return removed
+
+    # --- diagnostics -------------------------------------------------------------------------
+    def stats(self) -> dict:
+        with self.locked:
+            result = dict(self.counters)
+            result.update(
+                slots=len(self.slots),
+                bytes=self.pool_bytes,
+                slots_pinned=sum(1 for s in self.slots.values() if s.pins),
+                mappings=len(self.mappings),
+                mappings_held=sum(1 for m in self.mappings.values() if m.refs),
+                views_held=sum(m.refs for m in self.mappings.values()),
+                **_limits.as_dict())
+            return result
+
+
+_state: Optional[State] = None
+_state_lock = threading.Lock()
+_atexit_registered = False
+
+
+def get_state() -> State:
+    """The process-wide state (created on first use, and anew after :func:`shutdown`)."""
+    global _state, _atexit_registered
+    state = _state
+    if state is not None and state.pid == os.getpid():
+        return state
+    with _state_lock:
+        if _state is None or _state.pid != os.getpid():
+            _state = State()
+            if not _atexit_registered:
+                _atexit_registered = True
+                atexit.register(_shutdown_at_exit)
+        return _state
+
+
+def shutdown() -> None:
+    """Remove every segment this process created and close every mapping (also done at exit).
+
+    The backend stays usable: the next use starts afresh.
+    """
+    global _state
+    with _state_lock:
+        state, _state = _state, None
+    if state is not None and state.pid == os.getpid():
+        state.shutdown()
+
+
+def _shutdown_at_exit() -> None:
+    try:
+        shutdown()
+    except Exception:  # pragma: no cover - never fail the interpreter's exit
+        pass
+
+
+def _after_fork_in_child() -> None:
+    global _state, _state_lock
+    _state_lock = threading.Lock()
+    state, _state = _state, None
+    if state is not None:
+        state.forget_after_fork()
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def stats() -> dict:
+    """Counters and gauges of this process's demo backend (see the README of the package)."""
+    return get_state().stats()

@@ -1,0 +1,102 @@
+"""A second process for the demo backend tests (not collected by pytest).
+
+Speaks JSON lines: one command per line on stdin, one reply per line on stdout. On start it prints
+``{"ready": true, "pid": ..., "metadata": ...}``. Commands:
+
+- ``{"cmd": "publish", "n": N, "fill": B, "keep": K}``: allocate N bytes, fill them with B,
+  describe them for the peer endpoint; keep the buffer under key K (or drop it when K is null).
+  Reply ``{"desc": hex, "name": segment, "gen": generation, "in_shm": bool}``.
+- ``{"cmd": "take", "desc": hex, "key": K}``: turn a descriptor into a buffer held under key K.
+  Reply ``{"ok": true, "sha": ..., "readonly": ..., "write_rejected": ...}`` or
+  ``{"ok": false, "error": message}``.
+- ``{"cmd": "take_drop", "descs": [hex...]}``: take and release each; reply their digests.
+- ``{"cmd": "sha", "key": K}``, ``{"cmd": "drop", "key": K}``, ``{"cmd": "stats"}``,
+  ``{"cmd": "sweep"}``, ``{"cmd": "exit"}`` (a normal exit, running atexit handlers).
+"""
+import gc
+import hashlib
+import json
+import os
+import sys
+
+import numpy
+
+from rosidl_buffer_py import EndpointInfo, EndpointKind
+
+import demo_buffer_backend
+from demo_buffer_backend import DemoBackend, DemoBuffer
+
+#: The GID both sides use for "the other endpoint".
+PEER_GID = bytes(range(16))
+
+
+def _sha(buf) -> str:
+    return hashlib.sha256(memoryview(buf)).hexdigest()
+
+
+def main() -> int:
+    backend = DemoBackend()
+    peer = EndpointInfo(PEER_GID, '/demo_backend_test', EndpointKind.SUBSCRIPTION)
+    backend.on_discovering_endpoint(peer, [], {'demo': backend.get_backend_metadata()})
+    held = {}
+
+    def reply(obj):
+        sys.stdout.write(json.dumps(obj) + '\n')
+        sys.stdout.flush()
+
+    reply({'ready': True, 'pid': os.getpid(), 'metadata': backend.get_backend_metadata()})
+    for line in sys.stdin:
+        request = json.loads(line)
+        cmd = request['cmd']
+        if cmd == 'publish':
+            buf = DemoBuffer.allocate(request['n'])
+            numpy.asarray(buf)[:] = request['fill']
+            desc = backend.create_descriptor_with_endpoint(buf, peer)
+            if request.get('keep') is not None:
+                held[request['keep']] = buf
+            reply({'desc': desc.hex() if desc else None, 'name': buf.segment_name,
+                   'gen': buf.generation, 'in_shm': buf.in_shm})
+        elif cmd == 'take':
+            try:
+                buf = backend.from_descriptor_with_endpoint(bytes.fromhex(request['desc']), peer)
+            except ValueError as exc:
+                reply({'ok': False, 'error': str(exc)})
+                continue
+            array = numpy.asarray(buf)
+            try:
+                array[0] = 0
+                write_rejected = False
+            except ValueError:
+                write_rejected = True
+            held[request['key']] = buf
+            reply({'ok': True, 'sha': _sha(buf), 'readonly': memoryview(buf).readonly,
+                   'write_rejected': write_rejected, 'n': len(buf)})
+        elif cmd == 'take_drop':
+            digests = []
+            for hex_desc in request['descs']:
+                buf = backend.from_descriptor_with_endpoint(bytes.fromhex(hex_desc), peer)
+                digests.append(_sha(buf))
+                del buf
+            reply({'digests': digests})
+        elif cmd == 'sha':
+            reply({'sha': _sha(held[request['key']])})
+        elif cmd == 'drop':
+            held.pop(request['key'], None)
+            gc.collect()
+            reply({'ok': True})
+        elif cmd == 'stats':
+            reply(demo_buffer_backend.stats())
+        elif cmd == 'sweep':
+            demo_buffer_backend.sweep()
+            reply({'ok': True})
+        elif cmd == 'exit':
+            held.clear()
+            reply({'ok': True})
+            return 0
+        else:
+            reply({'error': f'unknown command {cmd!r}'})
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
