@@ -521,6 +521,8 @@ class State:
             raise ValueError(f'cannot open demo segment {name!r}: {exc}') from None
         header = data = None
         try:
+            if st.st_uid != os.geteuid():
+                raise ValueError(f'demo segment {name!r} belongs to uid {st.st_uid}, not to us')
             if st.st_size < shm.HEADER_SIZE + shm.PAGE_SIZE:
                 raise ValueError(f'{name!r} ({st.st_size} bytes) is too small for a demo segment')
             header = shm.map_header(fd)
