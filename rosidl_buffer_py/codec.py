@@ -470,7 +470,12 @@ def _check_descriptor(descriptor: Any) -> Tuple[bytes, bytes]:
     if len(data) > MAX_DESCRIPTOR_SIZE:
         raise CodecError(f'descriptor of backend {backend_type!r} is {len(data)} bytes, more '
                          f'than MAX_DESCRIPTOR_SIZE ({MAX_DESCRIPTOR_SIZE})')
-    return backend_type.encode('utf-8'), data
+    try:
+        name = backend_type.encode('utf-8')
+    except UnicodeEncodeError as exc:
+        raise CodecError(f'backend_type {backend_type!r:.200} is not encodable as UTF-8: '
+                         f'{exc}') from None
+    return name, data
 
 
 def encode(msg: Any, descriptor: Optional[Tuple[str, bytes]] = None) -> bytearray:

@@ -550,6 +550,7 @@ def test_known_backends_does_not_affect_cpu_bytes():
     ((b'demo', b'x'), 'non-empty str'),
     (('demo', 'text'), 'bytes-like'),
     (('demo',), r'\(backend_type, descriptor_bytes\) pair'),
+    (('\ud800', b'x'), 'not encodable as UTF-8'),
     ('demo', r'\(backend_type, descriptor_bytes\) pair'),
 ])
 def test_bad_descriptor_raises_on_encode(descriptor, match):
@@ -588,6 +589,13 @@ def test_truncation_messages_are_clear():
         decode(raw[:9], Image)
     with pytest.raises(CodecError, match=r'data claims 9 bytes at offset \d+ but only 8 are left'):
         decode(raw[:-1], Image)
+
+
+def test_truncated_fields_after_the_payload():
+    for descriptor in (None, ('demo', b'abc')):
+        raw = bytes(encode(make_pointcloud(pattern(16)), descriptor))
+        with pytest.raises(CodecError, match=r'truncated message: the fields after data needs 1'):
+            decode(raw[:-1], PointCloud2)
 
 
 def payload_length_offset(raw: bytes, data_len: int) -> int:
