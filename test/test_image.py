@@ -1,5 +1,7 @@
 """numpy conversions of sensor_msgs/Image: allocate, writable view, readable view/copy, copy-in."""
 import array
+import gc
+import os
 import struct
 import sys
 from typing import Optional
@@ -480,3 +482,63 @@ def test_to_msg_resizes_cpu_storage():
     to_msg(msg, array=numpy.ones((1, 2), numpy.uint8))
     assert len(msg.data) == 2  # shrunk too: data is exactly height * step
     assert_serialized(msg, 1, 2, 'mono8', 0, 2, b'\x01\x01')
+
+
+# --- the demo (shared-memory) backend -------------------------------------------------------
+
+@pytest.fixture
+def demo():
+    """The registry's demo backend over a fresh process-wide pool; nothing left afterwards."""
+    import demo_buffer_backend
+    from demo_buffer_backend import shm
+    demo_buffer_backend.shutdown()
+    backend = registry.get_backend('demo')
+    yield backend
+    gc.collect()
+    demo_buffer_backend.shutdown()
+    prefix = f'{shm.PREFIX}{os.getpid()}_'
+    assert not [n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)]
+
+
+@pytest.mark.parametrize('encoding', ['mono8', 'bgr8', 'mono16', 'rgba16', '32FC1', '64FC3'])
+def test_demo_backend_allocates_shared_memory_to_fill_in_place(demo, encoding):
+    from demo_buffer_backend import DemoBuffer
+    info = encoding_info(encoding)
+    msg = allocate_image_msg(6, 5, encoding, 'demo', step=5 * info.bytes_per_pixel + 3)
+    assert isinstance(msg.data, DemoBuffer) and msg.data.in_shm and not msg.data.readonly
+    assert len(msg.data) == 6 * msg.step
+    out = from_output_msg(msg)
+    pixels = random_image(out.shape, info.dtype, seed=7)
+    out[...] = pixels
+    assert numpy.shares_memory(out, numpy.asarray(msg.data))
+    numpy.testing.assert_array_equal(from_input_msg(msg), pixels)
+    numpy.testing.assert_array_equal(from_input_msg(msg, clone=False), pixels)
+    del out
+
+
+def test_demo_backend_received_buffer_is_a_read_only_view(demo):
+    from rosidl_buffer_py import EndpointInfo, EndpointKind
+    endpoint = EndpointInfo(b'\x22' * 16, '/image_test', EndpointKind.SUBSCRIPTION)
+    assert demo.on_discovering_endpoint(
+        endpoint, [], {'demo': demo.get_backend_metadata()})[0]
+    sent = allocate_image_msg(4, 3, 'rgb8', 'demo')
+    out = from_output_msg(sent)
+    out[...] = numpy.arange(36, dtype=numpy.uint8).reshape(4, 3, 3)
+    descriptor = demo.create_descriptor_with_endpoint(sent.data, endpoint)
+    assert descriptor is not None
+
+    received = Image(height=sent.height, width=sent.width, encoding=sent.encoding,
+                     is_bigendian=sent.is_bigendian, step=sent.step)
+    received.data = demo.from_descriptor_with_endpoint(descriptor, endpoint)
+    assert received.data.readonly
+    view = from_input_msg(received, clone=False)
+    assert not view.flags.writeable
+    numpy.testing.assert_array_equal(view, out)
+    out[0, 0, 0] = 250  # same shared memory, no copy
+    assert view[0, 0, 0] == 250
+    with pytest.raises(ValueError, match='read-only'):
+        from_output_msg(received)
+    copy = from_input_msg(received)
+    copy[...] = 0
+    assert view[0, 0, 0] == 250
+    del view, out
