@@ -187,7 +187,9 @@ PyObject * base_topic_name(PyObject * self, void *)
   return PyUnicode_FromStringAndSize(name.data(), static_cast<Py_ssize_t>(name.size()));
 }
 
-const char * kChannelKwlist[] = {
+const char * kPublisherKwlist[] = {
+  "node", "type_support", "topic_name", "reliability", "history", "depth", nullptr};
+const char * kSubscriptionKwlist[] = {
   "node", "type_support", "topic_name", "reliability", "history", "depth", "guard_condition",
   nullptr};
 
@@ -217,7 +219,7 @@ int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
   int history = RMW_QOS_POLICY_HISTORY_KEEP_LAST;
   int depth = 10;
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOs|iii:ChannelPublisher", const_cast<char **>(kChannelKwlist),
+      args, kwds, "OOs|iii:ChannelPublisher", const_cast<char **>(kPublisherKwlist),
       &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth))
   {
     return -1;
@@ -464,7 +466,7 @@ int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
   int depth = 10;
   PyObject * gc_arg = Py_None;
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOs|iiiO:ChannelSubscription", const_cast<char **>(kChannelKwlist),
+      args, kwds, "OOs|iiiO:ChannelSubscription", const_cast<char **>(kSubscriptionKwlist),
       &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth, &gc_arg))
   {
     return -1;

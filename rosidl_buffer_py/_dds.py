@@ -1,0 +1,142 @@
+"""Typed facade over the rmw_fastrtps layer of ``rosidl_buffer_py._native``.
+
+Thin on purpose: it infers endpoint kinds, imports message type support, turns rclpy QoS
+profiles into the rmw enum values and names the fields of discovery events. Every function
+accepts rclpy objects (Node, Publisher, Subscription, GuardCondition), their ``.handle`` or a
+raw pointer int; see ``src/native/README.md`` for lifetimes and threading.
+
+Everything raises :class:`UnsupportedRmwError` when the entity is not rmw_fastrtps_cpp's
+(callers then fall back to plain rclpy) and :class:`DdsError` when a middleware call fails.
+"""
+from typing import Any, List, NamedTuple, Optional, Tuple
+
+from rosidl_buffer_py import _native
+
+DdsError = _native.DdsError
+UnsupportedRmwError = _native.UnsupportedRmwError
+ChannelPublisher = _native.ChannelPublisher
+ChannelSubscription = _native.ChannelSubscription
+
+#: The rmw implementation the native layer works with.
+RMW_IMPLEMENTATION: str = _native.RMW_IMPLEMENTATION
+
+#: (CDR bytes incl. encapsulation header, publisher GID, message info dict)
+TakenMessage = Tuple[bytes, bytes, dict]
+
+
+class EndpointEvent(NamedTuple):
+    """One endpoint discovery event (or a ``known`` snapshot entry)."""
+
+    kind: str             #: 'writer' or 'reader'
+    status: str           #: 'discovered', 'changed', 'removed', 'ignored' or 'known'
+    gid: bytes            #: 16 bytes, as rclpy's TopicEndpointInfo.endpoint_gid
+    topic: str            #: DDS topic name, e.g. 'rt/camera/image'
+    type_name: str        #: DDS type name, e.g. 'sensor_msgs::msg::dds_::Image_'
+    user_data: bytes      #: USER_DATA QoS ('typehash=RIHS01_...;' + anything appended)
+    participant_gid: bytes  #: 16-byte GID of the endpoint's DomainParticipant
+    local: bool           #: True when the endpoint belongs to the queried node's participant
+
+
+def is_supported() -> bool:
+    """Whether the rmw implementation rclpy loaded is the one this layer supports."""
+    import rclpy
+    return rclpy.get_rmw_implementation_identifier() == RMW_IMPLEMENTATION
+
+
+def type_support(msg_type: Any) -> Any:
+    """The ``_TYPE_SUPPORT`` capsule of a message class (imported on first use)."""
+    if getattr(msg_type, '_TYPE_SUPPORT', None) is None:
+        msg_type.__class__.__import_type_support__()
+    capsule = getattr(msg_type, '_TYPE_SUPPORT', None)
+    if capsule is None:
+        raise TypeError(f'{msg_type!r} is not a ROS message class with type support')
+    return capsule
+
+
+def endpoint_kind(endpoint: Any) -> str:
+    """'publisher' or 'subscription' for an rclpy Publisher/Subscription or their handle."""
+    from rclpy import _rclpy_pybind11 as rclpy_c
+    from rclpy.publisher import Publisher
+    from rclpy.subscription import Subscription
+    if isinstance(endpoint, (Publisher, rclpy_c.Publisher)):
+        return 'publisher'
+    if isinstance(endpoint, (Subscription, rclpy_c.Subscription)):
+        return 'subscription'
+    raise TypeError(
+        f'cannot tell the kind of {type(endpoint).__name__}; pass kind= explicitly')
+
+
+def endpoint_gid(endpoint: Any, kind: Optional[str] = None) -> bytes:
+    """16-byte GID of an rclpy publisher/subscription, equal to the graph's endpoint_gid."""
+    return _native.endpoint_gid(endpoint, kind or endpoint_kind(endpoint))
+
+
+def get_user_data(endpoint: Any, kind: Optional[str] = None) -> bytes:
+    """USER_DATA of the DataWriter/DataReader behind an rclpy publisher/subscription."""
+    return _native.get_user_data(endpoint, kind or endpoint_kind(endpoint))
+
+
+def set_user_data(endpoint: Any, data: bytes, kind: Optional[str] = None) -> None:
+    """Replace that USER_DATA. Keep rmw's 'typehash=...;' prefix: append to get_user_data()."""
+    _native.set_user_data(endpoint, kind or endpoint_kind(endpoint), bytes(data))
+
+
+def take_serialized_with_gid(subscription: Any) -> Optional[TakenMessage]:
+    """Take one serialized message from an rclpy subscription, with its publisher's GID."""
+    return _native.take_serialized_with_gid(subscription)
+
+
+def install_discovery(node: Any) -> bool:
+    """Install the discovery tap on the node's participant; call right after node creation."""
+    return _native.install_discovery(node)
+
+
+def uninstall_discovery(node: Any) -> bool:
+    """Give rmw its own participant listener back."""
+    return _native.uninstall_discovery(node)
+
+
+def drain_discovery_events(node: Any) -> List[EndpointEvent]:
+    """Queued endpoint events of the node's participant (single consumer per participant)."""
+    return [EndpointEvent(*e) for e in _native.drain_discovery_events(node)]
+
+
+def list_known_endpoints(node: Any) -> List[EndpointEvent]:
+    """Alive endpoints seen since the tap was installed, with their latest USER_DATA."""
+    return [EndpointEvent(*e) for e in _native.list_known_endpoints(node)]
+
+
+def add_discovery_wakeup(node: Any, guard_condition: Any) -> bool:
+    """Trigger an rclpy GuardCondition on every discovery event (pinned until removed)."""
+    return _native.add_discovery_wakeup(node, guard_condition)
+
+
+def remove_discovery_wakeup(guard_condition: Any) -> bool:
+    """Stop triggering the guard condition and unpin it."""
+    return _native.remove_discovery_wakeup(guard_condition)
+
+
+def discovery_stats(node: Any) -> dict:
+    """installed, queued, known, wakeups, dropped, recorded."""
+    return _native.discovery_stats(node)
+
+
+def _qos_args(qos: Any) -> dict:
+    return {
+        'reliability': int(qos.reliability),
+        'history': int(qos.history),
+        'depth': int(qos.depth),
+    }
+
+
+def create_channel_publisher(node: Any, msg_type: Any, topic_name: str,
+                             qos: Any) -> ChannelPublisher:
+    """A publisher below rcl on the full DDS topic name ``topic_name`` (volatile)."""
+    return ChannelPublisher(node, type_support(msg_type), topic_name, **_qos_args(qos))
+
+
+def create_channel_subscription(node: Any, msg_type: Any, topic_name: str, qos: Any,
+                                guard_condition: Any = None) -> ChannelSubscription:
+    """A subscription below rcl; new data triggers ``guard_condition``."""
+    return ChannelSubscription(node, type_support(msg_type), topic_name,
+                               guard_condition=guard_condition, **_qos_args(qos))

@@ -1,0 +1,147 @@
+"""Second process for test_native_dds.py (not collected by pytest).
+
+    python native_dds_peer.py watch TOPIC MARKER       discovery: wait for a writer on DDS
+        topic TOPIC whose USER_DATA contains MARKER; print it and the rmw graph's view.
+    python native_dds_peer.py channel_sub TOPIC COUNT  ChannelSubscription woken through a
+        guard condition by an executor; print what COUNT messages looked like.
+    python native_dds_peer.py linger                   create channels and wakeups, never
+        destroy them, exit (interpreter exit must not crash).
+
+Prints one JSON line prefixed with 'RESULT ' (and 'READY' once set up); exits 0 on success.
+"""
+import hashlib
+import json
+import sys
+import time
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import Image
+
+from rosidl_buffer_py import _dds
+
+
+def say(line: str) -> None:
+    print(line, flush=True)
+
+
+def watch(topic: str, marker: str) -> int:
+    node = rclpy.create_node('native_dds_watch')
+    _dds.install_discovery(node)  # right after creating the node: nothing is missed
+    woken = []
+    gc = node.create_guard_condition(lambda: woken.append(1))
+    _dds.add_discovery_wakeup(node, gc)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    say('READY')
+    events = []
+    found = None
+    deadline = time.monotonic() + 20
+    while found is None and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.2)
+        for ev in _dds.drain_discovery_events(node):
+            events.append(ev)
+            if (ev.kind == 'writer' and ev.topic == topic and marker.encode() in ev.user_data
+                    and ev.status in ('discovered', 'changed')):
+                found = ev
+    if found is None:
+        say('RESULT ' + json.dumps({'error': 'not found', 'events': len(events)}))
+        return 1
+    # rmw's graph must still know the endpoint, with a non-zero type hash.
+    graph = []
+    ros_topic = '/' + topic[len('rt/'):]
+    while time.monotonic() < deadline:
+        graph = [i for i in node.get_publishers_info_by_topic(ros_topic)
+                 if bytes(i.endpoint_gid) == found.gid]
+        if graph:
+            break
+        time.sleep(0.05)
+    known = [e for e in _dds.list_known_endpoints(node) if e.gid == found.gid]
+    result = {
+        'gid': found.gid.hex(),
+        'status': found.status,
+        'user_data': found.user_data.decode(),
+        'type_name': found.type_name,
+        'local': found.local,
+        'known_user_data': known[0].user_data.decode() if known else None,
+        'graph_type': graph[0].topic_type if graph else None,
+        'graph_type_hash': str(graph[0].topic_type_hash) if graph else None,
+        'woken': len(woken) > 0,
+        'statuses': sorted({e.status for e in events if e.gid == found.gid}),
+    }
+    _dds.remove_discovery_wakeup(gc)
+    executor.shutdown()
+    node.destroy_node()
+    say('RESULT ' + json.dumps(result))
+    return 0
+
+
+def channel_sub(topic: str, count: int) -> int:
+    node = rclpy.create_node('native_dds_channel_sub')
+    received = []
+    sub = None
+
+    def on_wake():
+        while True:
+            taken = sub.take()
+            if taken is None:
+                return
+            data, gid, info = taken
+            received.append({
+                'sha': hashlib.sha256(data).hexdigest(),
+                'len': len(data),
+                'gid': gid.hex(),
+                'info_keys': sorted(info),
+                'pub_seq': info['publication_sequence_number'],
+            })
+
+    gc = node.create_guard_condition(on_wake)
+    sub = _dds.create_channel_subscription(
+        node, Image, topic, rclpy.qos.QoSProfile(depth=10), guard_condition=gc)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    say('READY ' + json.dumps({'gid': sub.gid.hex()}))
+    deadline = time.monotonic() + 20
+    while len(received) < count and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.2)
+    sub.destroy()
+    executor.shutdown()
+    node.destroy_node()
+    say('RESULT ' + json.dumps({'received': received}))
+    return 0 if len(received) >= count else 1
+
+
+def linger() -> int:
+    node = rclpy.create_node('native_dds_linger')
+    gc = node.create_guard_condition(lambda: None)
+    _dds.add_discovery_wakeup(node, gc)
+    pub = _dds.create_channel_publisher(
+        node, Image, 'rt/linger/_buf/0a_0b', rclpy.qos.QoSProfile(depth=1))
+    sub = _dds.create_channel_subscription(
+        node, Image, 'rt/linger/_buf/0a_0b', rclpy.qos.QoSProfile(depth=1), guard_condition=gc)
+    pub.publish(rclpy.serialization.serialize_message(Image(width=1)))
+    time.sleep(0.2)
+    # keep references in a module global so they die during interpreter finalization
+    globals()['_keep'] = (node, gc, pub, sub)
+    say('RESULT ' + json.dumps({'ok': True}))
+    return 0
+
+
+def main(argv) -> int:
+    rclpy.init()
+    mode = argv[1]
+    if mode == 'watch':
+        rc = watch(argv[2], argv[3])
+    elif mode == 'channel_sub':
+        rc = channel_sub(argv[2], int(argv[3]))
+    elif mode == 'linger':
+        return linger()  # no shutdown, no destroy: finalization does it
+    else:
+        raise SystemExit(f'unknown mode {mode}')
+    rclpy.try_shutdown()
+    return rc
+
+
+if __name__ == '__main__':
+    import rclpy.serialization  # noqa: F401  (used by linger)
+    sys.exit(main(sys.argv))
