@@ -286,7 +286,7 @@ def test_take_serialized_with_gid_of_plain_publisher(ctx):
     pub.publish(msg)
     pub.publish(serialize_message(_image(5)))  # pre-serialized, as the wrappers will do
     first = _wait(lambda: _dds.take_serialized_with_gid(sub))
-    second = _wait(lambda: _dds.take_serialized_with_gid(sub))
+    second = _wait(lambda: _dds.take_serialized_with_gid(sub.handle))  # raw handle works too
     assert first[0] == serialize_message(msg)
     assert second[0] == serialize_message(_image(5))
     assert first[1] == second[1] == _dds.endpoint_gid(pub)
