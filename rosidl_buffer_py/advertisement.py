@@ -4,12 +4,20 @@ rmw_fastrtps writes ``typehash=RIHS01_<hex>;`` into every endpoint's USER_DATA. 
 endpoint appends ``BUFBE:<backend>=<metadata>;<backend>=<metadata>;...`` (the format of upstream's
 rmw_fastrtps): publishers list ``cpu`` and every installed backend, subscriptions the backends
 they accept. An endpoint whose USER_DATA has no ``BUFBE:`` is a legacy endpoint.
+
+Stock Jazzy parses USER_DATA as ``key=value;`` pairs with alphanumeric keys and non-empty values
+and drops the *whole* string, typehash included, at the first pair that breaks those rules, as
+``BUFBE:cpu=;`` does. It stops cleanly at a NUL byte after a complete pair, so the advertisement
+goes after one: ``typehash=RIHS01_<hex>;\0BUFBE:cpu=;demo=<meta>;``. Stock peers keep the type
+hash; anyone who reads USER_DATA finds ``BUFBE:``.
 """
 from typing import Mapping, Optional
 
 from rosidl_buffer_py.registry import BACKEND_NAME_PATTERN
 
 PREFIX = b'BUFBE:'
+#: Where stock rmw's USER_DATA parser stops reading (see the module docstring).
+SEPARATOR = b'\0'
 
 
 class AdvertisementError(ValueError):
@@ -31,12 +39,17 @@ def encode(backends: Mapping[str, str]) -> bytes:
 
 
 def append(user_data: bytes, backends: Mapping[str, str]) -> bytes:
-    """Return ``user_data`` with the advertisement appended (replacing an earlier one)."""
+    """Return ``user_data`` with the advertisement appended (replacing an earlier one).
+
+    ``user_data`` should end with a complete ``key=value;`` pair (rmw's typehash), so that the
+    separator is where stock rmw stops parsing.
+    """
     base = bytes(user_data)
     index = base.find(PREFIX)
     if index >= 0:
         base = base[:index]
-    return base + encode(backends)
+    base = base.rstrip(SEPARATOR)
+    return base + SEPARATOR + encode(backends)
 
 
 def decode(user_data: bytes) -> Optional[Mapping[str, str]]:

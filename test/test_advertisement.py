@@ -6,16 +6,61 @@ from rosidl_buffer_py import advertisement, channel
 TYPEHASH = b'typehash=RIHS01_' + b'ab' * 32 + b';'
 
 
+def rmw_parse_key_value(data: bytes) -> dict:
+    """The rules of stock Jazzy's rmw::impl::cpp::parse_key_value (rmw/impl/cpp/key_value.hpp):
+    alphanumeric keys, non-empty values, ';' ends a pair, a NUL where a key would start (after at
+    least one pair) ends the string, anything else invalidates the WHOLE string ({})."""
+    pairs, key, value, keyfound, prev = {}, b'', b'', False, 0
+    if not data:
+        return {}
+    for u8 in data:
+        if keyfound:
+            if u8 == 0x3b and prev != 0x3b:
+                prev = u8
+                continue
+            elif u8 != 0x3b and prev == 0x3b:
+                if not value:
+                    return {}
+                pairs[key], key, value, keyfound = value, b'', b'', False
+            else:
+                value += bytes([u8])
+        if not keyfound:
+            if u8 == 0x3d:
+                if not key:
+                    return {}
+                keyfound = True
+            elif chr(u8).isalnum() and u8 < 128:
+                key += bytes([u8])
+            elif u8 == 0 and not key and pairs:
+                break
+            elif prev != 0x3b or key:
+                return {}
+        prev = u8
+    if keyfound:
+        if not value:
+            return {}
+        pairs[key] = value
+    elif key:
+        return {}
+    return pairs
+
+
 def test_round_trip_appended_to_rmw_typehash():
     data = advertisement.append(TYPEHASH, {'cpu': '', 'demo': 'b00t1d-f5'})
-    assert data == TYPEHASH + b'BUFBE:cpu=;demo=b00t1d-f5;'
-    assert data.startswith(TYPEHASH)  # rmw still finds its typehash first
+    assert data == TYPEHASH + b'\0BUFBE:cpu=;demo=b00t1d-f5;'
     assert advertisement.decode(data) == {'cpu': '', 'demo': 'b00t1d-f5'}
+
+
+def test_stock_rmw_still_parses_the_typehash():
+    data = advertisement.append(TYPEHASH, {'cpu': '', 'demo': 'meta.1.2'})
+    assert rmw_parse_key_value(data) == {b'typehash': TYPEHASH[9:-1]}
+    # without the separator, stock rmw would lose the typehash: the reason for it
+    assert rmw_parse_key_value(TYPEHASH + b'BUFBE:cpu=;') == {}
 
 
 def test_append_replaces_an_earlier_advertisement():
     once = advertisement.append(TYPEHASH, {'cpu': '', 'demo': 'x'})
-    assert advertisement.append(once, {'cpu': ''}) == TYPEHASH + b'BUFBE:cpu=;'
+    assert advertisement.append(once, {'cpu': ''}) == TYPEHASH + b'\0BUFBE:cpu=;'
 
 
 def test_cpu_only_subscription_advertises_exactly_cpu():
