@@ -14,7 +14,14 @@ from rosidl_buffer_py import _native
 
 DdsError = _native.DdsError
 UnsupportedRmwError = _native.UnsupportedRmwError
+#: ``ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)``:
+#: ``.publish(data, source_timestamp: Optional[int] = None) -> None``,
+#: ``.matched_count() -> int``, ``.matched_gids() -> List[bytes]``, ``.destroy()``,
+#: ``.gid``, ``.topic_name``, ``.valid``.
 ChannelPublisher = _native.ChannelPublisher
+#: ``ChannelSubscription(node, type_support, topic_name, ..., guard_condition=None)``:
+#: ``.take() -> Optional[TakenMessage]``, ``.matched_count() -> int``, ``.destroy()``,
+#: ``.gid``, ``.topic_name``, ``.valid``.
 ChannelSubscription = _native.ChannelSubscription
 
 #: The rmw implementation the native layer works with.
@@ -84,6 +91,48 @@ def set_user_data(endpoint: Any, data: bytes, kind: Optional[str] = None) -> Non
 def take_serialized_with_gid(subscription: Any) -> Optional[TakenMessage]:
     """Take one serialized message from an rclpy subscription, with its publisher's GID."""
     return _native.take_serialized_with_gid(subscription)
+
+
+def publish_serialized(publisher: Any, data: Any, source_timestamp: int) -> None:
+    """Write serialized CDR on the DataWriter behind an rclpy publisher, with its source timestamp.
+
+    ``data`` is CDR with its 4-byte encapsulation header (what ``serialize_message`` gives), in
+    any C-contiguous buffer (not copied in Python; do not mutate it during the call).
+    ``source_timestamp`` is ns since the epoch (0 <= t < 2**31 s); subscribers' takes report
+    exactly it in ``info['source_timestamp']``.
+    """
+    _native.publish_serialized(publisher, data, source_timestamp)
+
+
+def matched_subscription_gids(publisher: Any) -> List[bytes]:
+    """16-byte GIDs of the subscriptions currently matched with an rclpy publisher.
+
+    Same format as :func:`endpoint_gid` and ``get_subscriptions_info_by_topic()``'s
+    ``endpoint_gid``; the set ``publisher.get_subscription_count()`` counts.
+    """
+    return _native.matched_subscription_gids(publisher)
+
+
+def set_new_message_wakeup(subscription: Any, guard_condition: Any) -> None:
+    """Trigger an rclpy GuardCondition whenever a new message reaches ``subscription``.
+
+    ``subscription`` is an rclpy Subscription, a raw ``rclpy._rclpy_pybind11.Subscription``
+    (e.g. not added to any node), or a pointer int. rmw triggers it right away when messages
+    are already unread, and only on status changes after that: the woken code must take until
+    nothing is left. Replaces an earlier wakeup of the same subscription. Pins both the
+    subscription and the guard condition (rclpy defers destroying them) until
+    :func:`clear_new_message_wakeup`, which must be called before letting them go.
+    """
+    _native.set_new_message_wakeup(subscription, guard_condition)
+
+
+def clear_new_message_wakeup(subscription: Any) -> None:
+    """Stop the wakeup and unpin; when it returns the guard condition is never triggered by it.
+
+    A no-op when none is set. Works after rclpy was asked to destroy the subscription (the
+    deferred destruction then happens here).
+    """
+    _native.clear_new_message_wakeup(subscription)
 
 
 def install_discovery(node: Any) -> bool:

@@ -6,6 +6,12 @@
         guard condition by an executor; print what COUNT messages looked like.
     python native_dds_peer.py linger                   create channels and wakeups, never
         destroy them, exit (interpreter exit must not crash).
+    python native_dds_peer.py raw_take TOPIC COUNT     plain rclpy raw subscription (rclpy's
+        own take_message); print the bytes' hashes and message infos of COUNT messages.
+    python native_dds_peer.py plain_sub TOPIC          plain rclpy subscription; print its GID,
+        then exit cleanly at the first stdin line (or EOF).
+    python native_dds_peer.py pub_on_demand TOPIC      plain rclpy publisher; publish one Image
+        per stdin line 'pub <seed>', print 'SENT <seed>'; exit cleanly at 'quit' or EOF.
 
 Prints one JSON line prefixed with 'RESULT ' (and 'READY' once set up); exits 0 on success.
 """
@@ -93,6 +99,7 @@ def channel_sub(topic: str, count: int) -> int:
                 'gid': gid.hex(),
                 'info_keys': sorted(info),
                 'pub_seq': info['publication_sequence_number'],
+                'source_timestamp': info['source_timestamp'],
             })
 
     gc = node.create_guard_condition(on_wake)
@@ -119,11 +126,68 @@ def linger() -> int:
         node, Image, 'rt/linger/_buf/0a_0b', rclpy.qos.QoSProfile(depth=1))
     sub = _dds.create_channel_subscription(
         node, Image, 'rt/linger/_buf/0a_0b', rclpy.qos.QoSProfile(depth=1), guard_condition=gc)
+    # a new-message wakeup that is never cleared, on a raw rclpy subscription
+    _dds.type_support(Image)
+    raw_sub = rclpy._rclpy_pybind11.Subscription(
+        node.handle, Image, '/linger_raw', rclpy.qos.QoSProfile(depth=1).get_c_qos_profile())
+    _dds.set_new_message_wakeup(raw_sub, gc)
+    raw_pub = node.create_publisher(Image, '/linger_raw', 1)
     pub.publish(rclpy.serialization.serialize_message(Image(width=1)))
+    _dds.publish_serialized(raw_pub, rclpy.serialization.serialize_message(Image(width=2)), 1)
     time.sleep(0.2)
     # keep references in a module global so they die during interpreter finalization
-    globals()['_keep'] = (node, gc, pub, sub)
+    globals()['_keep'] = (node, gc, pub, sub, raw_sub, raw_pub)
     say('RESULT ' + json.dumps({'ok': True}))
+    return 0
+
+
+def raw_take(topic: str, count: int) -> int:
+    node = rclpy.create_node('native_dds_raw_take')
+    sub = node.create_subscription(Image, topic, lambda msg: None, 10, raw=True)
+    say('READY ' + json.dumps({'gid': _dds.endpoint_gid(sub).hex()}))
+    received = []
+    deadline = time.monotonic() + 20
+    while len(received) < count and time.monotonic() < deadline:
+        with sub.handle:  # rclpy's own take, as its executor does it
+            taken = sub.handle.take_message(Image, True)
+        if taken is None:
+            time.sleep(0.005)
+            continue
+        data, info = taken
+        received.append({'sha': hashlib.sha256(data).hexdigest(),
+                         'hex': data.hex() if len(data) <= 4096 else None,
+                         'source_timestamp': info['source_timestamp'],
+                         'received_timestamp': info['received_timestamp']})
+    node.destroy_node()
+    say('RESULT ' + json.dumps({'received': received}))
+    return 0 if len(received) >= count else 1
+
+
+def plain_sub(topic: str) -> int:
+    node = rclpy.create_node('native_dds_plain_sub')
+    sub = node.create_subscription(Image, topic, lambda msg: None, 10)
+    say('READY ' + json.dumps({'gid': _dds.endpoint_gid(sub).hex()}))
+    sys.stdin.readline()  # the test says when to go (EOF also does)
+    node.destroy_node()
+    say('RESULT ' + json.dumps({'ok': True}))
+    return 0
+
+
+def pub_on_demand(topic: str) -> int:
+    node = rclpy.create_node('native_dds_pub_on_demand')
+    pub = node.create_publisher(Image, topic, 10)
+    say('READY ' + json.dumps({'gid': _dds.endpoint_gid(pub).hex()}))
+    sent = 0
+    for line in sys.stdin:
+        words = line.split()
+        if not words or words[0] != 'pub':
+            break
+        seed = int(words[1])
+        pub.publish(Image(height=1, width=8, encoding='mono8', step=8, data=bytes([seed] * 8)))
+        sent += 1
+        say(f'SENT {seed}')
+    node.destroy_node()
+    say('RESULT ' + json.dumps({'sent': sent}))
     return 0
 
 
@@ -134,6 +198,12 @@ def main(argv) -> int:
         rc = watch(argv[2], argv[3])
     elif mode == 'channel_sub':
         rc = channel_sub(argv[2], int(argv[3]))
+    elif mode == 'raw_take':
+        rc = raw_take(argv[2], int(argv[3]))
+    elif mode == 'plain_sub':
+        rc = plain_sub(argv[2])
+    elif mode == 'pub_on_demand':
+        rc = pub_on_demand(argv[2])
     elif mode == 'linger':
         return linger()  # no shutdown, no destroy: finalization does it
     else:

@@ -64,8 +64,12 @@ class Peer:
 
     def __init__(self, *args):
         self.proc = subprocess.Popen(
-            [sys.executable, PEER, *map(str, args)], stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE, text=True)
+            [sys.executable, PEER, *map(str, args)], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def send(self, line):
+        self.proc.stdin.write(line + '\n')
+        self.proc.stdin.flush()
 
     def expect(self, prefix, timeout=25.0):
         deadline = time.monotonic() + timeout
@@ -91,8 +95,11 @@ class Peer:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(timeout=10)
-        for f in (self.proc.stdout, self.proc.stderr):
-            f.close()
+        for f in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
+            try:
+                f.close()
+            except OSError:  # stdin of a killed peer: broken pipe on flush
+                pass
 
 
 # ---------------------------------------------------------------- GIDs and USER_DATA
@@ -294,6 +301,317 @@ def test_take_serialized_with_gid_of_plain_publisher(ctx):
     assert info['source_timestamp'] > 0 and info['received_timestamp'] >= info['source_timestamp']
     assert second[2]['publication_sequence_number'] == info['publication_sequence_number'] + 1
     node.destroy_node()
+
+
+# ---------------------------------------------------------------- explicit source timestamps
+
+#: ns since the epoch: odd nanoseconds, 0, and the last second Fast DDS's Time_t can carry
+STAMPS = [1_000_000_000_123_456_789, 1_700_000_000_000_000_001, 999_999_999, 0,
+          (2**31 - 1) * 10**9 - 1]
+
+
+def _near_now(ns, slack=60 * 10**9):
+    return abs(ns - time.time_ns()) < slack
+
+
+def _padded(data):
+    """What a take in another process sees: Fast DDS pads the DATA submessage to a multiple of
+    4 bytes and the reader cannot tell the padding from the payload (rmw's own publish paths do
+    the same; deserialize_message ignores it). Takes in the same process get the exact bytes."""
+    return data + b'\0' * (-len(data) % 4)
+
+
+def test_publish_serialized_source_timestamp(ctx):
+    """rclpy's own take in another process and take_serialized_with_gid here see the stamp."""
+    topic = '/' + _unique('stamp')
+    # serialized lengths 49..52 (three need padding) and one of 1 MiB + 48
+    payloads = [serialize_message(_image(n + 1, seed=n)) for n in range(len(STAMPS) - 1)]
+    payloads.append(serialize_message(_image(1 << 20, seed=9)))
+    peer = Peer('raw_take', topic, len(STAMPS) + 1)
+    try:
+        peer.expect('READY ')
+        node = _node(ctx, 'stamp_pub')
+        pub = node.create_publisher(Image, topic, 10)
+        local = node.create_subscription(Image, topic, lambda m: None, 10, raw=True)
+        assert _wait(lambda: pub.get_subscription_count() == 2, timeout=15)
+        for i, (data, stamp) in enumerate(zip(payloads, STAMPS)):
+            buf = (data, bytearray(data), memoryview(data))[i % 3]  # any buffer, no copy
+            _dds.publish_serialized(pub, buf, stamp)
+        pub.publish(_image(7))  # rmw's own path still stamps "now"
+        result = peer.expect('RESULT ')
+        assert peer.proc.wait(timeout=15) == 0
+    finally:
+        peer.close()
+    got = result['received']
+    assert len(got) == len(STAMPS) + 1, result
+    assert [bytes.fromhex(r['hex']) for r in got[:-2]] == [_padded(p) for p in payloads[:-1]]
+    assert got[-2]['sha'] == hashlib.sha256(payloads[-1]).hexdigest()
+    assert [r['source_timestamp'] for r in got[:-1]] == STAMPS
+    assert _near_now(got[-1]['source_timestamp'])
+    assert all(_near_now(r['received_timestamp']) for r in got)
+    gid = _dds.endpoint_gid(pub)
+    for data, stamp in zip(payloads, STAMPS):
+        taken = _wait(lambda: _dds.take_serialized_with_gid(local))
+        assert taken[0] == data and taken[1] == gid
+        assert taken[2]['source_timestamp'] == stamp
+        assert _near_now(taken[2]['received_timestamp'])
+    assert _near_now(_wait(lambda: _dds.take_serialized_with_gid(local))[2]['source_timestamp'])
+    node.destroy_node()
+
+
+def test_publish_serialized_errors(ctx):
+    node = _node(ctx, 'stamp_errors')
+    topic = '/' + _unique('stamp_err')
+    pub = node.create_publisher(Image, topic, 10)
+    sub = node.create_subscription(Image, topic, lambda m: None, 10)
+    data = serialize_message(_image(4))
+    for bad in (-1, (2**31 - 1) * 10**9, 2**64):
+        with pytest.raises(ValueError, match='source_timestamp'):
+            _dds.publish_serialized(pub, data, bad)
+    for bad in (None, 1.5, True):
+        with pytest.raises(TypeError, match='source_timestamp'):
+            _dds.publish_serialized(pub, data, bad)
+    with pytest.raises(ValueError, match='too short'):
+        _dds.publish_serialized(pub, b'\0\1', 1)
+    with pytest.raises(TypeError, match='Publisher'):
+        _dds.publish_serialized(sub, data, 1)
+    with pytest.raises(TypeError, match='Publisher'):
+        _dds.matched_subscription_gids(sub)
+    with pytest.raises(TypeError, match='Subscription'):
+        _dds.set_new_message_wakeup(pub, node.create_guard_condition(lambda: None))
+    with pytest.raises(TypeError, match='GuardCondition'):
+        _dds.set_new_message_wakeup(sub, pub)
+    chan = _dds.create_channel_publisher(node, Image, 'rt/err/_buf/3_4', QoSProfile(depth=1))
+    with pytest.raises(ValueError, match='source_timestamp'):
+        chan.publish(data, source_timestamp=-5)
+    chan.publish(data, None)  # None: rmw's path
+    chan.destroy()
+    with pytest.raises(_dds.DdsError):
+        chan.publish(data, source_timestamp=5)
+    with pytest.raises(_dds.DdsError):
+        chan.matched_gids()
+    node.destroy_publisher(pub)
+    with pytest.raises(Exception):  # rclpy refuses to hand out a destroyed handle
+        _dds.publish_serialized(pub, data, 1)
+    node.destroy_node()
+
+
+def test_channel_publish_source_timestamp(ctx):
+    topic = _channel_topic(_unique('chan_stamp'))
+    stamps = [1_234_567_890_987_654_321, 5, None]
+    # multiples of 4 bytes: no transport padding (see _padded)
+    payloads = [serialize_message(_image(16 << n, seed=n)) for n in range(len(stamps))]
+    assert all(len(p) % 4 == 0 for p in payloads)
+    peer = Peer('channel_sub', topic, len(stamps))
+    try:
+        ready = peer.expect('READY ')
+        node = _node(ctx, 'chan_stamp')
+        pub = _dds.create_channel_publisher(node, Image, topic, QoSProfile(depth=10))
+        local = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=10))
+        assert _wait(lambda: pub.matched_count() == 2, timeout=15)
+        assert set(pub.matched_gids()) == {bytes.fromhex(ready['gid']), local.gid}
+        for data, stamp in zip(payloads, stamps):
+            if stamp is None:
+                pub.publish(memoryview(data))
+            else:
+                pub.publish(memoryview(data), source_timestamp=stamp)
+        result = peer.expect('RESULT ')
+        assert peer.proc.wait(timeout=15) == 0
+    finally:
+        peer.close()
+    got = result['received']
+    assert [r['sha'] for r in got] == [hashlib.sha256(p).hexdigest() for p in payloads]
+    assert [r['source_timestamp'] for r in got[:2]] == stamps[:2]
+    assert _near_now(got[2]['source_timestamp'])
+    assert {r['gid'] for r in got} == {pub.gid.hex()}
+    for data, stamp in zip(payloads, stamps):
+        taken = _wait(local.take)
+        assert taken[0] == data and taken[1] == pub.gid
+        assert taken[2]['source_timestamp'] == stamp if stamp is not None else _near_now(
+            taken[2]['source_timestamp'])
+    # the peer's reader is gone once it exited cleanly
+    assert _wait(lambda: pub.matched_gids() == [local.gid])
+    local.destroy()
+    pub.destroy()
+    node.destroy_node()
+
+
+# ---------------------------------------------------------------- matched subscriptions
+
+
+def test_matched_subscription_gids(ctx):
+    topic = '/' + _unique('matched')
+    node = _node(ctx, 'matched')
+    pub = node.create_publisher(Image, topic, 10)
+    assert _dds.matched_subscription_gids(pub) == []
+    local = node.create_subscription(Image, topic, lambda m: None, 10)
+    # a best-effort publisher's incompatible reliable reader would not match: only compatible
+    peer = Peer('plain_sub', topic)
+    try:
+        remote = bytes.fromhex(peer.expect('READY ')['gid'])
+        expected = {_dds.endpoint_gid(local), remote}
+        assert _wait(lambda: set(_dds.matched_subscription_gids(pub)) == expected, timeout=15)
+        assert len(_dds.matched_subscription_gids(pub.handle)) == 2  # raw handle
+        assert _dds.matched_subscription_gids(pub.handle.pointer)  # pointer int
+        graph = {bytes(i.endpoint_gid) for i in node.get_subscriptions_info_by_topic(topic)}
+        assert graph == expected
+        assert pub.get_subscription_count() == 2
+        peer.send('quit')
+        assert peer.expect('RESULT ') == {'ok': True}
+        assert peer.proc.wait(timeout=15) == 0
+    finally:
+        peer.close()
+    # a clean exit unmatches at once (no lease expiry)
+    t0 = time.monotonic()
+    assert _wait(lambda: _dds.matched_subscription_gids(pub) == [_dds.endpoint_gid(local)],
+                 timeout=5)
+    assert time.monotonic() - t0 < 5
+    node.destroy_subscription(local)
+    assert _wait(lambda: _dds.matched_subscription_gids(pub) == [])
+    node.destroy_node()
+
+
+# ---------------------------------------------------------------- new-message wakeups
+
+
+def _raw_subscription(node, topic, depth=10):
+    """A bare rclpy._rclpy_pybind11.Subscription: no executor ever takes from it."""
+    from rclpy import _rclpy_pybind11 as rclpy_c
+    _dds.type_support(Image)  # imports it (rclpy's create_subscription would)
+    with node.handle:
+        return rclpy_c.Subscription(
+            node.handle, Image, topic, QoSProfile(depth=depth).get_c_qos_profile())
+
+
+def _drain(sub):
+    out = []
+    while True:
+        taken = _dds.take_serialized_with_gid(sub)
+        if taken is None:
+            return out
+        out.append(taken)
+
+
+def test_new_message_wakeup_cross_process(ctx):
+    topic = '/' + _unique('wake')
+    node = _node(ctx, 'wake')
+    woken = []
+    gc = node.create_guard_condition(lambda: woken.append(1))
+    sub = _raw_subscription(node, topic)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+
+    def spin_until(predicate, timeout=10.0):
+        return _wait(lambda: executor.spin_once(timeout_sec=0.02) or predicate(), timeout)
+
+    def settle():
+        for _ in range(5):  # run triggers that are already latched
+            executor.spin_once(timeout_sec=0.01)
+        woken.clear()
+
+    _dds.set_new_message_wakeup(sub, gc)
+    peer = Peer('pub_on_demand', topic)
+    try:
+        peer_gid = bytes.fromhex(peer.expect('READY ')['gid'])
+        assert _wait(lambda: node.count_publishers(topic) == 1, timeout=15)
+        time.sleep(0.3)  # let the peer's writer match our reader too (volatile)
+        peer.send('pub 1')
+        assert spin_until(lambda: woken)
+        assert [t[1] for t in _wait(lambda: _drain(sub))] == [peer_gid]
+        # every new message wakes again (once all was taken)
+        settle()
+        peer.send('pub 2')
+        assert spin_until(lambda: woken)
+        assert len(_wait(lambda: _drain(sub))) == 1
+
+        # clear is a barrier: a message arrives (we take it) and nothing wakes
+        _dds.clear_new_message_wakeup(sub)
+        _dds.clear_new_message_wakeup(sub)  # no-op
+        settle()
+        peer.send('pub 3')
+        assert len(_wait(lambda: _drain(sub))) == 1
+        for _ in range(10):
+            executor.spin_once(timeout_sec=0.02)
+        assert not woken
+
+        # set again, replacing with a second guard condition: only that one wakes
+        woken2 = []
+        gc2 = node.create_guard_condition(lambda: woken2.append(1))
+        _dds.set_new_message_wakeup(sub.pointer, gc)  # pointer int works too
+        _dds.set_new_message_wakeup(sub, gc2.handle)  # replaces (and unpins) gc
+        settle()
+        peer.send('pub 4')
+        assert spin_until(lambda: woken2)
+        assert not woken
+        assert len(_wait(lambda: _drain(sub))) == 1
+        _dds.clear_new_message_wakeup(sub)
+        node.destroy_guard_condition(gc2)  # unpinned: destroyed right away
+        peer.send('quit')
+        assert peer.expect('RESULT ') == {'sent': 4}
+        assert peer.proc.wait(timeout=15) == 0
+    finally:
+        peer.close()
+    executor.shutdown()
+    sub.destroy_when_not_in_use()
+    node.destroy_node()
+
+
+def test_new_message_wakeup_with_unread_messages(ctx):
+    """rmw calls back at once when messages are already waiting."""
+    topic = '/' + _unique('wake_unread')
+    node = _node(ctx, 'wake_unread')
+    woken = []
+    gc = node.create_guard_condition(lambda: woken.append(1))
+    sub = _raw_subscription(node, topic)
+    pub = node.create_publisher(Image, topic, 10)
+    assert _wait(lambda: pub.get_subscription_count() == 1)
+    pub.publish(_image(3))
+    pub.publish(_image(4))
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    _wait(lambda: executor.spin_once(timeout_sec=0.05) or False, timeout=0.2)
+    assert not woken
+    _dds.set_new_message_wakeup(sub, gc)
+    assert _wait(lambda: executor.spin_once(timeout_sec=0.05) or woken)
+    assert len(_drain(sub)) == 2
+    _dds.clear_new_message_wakeup(sub)
+    executor.shutdown()
+    sub.destroy_when_not_in_use()
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('first', ['subscription', 'guard_condition', 'node', 'shutdown'])
+def test_new_message_wakeup_destroy_orders(ctx, first):
+    """Destroying anything before clear is deferred by the pins; clear then lets go."""
+    topic = '/' + _unique('wake_order')
+    node = _node(ctx, 'wake_order')
+    pub_node = _node(ctx, 'wake_order_pub')
+    gc = node.create_guard_condition(lambda: None)
+    sub = node.create_subscription(Image, topic, lambda m: None, 10, raw=True)
+    pub = pub_node.create_publisher(Image, topic, 10)
+    assert _wait(lambda: pub.get_subscription_count() == 1)
+    _dds.set_new_message_wakeup(sub, gc)
+    sub_pointer = sub.handle.pointer
+    if first == 'subscription':
+        node.destroy_subscription(sub)
+    elif first == 'guard_condition':
+        node.destroy_guard_condition(gc)
+    elif first == 'node':
+        node.destroy_node()
+    else:
+        ctx.shutdown()
+    # Messages still arrive and trigger the (still alive) guard condition. Write through the
+    # DataWriter: it works after rclpy.shutdown() too.
+    _dds.publish_serialized(pub.handle.pointer, serialize_message(_image(4)), 42)
+    taken = _wait(lambda: _dds.take_serialized_with_gid(sub_pointer))
+    assert taken[2]['source_timestamp'] == 42
+    _dds.clear_new_message_wakeup(sub)  # works after destroy was requested
+    if first in ('subscription', 'node'):
+        with pytest.raises(Exception):  # the deferred destroy happened in clear
+            _dds.endpoint_gid(sub)
+    _dds.clear_new_message_wakeup(sub.handle)  # nothing set (or destroyed): no-op
+    node.destroy_node()
+    pub_node.destroy_node()
 
 
 # ---------------------------------------------------------------- lifetimes and errors

@@ -4,8 +4,10 @@
 // durability, and exchanging pre-serialized CDR.
 //
 //   ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)
-//     .publish(data)            any C-contiguous buffer; GIL released during the write
+//     .publish(data, source_timestamp=None)  any C-contiguous buffer; GIL released during
+//                               the write; an int timestamp (ns) goes through the DataWriter
 //     .matched_count() -> int   matched subscriptions
+//     .matched_gids() -> list[bytes]  GIDs of the matched DataReaders
 //     .gid, .topic_name, .valid
 //     .destroy()
 //   ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,
@@ -21,8 +23,10 @@
 #include <cstring>
 #include <mutex>
 #include <string>
+#include <vector>
 
 #include "dds_common.hpp"
+#include "dds_writer.hpp"
 
 #include "rcl/error_handling.h"
 #include "rcutils/error_handling.h"
@@ -32,6 +36,7 @@
 #include "rmw/serialized_message.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
 #include "fastdds/dds/subscriber/DataReader.hpp"
+#include "rmw_fastrtps_cpp/get_publisher.hpp"
 #include "rmw_fastrtps_cpp/get_subscriber.hpp"
 #include "rmw_fastrtps_shared_cpp/guid_utils.hpp"
 
@@ -313,9 +318,22 @@ PyObject * pub_destroy(PyObject * op, PyObject *)
   Py_RETURN_NONE;
 }
 
-PyObject * pub_publish(PyObject * op, PyObject * data)
+PyObject * pub_publish(PyObject * op, PyObject * args, PyObject * kwds)
 {
+  static const char * kwlist[] = {"data", "source_timestamp", nullptr};
   auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  PyObject * data;
+  PyObject * ts_arg = Py_None;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "O|O:publish", const_cast<char **>(kwlist), &data, &ts_arg))
+  {
+    return nullptr;
+  }
+  const bool with_timestamp = ts_arg != Py_None;
+  int64_t source_timestamp = 0;
+  if (with_timestamp && parse_source_timestamp(ts_arg, &source_timestamp) < 0) {
+    return nullptr;
+  }
   Py_buffer view;
   if (PyObject_GetBuffer(data, &view, PyBUF_C_CONTIGUOUS) < 0) {
     return nullptr;
@@ -329,11 +347,25 @@ PyObject * pub_publish(PyObject * op, PyObject * data)
   rmw_ret_t ret = RMW_RET_OK;
   bool valid = true;
   std::string error;
+  const char * what = "rmw_publish_serialized_message failed";
   {
     GilRelease nogil;
     std::lock_guard<std::mutex> lock(*self->base.op_mutex);
     if (self->publisher == nullptr) {
       valid = false;
+    } else if (with_timestamp) {
+      // Same payload as rmw's serialized path, but with the caller's source timestamp.
+      what = "publish with source_timestamp failed";
+      eprosima::fastdds::dds::DataWriter * writer =
+        rmw_fastrtps_cpp::get_datawriter(self->publisher);
+      if (writer == nullptr) {
+        ret = RMW_RET_ERROR;
+        error = "rmw_fastrtps_cpp returned no DataWriter";
+      } else if (!write_serialized_w_timestamp(
+          writer, view.buf, static_cast<size_t>(view.len), source_timestamp, &error))
+      {
+        ret = RMW_RET_ERROR;
+      }
     } else {
       // rmw only reads the buffer: point it at the caller's memory, no copy here.
       rmw_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
@@ -353,9 +385,36 @@ PyObject * pub_publish(PyObject * op, PyObject * data)
     return nullptr;
   }
   if (ret != RMW_RET_OK) {
-    return raise_rmw_error("rmw_publish_serialized_message failed", error);
+    return raise_rmw_error(what, error);
   }
   Py_RETURN_NONE;
+}
+
+PyObject * pub_matched_gids(PyObject * op, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  std::vector<GidArray> gids;
+  bool valid = true;
+  bool ok = true;
+  std::string error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->publisher == nullptr) {
+      valid = false;
+    } else {
+      ok = matched_reader_gids(self->publisher, &gids, &error);
+    }
+  }
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    return nullptr;
+  }
+  if (!ok) {
+    PyErr_Format(DdsError, "matched_gids: %s", error.c_str());
+    return nullptr;
+  }
+  return gid_list(gids);
 }
 
 PyObject * pub_matched_count(PyObject * op, PyObject *)
@@ -393,11 +452,16 @@ PyObject * pub_valid(PyObject * op, void *)
 }
 
 PyMethodDef pub_methods[] = {
-  {"publish", pub_publish, METH_O,
-    "publish(data) -> None\n\nWrite serialized CDR (with its 4-byte encapsulation header) from "
-    "any C-contiguous buffer, without copying it in Python; the GIL is released meanwhile."},
+  {"publish", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(pub_publish)),
+    METH_VARARGS | METH_KEYWORDS,
+    "publish(data, source_timestamp=None) -> None\n\nWrite serialized CDR (with its 4-byte "
+    "encapsulation header) from any C-contiguous buffer, without copying it in Python; the GIL "
+    "is released meanwhile. source_timestamp (int, ns since the epoch) becomes the samples'\n"
+    "source timestamp; None lets rmw stamp it with the current time."},
   {"matched_count", pub_matched_count, METH_NOARGS,
     "matched_count() -> int: subscriptions currently matched."},
+  {"matched_gids", pub_matched_gids, METH_NOARGS,
+    "matched_gids() -> list[bytes]: 16-byte GIDs of the DataReaders currently matched."},
   {"destroy", pub_destroy, METH_NOARGS,
     "destroy() -> None: delete the rmw publisher and unpin the node (idempotent)."},
   {nullptr, nullptr, 0, nullptr},

@@ -1,5 +1,6 @@
 // Shared helpers of the rmw_fastrtps layer and its registration (see dds_common.hpp).
 #include "dds_common.hpp"
+#include "dds_writer.hpp"
 
 #include <cstring>
 
@@ -122,6 +123,36 @@ void PinnedHandle::release()
   PyErr_Restore(exc_type, exc_value, exc_tb);
 }
 
+int check_handle_kind(PyObject * arg, const char * kind, const char * what)
+{
+  if (arg == nullptr || PyLong_Check(arg)) {
+    return 0;  // a raw pointer: the caller vouches for its kind
+  }
+  PyObject * handle = nullptr;
+  if (PyObject_HasAttrString(arg, "pointer")) {
+    handle = arg;
+    Py_INCREF(handle);
+  } else if (PyObject_HasAttrString(arg, "handle")) {
+    handle = PyObject_GetAttrString(arg, "handle");
+    if (handle == nullptr) {
+      return -1;
+    }
+  } else {
+    return 0;  // PinnedHandle::acquire reports it
+  }
+  const char * name = Py_TYPE(handle)->tp_name;
+  const char * dot = std::strrchr(name, '.');
+  const char * base = dot ? dot + 1 : name;
+  const bool ok = std::strcmp(base, kind) == 0;
+  if (!ok) {
+    PyErr_Format(
+      PyExc_TypeError, "%s: expected an rclpy %s (or its handle), got %.100s", what, kind,
+      Py_TYPE(arg)->tp_name);
+  }
+  Py_DECREF(handle);
+  return ok ? 0 : -1;
+}
+
 std::string take_rmw_error()
 {
   if (!rcutils_error_is_set()) {
@@ -141,6 +172,46 @@ PyObject * raise_rmw_error(const std::string & what, const std::string & rmw_err
 PyObject * gid_bytes(const uint8_t * data)
 {
   return PyBytes_FromStringAndSize(reinterpret_cast<const char *>(data), RMW_GID_STORAGE_SIZE);
+}
+
+PyObject * gid_list(const std::vector<GidArray> & gids)
+{
+  PyObject * list = PyList_New(static_cast<Py_ssize_t>(gids.size()));
+  if (list == nullptr) {
+    return nullptr;
+  }
+  for (size_t i = 0; i < gids.size(); ++i) {
+    PyObject * gid = gid_bytes(gids[i].data());
+    if (gid == nullptr) {
+      Py_DECREF(list);
+      return nullptr;
+    }
+    PyList_SET_ITEM(list, static_cast<Py_ssize_t>(i), gid);
+  }
+  return list;
+}
+
+int parse_source_timestamp(PyObject * arg, int64_t * out)
+{
+  if (arg == nullptr || !PyLong_Check(arg) || PyBool_Check(arg)) {
+    PyErr_Format(
+      PyExc_TypeError, "source_timestamp must be an int (ns since the epoch), got %.100s",
+      arg ? Py_TYPE(arg)->tp_name : "NULL");
+    return -1;
+  }
+  int overflow = 0;
+  const long long value = PyLong_AsLongLongAndOverflow(arg, &overflow);
+  if (value == -1 && PyErr_Occurred()) {
+    return -1;
+  }
+  if (overflow != 0 || value < 0 || value > kMaxSourceTimestampNs) {
+    PyErr_Format(
+      PyExc_ValueError, "source_timestamp out of range (0 <= ns <= %lld, Fast DDS Time_t)",
+      static_cast<long long>(kMaxSourceTimestampNs));
+    return -1;
+  }
+  *out = static_cast<int64_t>(value);
+  return 0;
 }
 
 PyObject * message_info_dict(const rmw_message_info_t & info)

@@ -7,8 +7,10 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <array>
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "rmw/types.h"
 
@@ -64,6 +66,11 @@ private:
   void * ptr_ = nullptr;
 };
 
+/// Guard against passing the wrong kind of rclpy object where a raw cast would follow: unless
+/// `arg` is a pointer int, its handle's (or its own) type must be named `<module>.<kind>`
+/// (kind "Publisher" / "Subscription" / ...). Returns 0, or -1 with TypeError (GIL held).
+int check_handle_kind(PyObject * arg, const char * kind, const char * what);
+
 /// Read and clear the calling thread's rcutils/rmw error string (GIL not needed).
 std::string take_rmw_error();
 
@@ -72,6 +79,15 @@ PyObject * raise_rmw_error(const std::string & what, const std::string & rmw_err
 
 /// 16-byte GID bytes object.
 PyObject * gid_bytes(const uint8_t * data);
+
+using GidArray = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
+
+/// list[bytes] of 16-byte GIDs.
+PyObject * gid_list(const std::vector<GidArray> & gids);
+
+/// Parse a source timestamp (int, ns since the epoch, 0 <= t < 2**31 s). Returns 0, or -1
+/// with TypeError/ValueError set.
+int parse_source_timestamp(PyObject * arg, int64_t * out);
 
 /// rclpy-like message info dict (source_timestamp, received_timestamp,
 /// publication_sequence_number, reception_sequence_number, from_intra_process).

@@ -4,18 +4,26 @@
 //   get_user_data(endpoint, kind) -> bytes
 //   set_user_data(endpoint, kind, data) -> None
 //   take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None
+//   publish_serialized(publisher, data, source_timestamp) -> None
+//   matched_subscription_gids(publisher) -> list[bytes]
+//   set_new_message_wakeup(subscription, guard_condition) -> None
+//   clear_new_message_wakeup(subscription) -> None
 //
 // `endpoint` is an rcl_publisher_t* / rcl_subscription_t* (int), an rclpy handle, or an
 // rclpy Publisher/Subscription; `kind` is "publisher" or "subscription" and must match it.
+#include <map>
+#include <mutex>
 #include <vector>
 
 #include "dds_common.hpp"
+#include "dds_writer.hpp"
 
 #include "fastdds/dds/publisher/DataWriter.hpp"
 #include "fastdds/dds/publisher/qos/DataWriterQos.hpp"
 #include "fastdds/dds/subscriber/DataReader.hpp"
 #include "fastdds/dds/subscriber/qos/DataReaderQos.hpp"
 #include "rcl/error_handling.h"
+#include "rcl/guard_condition.h"
 #include "rcl/publisher.h"
 #include "rcl/subscription.h"
 #include "rmw/serialized_message.h"
@@ -256,6 +264,226 @@ PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
   return result;
 }
 
+
+PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
+{
+  static const char * kwlist[] = {"publisher", "data", "source_timestamp", nullptr};
+  PyObject * pub_arg;
+  PyObject * data_arg;
+  PyObject * ts_arg;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "OOO:publish_serialized", const_cast<char **>(kwlist),
+      &pub_arg, &data_arg, &ts_arg))
+  {
+    return nullptr;
+  }
+  int64_t source_timestamp;
+  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
+    parse_source_timestamp(ts_arg, &source_timestamp) < 0)
+  {
+    return nullptr;
+  }
+  Py_buffer view;
+  if (PyObject_GetBuffer(data_arg, &view, PyBUF_C_CONTIGUOUS) < 0) {
+    return nullptr;
+  }
+  if (view.len < 4) {
+    PyBuffer_Release(&view);
+    PyErr_SetString(
+      PyExc_ValueError, "serialized message too short (needs the 4-byte CDR encapsulation)");
+    return nullptr;
+  }
+  PinnedHandle pub;
+  DdsEndpoint dds;
+  if (pub.acquire(pub_arg, "publisher") < 0 || resolve_endpoint(pub.get(), true, &dds) < 0) {
+    PyBuffer_Release(&view);
+    return nullptr;
+  }
+  bool ok;
+  std::string error;
+  {
+    GilRelease nogil;
+    // The pin keeps the rcl publisher (and its DataWriter) alive; Fast DDS copies the bytes.
+    ok = write_serialized_w_timestamp(
+      dds.writer, view.buf, static_cast<size_t>(view.len), source_timestamp, &error);
+  }
+  PyBuffer_Release(&view);
+  if (!ok) {
+    PyErr_Format(DdsError, "publish_serialized: %s", error.c_str());
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+PyObject * matched_subscription_gids(PyObject *, PyObject * pub_arg)
+{
+  PinnedHandle pub;
+  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
+    pub.acquire(pub_arg, "publisher") < 0)
+  {
+    return nullptr;
+  }
+  DdsEndpoint dds;  // checks validity and the rmw implementation
+  if (resolve_endpoint(pub.get(), true, &dds) < 0) {
+    return nullptr;
+  }
+  std::vector<GidArray> gids;
+  bool ok;
+  std::string error;
+  {
+    GilRelease nogil;
+    rmw_publisher_t * rmw_pub =
+      rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(pub.get()));
+    if (rmw_pub == nullptr) {
+      rcl_reset_error();
+      ok = false;
+      error = "the rcl publisher is not valid";
+    } else {
+      ok = matched_reader_gids(rmw_pub, &gids, &error);
+    }
+  }
+  if (!ok) {
+    PyErr_Format(DdsError, "matched_subscription_gids: %s", error.c_str());
+    return nullptr;
+  }
+  return gid_list(gids);
+}
+
+// ---- new-message wakeups on rcl subscriptions ----
+
+/// One registration: the user data of rmw's on-new-message callback. Immutable while
+/// registered; deleted (pins released, GIL held) only after rmw no longer calls it.
+struct NewMessageWakeup
+{
+  rcl_guard_condition_t * guard_condition = nullptr;
+  PinnedHandle guard_condition_pin;
+  PinnedHandle subscription_pin;  // released last: may run rclpy's deferred destroy
+  ~NewMessageWakeup()
+  {
+    guard_condition_pin.release();
+    subscription_pin.release();
+  }
+};
+
+/// rcl subscription -> its registration. Leaked on purpose (no static destruction at exit).
+/// `mutex` serialises set/clear and is held across rcl_subscription_set_on_new_message_callback
+/// (which may run the callback synchronously); the callback itself never takes it.
+struct NewMessageWakeups
+{
+  std::mutex mutex;
+  std::map<const rcl_subscription_t *, NewMessageWakeup *> entries;
+};
+
+NewMessageWakeups & new_message_wakeups()
+{
+  static NewMessageWakeups * w = new NewMessageWakeups();
+  return *w;
+}
+
+/// Runs on a DDS thread (or synchronously inside set) under rmw's callback mutex: no Python,
+/// no lock of ours; rcl_trigger_guard_condition only sets a flag and notifies waiters.
+void on_new_message_wakeup(const void * user_data, size_t number_of_events)
+{
+  (void)number_of_events;
+  auto * wakeup = static_cast<const NewMessageWakeup *>(user_data);
+  if (rcl_trigger_guard_condition(wakeup->guard_condition) != RCL_RET_OK) {
+    rcl_reset_error();
+  }
+}
+
+PyObject * set_new_message_wakeup(PyObject *, PyObject * args)
+{
+  PyObject * sub_arg;
+  PyObject * gc_arg;
+  if (!PyArg_ParseTuple(args, "OO:set_new_message_wakeup", &sub_arg, &gc_arg)) {
+    return nullptr;
+  }
+  if (check_handle_kind(sub_arg, "Subscription", "subscription") < 0 ||
+    check_handle_kind(gc_arg, "GuardCondition", "guard_condition") < 0)
+  {
+    return nullptr;
+  }
+  auto * wakeup = new NewMessageWakeup();
+  if (wakeup->subscription_pin.acquire(sub_arg, "subscription") < 0 ||
+    wakeup->guard_condition_pin.acquire(gc_arg, "guard_condition") < 0)
+  {
+    delete wakeup;
+    return nullptr;
+  }
+  wakeup->guard_condition =
+    static_cast<rcl_guard_condition_t *>(wakeup->guard_condition_pin.get());
+  auto * sub = static_cast<const rcl_subscription_t *>(wakeup->subscription_pin.get());
+  NewMessageWakeup * previous = nullptr;
+  rcl_ret_t ret;
+  std::string error;
+  {
+    GilRelease nogil;
+    NewMessageWakeups & reg = new_message_wakeups();
+    std::lock_guard<std::mutex> lock(reg.mutex);
+    // rmw may call the callback right here (with the count of unread messages). Replacing a
+    // registration is a barrier too: rmw swaps callbacks under the mutex it calls them with.
+    ret = rcl_subscription_set_on_new_message_callback(sub, on_new_message_wakeup, wakeup);
+    if (ret == RCL_RET_OK) {
+      NewMessageWakeup *& slot = reg.entries[sub];
+      previous = slot;
+      slot = wakeup;
+    } else {
+      error = take_rmw_error();
+    }
+  }
+  if (ret != RCL_RET_OK) {
+    delete wakeup;  // never registered
+    return raise_rmw_error("rcl_subscription_set_on_new_message_callback failed", error);
+  }
+  delete previous;  // no longer called: release its pins (GIL held)
+  Py_RETURN_NONE;
+}
+
+PyObject * clear_new_message_wakeup(PyObject *, PyObject * sub_arg)
+{
+  if (check_handle_kind(sub_arg, "Subscription", "subscription") < 0) {
+    return nullptr;
+  }
+  // Only peek: rclpy may already have been asked to destroy the subscription (our pin
+  // deferred it), and entering it again would raise.
+  auto * sub = static_cast<const rcl_subscription_t *>(
+    PinnedHandle::peek(sub_arg, "subscription"));
+  if (sub == nullptr) {
+    if (!PyLong_Check(sub_arg) && PyErr_ExceptionMatches(PyExc_ValueError)) {
+      // A handle rclpy already destroyed: set pins what it registers, so nothing is set.
+      PyErr_Clear();
+      Py_RETURN_NONE;
+    }
+    return nullptr;
+  }
+  NewMessageWakeup * wakeup = nullptr;
+  rcl_ret_t ret = RCL_RET_OK;
+  std::string error;
+  {
+    GilRelease nogil;
+    NewMessageWakeups & reg = new_message_wakeups();
+    std::lock_guard<std::mutex> lock(reg.mutex);
+    auto it = reg.entries.find(sub);
+    if (it != reg.entries.end()) {
+      // rmw holds its callback mutex while calling us: once this returns, the callback is
+      // neither running nor will it run again.
+      ret = rcl_subscription_set_on_new_message_callback(sub, nullptr, nullptr);
+      if (ret == RCL_RET_OK) {
+        wakeup = it->second;
+        reg.entries.erase(it);
+      } else {
+        error = take_rmw_error();
+      }
+    }
+  }
+  if (ret != RCL_RET_OK) {
+    // Still registered (and pinned): freeing it could leave rmw with a dangling pointer.
+    return raise_rmw_error("rcl_subscription_set_on_new_message_callback(NULL) failed", error);
+  }
+  delete wakeup;  // unpin the guard condition, then the subscription (GIL held)
+  Py_RETURN_NONE;
+}
+
 PyMethodDef endpoint_methods[] = {
   {"endpoint_gid", endpoint_gid, METH_VARARGS,
     "endpoint_gid(endpoint, kind) -> bytes\n\n"
@@ -272,6 +500,26 @@ PyMethodDef endpoint_methods[] = {
     "take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None\n\n"
     "rcl_take_serialized_message on an rcl subscription: the CDR bytes, the 16-byte GID of\n"
     "the publisher and an rclpy-like message info dict; None when nothing is there."},
+  {"publish_serialized", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(
+      publish_serialized)), METH_VARARGS | METH_KEYWORDS,
+    "publish_serialized(publisher, data, source_timestamp: int) -> None\n\n"
+    "Write serialized CDR (with its 4-byte encapsulation header; any C-contiguous buffer,\n"
+    "not copied in Python) on the DataWriter behind an rcl publisher, with an explicit\n"
+    "source timestamp in ns since the epoch (takes report it in info['source_timestamp'])."},
+  {"matched_subscription_gids", matched_subscription_gids, METH_O,
+    "matched_subscription_gids(publisher) -> list[bytes]\n\n"
+    "16-byte GIDs (as get_subscriptions_info_by_topic endpoint_gid) of the DataReaders\n"
+    "currently matched with the DataWriter behind an rcl publisher."},
+  {"set_new_message_wakeup", set_new_message_wakeup, METH_VARARGS,
+    "set_new_message_wakeup(subscription, guard_condition) -> None\n\n"
+    "Trigger the rcl guard condition on every new message of the rcl subscription\n"
+    "(rcl_subscription_set_on_new_message_callback; also right away if messages are\n"
+    "unread). Replaces an earlier registration. Pins both until clear_new_message_wakeup()."},
+  {"clear_new_message_wakeup", clear_new_message_wakeup, METH_O,
+    "clear_new_message_wakeup(subscription) -> None\n\n"
+    "Stop triggering (a barrier: once it returns, the guard condition is never triggered by\n"
+    "it again) and unpin both. No-op when nothing is registered (also on a handle rclpy\n"
+    "already destroyed). Works after rclpy was asked to destroy the subscription."},
   {nullptr, nullptr, 0, nullptr},
 };
 

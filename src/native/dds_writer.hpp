@@ -1,0 +1,52 @@
+// DataWriter helpers shared by publish_serialized/matched_subscription_gids (dds_endpoints.cpp)
+// and ChannelPublisher (dds_channels.cpp). Plain C++: no Python, call them with the GIL
+// released.
+#ifndef ROSIDL_BUFFER_PY_NATIVE__DDS_WRITER_HPP_
+#define ROSIDL_BUFFER_PY_NATIVE__DDS_WRITER_HPP_
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "rmw/types.h"
+
+namespace eprosima
+{
+namespace fastdds
+{
+namespace dds
+{
+class DataWriter;
+}  // namespace dds
+}  // namespace fastdds
+}  // namespace eprosima
+
+namespace rbpy_dds
+{
+
+/// Largest source timestamp Fast DDS can carry (Time_t: int32 seconds, 0x7fffffff = infinite).
+constexpr int64_t kMaxSourceTimestampNs = static_cast<int64_t>(0x7fffffff) * 1000000000LL - 1;
+
+/// Write already-serialized CDR (with its 4-byte encapsulation header) on a DataWriter created
+/// by rmw_fastrtps_cpp, with `source_timestamp_ns` (0..kMaxSourceTimestampNs) as the sample's
+/// source timestamp. Same payload type rmw_publish_serialized_message hands Fast DDS, so rmw's
+/// TypeSupport copies the bytes into the DDS payload; `data` is only read, and not kept.
+/// Returns true, or false with a message in *error.
+bool write_serialized_w_timestamp(
+  eprosima::fastdds::dds::DataWriter * writer, const void * data, size_t length,
+  int64_t source_timestamp_ns, std::string * error);
+
+using GidArray = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
+
+/// The rmw GIDs (Fast DDS GUIDs) of the DataReaders matched with the DataWriter of an
+/// rmw_fastrtps_cpp publisher (identifier already checked). Asks the DataWriter first; Fast DDS
+/// 2.14 answers RETCODE_UNSUPPORTED, and then rmw's own set of matched readers (the one behind
+/// rmw_publisher_count_matched_subscriptions) is read. Returns true, or false with *error.
+bool matched_reader_gids(
+  rmw_publisher_t * publisher, std::vector<GidArray> * gids, std::string * error);
+
+}  // namespace rbpy_dds
+
+#endif  // ROSIDL_BUFFER_PY_NATIVE__DDS_WRITER_HPP_
