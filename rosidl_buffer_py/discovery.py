@@ -1,0 +1,155 @@
+"""Discovery of buffer-aware endpoints, per DDS participant (one per rclpy Context).
+
+The native tap (``_dds.install_discovery``) records every DataWriter/DataReader discovery event of
+the participant, local endpoints included. :class:`ParticipantDiscovery` turns them into
+:class:`PeerEndpoint` records (``BUFBE:`` advertisement parsed) and dispatches them, by DDS topic,
+to the buffer-aware publishers and subscriptions that watch that topic. Processing happens in
+Python threads only (publish(), executor callbacks), never in DDS threads.
+
+Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. So every
+buffer-aware endpoint re-announces its USER_DATA when it discovers a new endpoint of the opposite
+kind on its topic: whoever just appeared then sees the advertisement as a 'changed' event.
+"""
+import threading
+import weakref
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional
+
+from rclpy.logging import get_logger
+
+from rosidl_buffer_py import _dds, advertisement
+from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
+from rosidl_buffer_py.channel import is_channel_topic
+
+_logger = get_logger('rosidl_buffer_py.discovery')
+
+_KINDS = {'writer': EndpointKind.PUBLISHER, 'reader': EndpointKind.SUBSCRIPTION}
+_GONE = ('removed', 'ignored')
+
+
+@dataclass
+class PeerEndpoint:
+    """A discovered endpoint of a watched topic and what it advertises."""
+
+    gid: bytes
+    kind: EndpointKind
+    dds_topic: str
+    type_name: str
+    backends: Optional[Mapping[str, str]]  #: None for a legacy endpoint
+    local: bool
+    new: bool = False  #: True on the event that first reports it (not on 'changed'/'known')
+
+    @property
+    def buffer_aware(self) -> bool:
+        return self.backends is not None
+
+    def endpoint_info(self, ros_topic: str) -> EndpointInfo:
+        return EndpointInfo(gid=self.gid, topic_name=ros_topic, endpoint_kind=self.kind)
+
+
+@dataclass
+class _Watch:
+    watchers: 'weakref.WeakSet' = field(default_factory=weakref.WeakSet)
+
+
+class ParticipantDiscovery:
+    """Endpoints of one participant's view of the DDS graph, dispatched to watchers by topic.
+
+    A watcher implements ``_on_peer(peer: PeerEndpoint)`` and ``_on_peer_gone(gid: bytes)``.
+    """
+
+    def __init__(self, node) -> None:
+        self._lock = threading.RLock()
+        self._nodes: 'weakref.WeakSet' = weakref.WeakSet()
+        self._endpoints: Dict[bytes, PeerEndpoint] = {}
+        self._watches: Dict[str, _Watch] = {}
+        self._installed = _dds.install_discovery(node) or True
+        self._nodes.add(node)
+        for event in _dds.list_known_endpoints(node):
+            self._apply(event)
+
+    def attach_node(self, node) -> None:
+        """Remember another node of the same participant (any live one can drain events)."""
+        with self._lock:
+            self._nodes.add(node)
+
+    def watch(self, dds_topic: str, watcher) -> List[PeerEndpoint]:
+        """Start dispatching events of ``dds_topic`` to ``watcher``; return the known peers."""
+        with self._lock:
+            self._watches.setdefault(dds_topic, _Watch()).watchers.add(watcher)
+            return [p for p in self._endpoints.values() if p.dds_topic == dds_topic]
+
+    def unwatch(self, dds_topic: str, watcher) -> None:
+        with self._lock:
+            watch = self._watches.get(dds_topic)
+            if watch is not None:
+                watch.watchers.discard(watcher)
+
+    def add_wakeup(self, node, guard_condition) -> None:
+        """Trigger ``guard_condition`` whenever a discovery event arrives."""
+        _dds.add_discovery_wakeup(node, guard_condition)
+
+    def remove_wakeup(self, guard_condition) -> None:
+        try:
+            _dds.remove_discovery_wakeup(guard_condition)
+        except Exception as exc:  # the participant may already be gone at shutdown
+            _logger.debug(f'remove_discovery_wakeup: {exc}')
+
+    def process(self) -> None:
+        """Drain pending events and dispatch them (cheap when nothing is pending)."""
+        with self._lock:
+            events = None
+            for node in list(self._nodes):
+                try:
+                    events = _dds.drain_discovery_events(node)
+                    break
+                except Exception:  # node destroyed: try another node of the participant
+                    self._nodes.discard(node)
+            if not events:
+                return
+            dispatch = []
+            for event in events:
+                item = self._apply(event)
+                if item is not None:
+                    dispatch.append(item)
+            for dds_topic, peer, gid in dispatch:
+                watch = self._watches.get(dds_topic)
+                for watcher in list(watch.watchers) if watch else ():
+                    try:
+                        if peer is not None:
+                            watcher._on_peer(peer)
+                        else:
+                            watcher._on_peer_gone(gid)
+                    except Exception as exc:  # one bad watcher must not starve the others
+                        _logger.error(f'discovery dispatch to {watcher!r} failed: '
+                                      f'{type(exc).__name__}: {exc}')
+
+    def _apply(self, event: '_dds.EndpointEvent'):
+        if is_channel_topic(event.topic) or event.kind not in _KINDS:
+            return None
+        if event.status in _GONE:
+            if self._endpoints.pop(event.gid, None) is None:
+                return None
+            return (event.topic, None, event.gid)
+        peer = PeerEndpoint(gid=event.gid, kind=_KINDS[event.kind], dds_topic=event.topic,
+                            type_name=event.type_name,
+                            backends=advertisement.decode(event.user_data), local=event.local,
+                            new=event.status == 'discovered')
+        self._endpoints[event.gid] = peer
+        return (event.topic, peer, event.gid)
+
+
+_registry_lock = threading.Lock()
+_by_context: 'weakref.WeakKeyDictionary' = weakref.WeakKeyDictionary()
+
+
+def for_node(node) -> ParticipantDiscovery:
+    """The discovery of ``node``'s participant (created on first use)."""
+    with _registry_lock:
+        discovery = _by_context.get(node.context)
+        if discovery is None:
+            discovery = ParticipantDiscovery(node)
+            _by_context[node.context] = discovery
+        else:
+            discovery.attach_node(node)
+        return discovery
