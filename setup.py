@@ -56,7 +56,7 @@ def native_extension() -> Extension:
         # rcl: rcl_*_get_rmw_handle, rcl_take_serialized_message, rcl_trigger_guard_condition;
         # rmw: default options, serialized message helpers; rmw_fastrtps_cpp: the rmw_* entry
         # points and get_datawriter/get_datareader/get_domain_participant; fastrtps: DDS API.
-        libraries=['rcl', 'rmw', 'rmw_fastrtps_cpp', 'fastrtps', 'rcutils'],
+        libraries=['rcl', 'rmw', 'rmw_fastrtps_cpp', 'fastrtps', 'fastcdr', 'rcutils'],
         extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra'],
         language='c++',
     )

@@ -7,12 +7,17 @@ The pieces, each in its own module:
 - :mod:`.registry`: backend discovery from entry points, ``acceptable_buffer_backends`` parsing;
 - :mod:`.message_support`: ``msg.data = buffer`` for generated message classes;
 - :mod:`.codec`: the wire format (legacy CDR bytes, or a descriptor behind a marker);
-- :mod:`.image`: numpy views and copies of ``sensor_msgs/Image``.
+- :mod:`.image`: numpy views and copies of ``sensor_msgs/Image``;
+- :mod:`.advertisement`, :mod:`.discovery`, :mod:`.channel`: who supports which backend, and
+  the per-endpoint channels;
+- :mod:`.publisher`, :mod:`.subscription`: :func:`create_publisher`, :func:`create_subscription`.
 """
 from rosidl_buffer_py.backend import (
     BufferBackend, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE)
 from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
+from rosidl_buffer_py.publisher import Publisher, create_publisher
+from rosidl_buffer_py.subscription import Subscription, create_subscription
 from rosidl_buffer_py.registry import (
     get_backend, get_installed_backends, parse_acceptable_buffer_backends)
 
@@ -26,7 +31,11 @@ __all__ = [
     'EndpointInfo',
     'EndpointKind',
     'MAX_DESCRIPTOR_SIZE',
+    'Publisher',
+    'Subscription',
     'buffer_fields',
+    'create_publisher',
+    'create_subscription',
     'enable_buffer_fields',
     'get_backend',
     'get_installed_backends',

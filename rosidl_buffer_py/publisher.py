@@ -1,0 +1,316 @@
+"""The buffer-aware publisher.
+
+It is an ordinary rclpy publisher on the main topic (legacy subscribers, bag recorders and rviz see
+a normal ``uint8[]`` topic) whose DataWriter also advertises ``BUFBE:cpu=;<backend>=<meta>;...``
+in USER_DATA. For every buffer-aware subscription it discovers, it opens a channel
+``rt/<topic>/_buf/<pub gid>_<sub gid>`` below rcl and, once that channel is matched, serves the
+subscription there: a descriptor when the backend accepts the peer, CPU bytes otherwise. The main
+topic is written only while some matched subscription is not served by a matched channel.
+
+Exactly-once: the channel copy and the main-topic copy of one message carry the same explicit
+source timestamp, and a subscription delivers each (publisher GID, source timestamp) once.
+"""
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Set, Union
+
+from rclpy.logging import get_logger
+from rclpy.qos import QoSProfile
+
+from rosidl_buffer_py import _dds, advertisement, codec, discovery
+from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
+from rosidl_buffer_py.buffer import Buffer
+from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.cpu_backend import CPU_BACKEND
+from rosidl_buffer_py.message_support import enable_buffer_fields
+from rosidl_buffer_py.registry import get_installed_backends
+from rosidl_buffer_py.transport import hook_destruction, qos_of, warn_unsupported_rmw
+
+_logger = get_logger('rosidl_buffer_py.publisher')
+
+#: How long a channel must have been matched before it serves its subscription.
+CHANNEL_SETTLE_SECONDS = 0.2
+
+
+@dataclass
+class _SubscriptionPeer:
+    """A buffer-aware subscription of our topic and the channel that serves it."""
+
+    info: EndpointInfo
+    backends: Dict[str, str]
+    compatible: Set[str] = field(default_factory=set)
+    channel: Optional['_dds.ChannelPublisher'] = None
+    channel_topic: str = ''
+    sent_descriptor: int = 0
+    sent_cpu: int = 0
+    backend_in_use: Optional[str] = None
+    matched_since: Optional[float] = None
+
+
+class Publisher:
+    """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
+
+    Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
+    whose payload is CPU data (``array.array``, ``bytes``, ...) or a Buffer (for example a
+    ``DemoBuffer``), or already serialized CDR ``bytes``.
+    """
+
+    def __init__(self, node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
+                 callback_group=None, event_callbacks=None) -> None:
+        self._field = codec.payload_field(msg_type)
+        enable_buffer_fields(msg_type)
+        self._node = node
+        self.msg_type = msg_type
+        self._lock = threading.RLock()
+        self._peers: Dict[bytes, _SubscriptionPeer] = {}
+        self._last_timestamp = 0
+        self._sent_main = 0
+        self._peers_added = 0
+        self._peers_removed = 0
+        self._destroyed = False
+        # the discovery tap goes first: peers re-announce as soon as they see our endpoint
+        self._discovery = discovery.for_node(node) if _dds.is_supported() else None
+        self._publisher = node.create_publisher(
+            msg_type, topic, qos_of(qos_profile), callback_group=callback_group,
+            event_callbacks=event_callbacks)
+        self.qos_profile = self._publisher.qos_profile
+        self._topic_name = self._publisher.topic_name  # usable after rclpy destroyed the handle
+        self._transport = _dds.is_supported()
+        if not self._transport:
+            warn_unsupported_rmw('publisher', self.topic_name)
+            return
+        self._gid = _dds.endpoint_gid(self._publisher)
+        self._info = EndpointInfo(self._gid, self.topic_name, EndpointKind.PUBLISHER,
+                                  node.get_name(), node.get_namespace())
+        self._backends = get_installed_backends()
+        advertised = {CPU_BACKEND: ''}
+        advertised.update({name: backend.get_backend_metadata()
+                           for name, backend in self._backends.items() if name != CPU_BACKEND})
+        self._advertised = advertised
+        self._user_data = advertisement.append(_dds.get_user_data(self._publisher), advertised)
+        self._announce()
+        for backend in self._backends.values():
+            backend.on_creating_endpoint(self._info)
+        self._guard = node.create_guard_condition(self._on_wake, callback_group)
+        hook_destruction(self._guard, self._teardown)
+        self._discovery.add_wakeup(node, self._guard)
+        with self._lock:
+            for peer in self._discovery.watch(dds_topic(self.topic_name), self):
+                self._on_peer(peer)
+
+    # rclpy.publisher.Publisher compatible surface -------------------------------------------
+
+    @property
+    def topic_name(self) -> str:
+        """Fully qualified topic name."""
+        return self._topic_name
+
+    @property
+    def handle(self):
+        """The rclpy handle of the main-topic publisher."""
+        return self._publisher.handle
+
+    def get_subscription_count(self) -> int:
+        """Subscriptions matched on the main topic (every subscriber, buffer-aware or not)."""
+        return self._publisher.get_subscription_count()
+
+    def assert_liveliness(self) -> None:
+        self._publisher.assert_liveliness()
+
+    def wait_for_all_acked(self, timeout=None) -> bool:
+        return self._publisher.wait_for_all_acked(timeout) if timeout is not None else \
+            self._publisher.wait_for_all_acked()
+
+    def publish(self, msg) -> None:
+        """Publish ``msg`` to every subscription, each by the cheapest route it can take."""
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            serialized = msg
+        elif isinstance(msg, self.msg_type):
+            serialized = None
+        else:
+            raise TypeError(f'Expected {self.msg_type.__name__} or serialized bytes, '
+                            f'got {type(msg).__name__}')
+        if not self._transport:
+            if serialized is None and isinstance(getattr(msg, self._field), Buffer):
+                serialized = bytes(codec.encode(msg))  # stock rclpy cannot convert a Buffer
+            self._publisher.publish(bytes(serialized) if serialized is not None else msg)
+            return
+        self._discovery.process()
+        payload = None if serialized is not None else getattr(msg, self._field)
+        vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
+            else None
+        cpu_bytes = serialized
+        with self._lock:
+            if self._destroyed:
+                raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
+            timestamp = self._next_timestamp()
+            served = set()
+            for peer in self._peers.values():
+                channel = peer.channel
+                if channel is None or not self._channel_ready(peer):
+                    continue  # not (long enough) matched: the main topic carries the message
+                data = None
+                if vendor is not None and vendor in peer.compatible:
+                    descriptor = self._describe(vendor, payload, peer)
+                    if descriptor is not None:
+                        data = codec.encode(msg, (vendor, descriptor))
+                        peer.sent_descriptor += 1
+                        peer.backend_in_use = vendor
+                if data is None:
+                    if cpu_bytes is None:
+                        cpu_bytes = codec.encode(msg)
+                    data = cpu_bytes
+                    peer.sent_cpu += 1
+                    peer.backend_in_use = CPU_BACKEND
+                channel.publish(data, timestamp)
+                served.add(peer.info.gid)
+            if any(gid not in served for gid in _dds.matched_subscription_gids(self._publisher)):
+                if cpu_bytes is None:
+                    cpu_bytes = codec.encode(msg)
+                _dds.publish_serialized(self._publisher, cpu_bytes, timestamp)
+                self._sent_main += 1
+
+    def destroy(self) -> None:
+        """Destroy the publisher, its channels and its main-topic publisher."""
+        if not self._transport:
+            self._node.destroy_publisher(self._publisher)
+            return
+        self._node.destroy_guard_condition(self._guard)  # runs _teardown through the hook
+
+    # diagnostics ----------------------------------------------------------------------------
+
+    def buffer_peers(self) -> List[dict]:
+        """The buffer-aware subscriptions this publisher serves, and how."""
+        with self._lock:
+            return [{
+                'gid': peer.info.gid_hex,
+                'advertised_backends': dict(peer.backends),
+                'compatible_backends': sorted(peer.compatible),
+                'channel_topic': peer.channel_topic,
+                'channel_matched': bool(peer.channel and peer.channel.matched_count()),
+                'channel_serving': bool(peer.channel and self._channel_ready(peer)),
+                'backend_in_use': peer.backend_in_use,
+                'sent_as_descriptor': peer.sent_descriptor,
+                'sent_as_cpu': peer.sent_cpu,
+            } for peer in self._peers.values()]
+
+    def statistics(self) -> dict:
+        """Counters: messages written on the main topic, and per-peer counts."""
+        with self._lock:
+            return {'gid': self._gid.hex() if self._transport else None,
+                    'buffer_aware': self._transport,
+                    'advertised_backends': dict(getattr(self, '_advertised', {})),
+                    'sent_on_main_topic': self._sent_main,
+                    'peers_added': self._peers_added, 'peers_removed': self._peers_removed,
+                    'peers': self.buffer_peers()}
+
+    # internals ------------------------------------------------------------------------------
+
+    def _next_timestamp(self) -> int:
+        now = time.time_ns()
+        self._last_timestamp = now if now > self._last_timestamp else self._last_timestamp + 1
+        return self._last_timestamp
+
+    def _channel_ready(self, peer: _SubscriptionPeer) -> bool:
+        """True once the channel has been matched for ``CHANNEL_SETTLE_SECONDS``.
+
+        A DDS VOLATILE reader that matches the writer after the writer matched it may discard
+        the first samples; until the match has settled, the main topic serves the peer (the
+        subscription drops the second copy), so bring-up loses nothing.
+        """
+        if peer.channel.matched_count() == 0:
+            peer.matched_since = None
+            return False
+        now = time.monotonic()
+        if peer.matched_since is None:
+            peer.matched_since = now
+        return now - peer.matched_since >= CHANNEL_SETTLE_SECONDS
+
+    def _describe(self, vendor: str, payload: Buffer, peer: _SubscriptionPeer) -> Optional[bytes]:
+        try:
+            return self._backends[vendor].create_descriptor_with_endpoint(payload, peer.info)
+        except Exception as exc:  # a failing backend degrades to CPU bytes for this message
+            _logger.error(f'backend {vendor!r} failed to describe a buffer for '
+                          f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU bytes',
+                          throttle_duration_sec=5.0)
+            return None
+
+    def _announce(self) -> None:
+        """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
+        _dds.set_user_data(self._publisher, self._user_data)
+
+    def _on_wake(self) -> None:
+        self._discovery.process()
+
+    def _on_peer(self, peer: 'discovery.PeerEndpoint') -> None:
+        if peer.kind is not EndpointKind.SUBSCRIPTION:
+            return
+        with self._lock:
+            if self._destroyed:
+                return
+            if peer.new and not peer.local:
+                self._announce()
+            known = self._peers.get(peer.gid)
+            if not peer.buffer_aware:
+                if known is not None:  # it withdrew its advertisement: treat as legacy
+                    self._drop_peer(peer.gid)
+                return
+            info = EndpointInfo(peer.gid, self.topic_name, EndpointKind.SUBSCRIPTION)
+            existing = [p.info for p in self._peers.values() if p.info.gid != peer.gid]
+            compatible = set()
+            for name in peer.backends:
+                backend = self._backends.get(name)
+                if backend is None or name == CPU_BACKEND:
+                    continue
+                try:
+                    ok, _groups = backend.on_discovering_endpoint(info, existing, peer.backends)
+                except Exception as exc:
+                    _logger.error(f'backend {name!r} on_discovering_endpoint failed: {exc}')
+                    ok = False
+                if ok:
+                    compatible.add(name)
+            if known is None:
+                known = _SubscriptionPeer(info=info, backends=dict(peer.backends))
+                known.channel_topic = channel_topic(self.topic_name, self._gid, peer.gid)
+                known.channel = _dds.create_channel_publisher(
+                    self._node, self.msg_type, known.channel_topic, self.qos_profile)
+                self._peers[peer.gid] = known
+                self._peers_added += 1
+            known.backends = dict(peer.backends)
+            known.compatible = compatible
+
+    def _on_peer_gone(self, gid: bytes) -> None:
+        with self._lock:
+            self._drop_peer(gid)
+
+    def _drop_peer(self, gid: bytes) -> None:
+        peer = self._peers.pop(gid, None)
+        if peer is None:
+            return
+        self._peers_removed += 1
+        if peer.channel is not None:
+            peer.channel.destroy()
+        for backend in self._backends.values():
+            backend.on_removing_endpoint(peer.info)
+
+    def _teardown(self) -> None:
+        with self._lock:
+            if self._destroyed:
+                return
+            self._destroyed = True
+            self._discovery.unwatch(dds_topic(self.topic_name), self)
+            self._discovery.remove_wakeup(self._guard)
+            for gid in list(self._peers):
+                self._drop_peer(gid)
+        try:
+            self._node.destroy_publisher(self._publisher)
+        except Exception as exc:  # already destroyed with the node
+            _logger.debug(f'destroy_publisher: {exc}')
+
+
+def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
+                     callback_group=None, event_callbacks=None) -> Publisher:
+    """Create a buffer-aware publisher on ``node`` (arguments as ``Node.create_publisher``)."""
+    return Publisher(node, msg_type, topic, qos_profile, callback_group=callback_group,
+                     event_callbacks=event_callbacks)
