@@ -43,8 +43,14 @@ def _our_shm_files():
 
 @pytest.fixture(scope='session', autouse=True)
 def no_shm_leftovers():
-    """Fail the session if it leaves files of ours in /dev/shm."""
+    """Fail the session if it leaves files of ours in /dev/shm.
+
+    The test process's own demo backend is shut down first, as at interpreter exit.
+    """
     before = _our_shm_files()
     yield
+    import sys
+    if 'demo_buffer_backend' in sys.modules:
+        sys.modules['demo_buffer_backend'].shutdown()
     left = _our_shm_files() - before
     assert not left, f'tests left files in /dev/shm: {sorted(left)}'

@@ -1,0 +1,146 @@
+"""Start node processes with ROS parameters, wait for them, collect their reports.
+
+The one process runner of the project: the demos, the scenarios and the integration tests all
+use it. Every process it starts is reaped: on timeout it gets SIGINT, then SIGKILL.
+"""
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+
+#: Executable name -> module run with ``python -m`` (the same names as the console scripts).
+NODES = {
+    'image_publisher': 'rosidl_buffer_py.nodes.image_publisher',
+    'image_subscriber': 'rosidl_buffer_py.nodes.image_subscriber',
+    'legacy_image_publisher': 'rosidl_buffer_py.nodes.legacy_image_publisher',
+    'legacy_image_subscriber': 'rosidl_buffer_py.nodes.legacy_image_subscriber',
+}
+
+
+def format_parameter(value) -> str:
+    """A ``-p name:=value`` value that ROS parses back to the same Python type."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    return json.dumps(str(value))  # a YAML double-quoted string: '' and '1' stay strings
+
+
+@dataclass
+class NodeProcess:
+    """One node process of a scenario."""
+
+    label: str
+    executable: str
+    parameters: Dict[str, object] = field(default_factory=dict)
+    process: Optional[subprocess.Popen] = None
+    output: List[str] = field(default_factory=list)
+    stderr: List[str] = field(default_factory=list)
+    _threads: List[threading.Thread] = field(default_factory=list)
+
+    def command(self) -> List[str]:
+        args = [sys.executable, '-m', NODES[self.executable], '--ros-args',
+                '-r', f'__node:={self.label}']
+        for name, value in self.parameters.items():
+            args += ['-p', f'{name}:={format_parameter(value)}']
+        return args
+
+    def start(self, echo: bool = False) -> None:
+        self.process = subprocess.Popen(
+            self.command(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
+        for stream, sink in ((self.process.stdout, self.output), (self.process.stderr,
+                                                                  self.stderr)):
+            thread = threading.Thread(target=_pump, args=(stream, sink, self.label, echo),
+                                      daemon=True)
+            thread.start()
+            self._threads.append(thread)
+
+    def stop(self, grace: float = 5.0) -> None:
+        """SIGINT, then SIGKILL after ``grace`` seconds; always reaps."""
+        if self.process is None:
+            return
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(grace)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        for thread in self._threads:
+            thread.join(5)
+
+    def kill(self) -> None:
+        """SIGKILL now (a crashed peer) and reap."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+
+    @property
+    def report(self) -> Optional[dict]:
+        for line in reversed(self.output):
+            if line.startswith(REPORT_PREFIX):
+                return json.loads(line[len(REPORT_PREFIX):])
+        return None
+
+
+def _pump(stream, sink: List[str], label: str, echo: bool) -> None:
+    for line in stream:
+        sink.append(line.rstrip('\n'))
+        if echo and not line.startswith(REPORT_PREFIX):
+            print(f'[{label}] {line}', end='', flush=True)
+
+
+class Run:
+    """A set of node processes started together; use as a context manager (always reaped)."""
+
+    def __init__(self, echo: bool = False) -> None:
+        self.nodes: Dict[str, NodeProcess] = {}
+        self.echo = echo
+
+    def start(self, label: str, executable: str, **parameters) -> NodeProcess:
+        node = NodeProcess(label, executable, dict(parameters))
+        node.start(self.echo)
+        self.nodes[label] = node
+        return node
+
+    def wait(self, labels: Optional[List[str]] = None, timeout: float = 60.0) -> bool:
+        """Wait until the given (default: all) processes exited; False on timeout."""
+        deadline = time.monotonic() + timeout
+        for label in labels or list(self.nodes):
+            process = self.nodes[label].process
+            try:
+                process.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                return False
+        return True
+
+    def stop_all(self) -> None:
+        for node in self.nodes.values():
+            node.stop()
+
+    def reports(self) -> Dict[str, Optional[dict]]:
+        return {label: node.report for label, node in self.nodes.items()}
+
+    def diagnostics(self) -> str:
+        """Exit codes and the tails of stderr, for failure messages."""
+        parts = []
+        for label, node in self.nodes.items():
+            code = node.process.returncode if node.process else None
+            parts.append(f'--- {label} (exit {code})\n' + '\n'.join(node.stderr[-15:]))
+        return '\n'.join(parts)
+
+    def __enter__(self) -> 'Run':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()

@@ -1,0 +1,47 @@
+"""What the runnable nodes share: QoS parameters, reports, clean shutdown on SIGINT/SIGTERM."""
+import json
+import signal
+import sys
+from typing import Callable
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+#: A report line starts with this, followed by one JSON object (parsed by launch_free_demos).
+REPORT_PREFIX = 'REPORT '
+
+RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
+
+
+def declare_qos_parameters(node) -> QoSProfile:
+    """Declare ``reliability`` and ``depth`` and return the QoS profile they give."""
+    reliability = node.declare_parameter('reliability', 'reliable').value
+    depth = node.declare_parameter('depth', 10).value
+    if reliability not in RELIABILITY:
+        raise ValueError(f'reliability must be one of {sorted(RELIABILITY)}, got {reliability!r}')
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST,
+                      reliability=RELIABILITY[reliability])
+
+
+def print_report(report: dict) -> None:
+    """Print the node's report as one parseable line on stdout."""
+    print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
+
+
+def run_node(make_node: Callable, run: Callable) -> int:
+    """Init rclpy, build the node, run it; SIGINT and SIGTERM end it cleanly with its report."""
+    rclpy.init(args=sys.argv)
+    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    node = None
+    try:
+        node = make_node()
+        run(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.finish()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

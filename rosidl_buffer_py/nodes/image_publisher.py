@@ -1,0 +1,121 @@
+"""image_publisher: publish verifiable sensor_msgs/Image frames (cpu or a buffer backend).
+
+Parameters: topic, backend (cpu | demo | any installed backend that can allocate), fill
+(allocate: fill the backend's memory in place | from_cpu: copy a CPU frame into it), width,
+height, encoding, rate_hz (0 = as fast as possible), count (0 = until stopped), reliability,
+depth, wait_for_subscribers (start once this many are matched), wait_timeout_sec,
+linger_sec (after the last frame, stay until subscribers leave or this long), first_frame
+(counter of the first frame), wait_for_buffer_peers (also wait until this many buffer-aware
+subscriptions are served by a channel), settle_sec (then wait this long: a DDS volatile reader
+that matches after the writer may miss the first samples), legacy (plain rclpy publisher).
+"""
+import time
+
+import numpy
+import rclpy
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+
+import rosidl_buffer_py
+from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
+from rosidl_buffer_py.nodes.common import declare_qos_parameters, print_report, run_node
+from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
+
+
+class ImagePublisher(Node):
+
+    def __init__(self, legacy: bool = False) -> None:
+        super().__init__('legacy_image_publisher' if legacy else 'image_publisher')
+        p = {name: self.declare_parameter(name, default).value for name, default in [
+            ('topic', 'image'), ('backend', 'cpu'), ('fill', 'allocate'), ('width', 640),
+            ('height', 480), ('encoding', 'rgb8'), ('rate_hz', 30.0), ('count', 0),
+            ('wait_for_subscribers', 0), ('wait_timeout_sec', 30.0), ('linger_sec', 5.0),
+            ('first_frame', 0), ('wait_for_buffer_peers', 0), ('settle_sec', 0.5),
+            ('legacy', legacy)]}
+        self.params = p
+        qos = declare_qos_parameters(self)
+        if p['fill'] not in ('allocate', 'from_cpu'):
+            raise ValueError(f"fill must be 'allocate' or 'from_cpu', got {p['fill']!r}")
+        if p['legacy'] and p['backend'] != 'cpu':
+            raise ValueError('a legacy publisher can only publish backend cpu')
+        self.publisher = self.create_publisher(Image, p['topic'], qos) if p['legacy'] else \
+            rosidl_buffer_py.create_publisher(self, Image, p['topic'], qos)
+        template = allocate_image_msg(p['height'], p['width'], p['encoding'])
+        self.pixels = pattern(len(template.data))
+        self.published = 0
+
+    def make_frame(self, counter: int) -> Image:
+        p = self.params
+        if p['backend'] != 'cpu' and p['fill'] == 'from_cpu':
+            msg = allocate_image_msg(p['height'], p['width'], p['encoding'])
+            frame = self.pixels.copy()
+            stamp_frame(msg, counter, frame)
+            msg.data = _from_cpu(p['backend'], frame)
+            return msg
+        msg = allocate_image_msg(p['height'], p['width'], p['encoding'], backend=p['backend'])
+        flat = numpy.frombuffer(memoryview(msg.data), dtype=numpy.uint8)  # writable view
+        flat[...] = self.pixels  # the camera writing its frame in place
+        stamp_frame(msg, counter, flat)
+        return msg
+
+    def served_buffer_peers(self) -> int:
+        if not hasattr(self.publisher, 'buffer_peers'):
+            return 0
+        return sum(1 for peer in self.publisher.buffer_peers() if peer['channel_serving'])
+
+    def run(self) -> None:
+        p = self.params
+        deadline = time.monotonic() + p['wait_timeout_sec']
+        while (self.publisher.get_subscription_count() < p['wait_for_subscribers'] or
+               self.served_buffer_peers() < p['wait_for_buffer_peers']):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{self.publisher.get_subscription_count()} of "
+                                   f"{p['wait_for_subscribers']} subscribers and "
+                                   f"{self.served_buffer_peers()} of "
+                                   f"{p['wait_for_buffer_peers']} channels after "
+                                   f"{p['wait_timeout_sec']} s")
+            rclpy.spin_once(self, timeout_sec=0.05)
+        settle_until = time.monotonic() + p['settle_sec']
+        while time.monotonic() < settle_until:
+            rclpy.spin_once(self, timeout_sec=0.05)
+        period = 1.0 / p['rate_hz'] if p['rate_hz'] > 0 else 0.0
+        next_time = time.monotonic()
+        while p['count'] == 0 or self.published < p['count']:
+            self.publisher.publish(self.make_frame(p['first_frame'] + self.published))
+            self.published += 1
+            next_time += period
+            while True:
+                rclpy.spin_once(self, timeout_sec=0)
+                remaining = next_time - time.monotonic()
+                if remaining <= 0:
+                    break
+                time.sleep(min(remaining, 0.005))
+        linger_until = time.monotonic() + p['linger_sec']
+        while self.publisher.get_subscription_count() > 0 and time.monotonic() < linger_until:
+            rclpy.spin_once(self, timeout_sec=0.05)
+
+    def finish(self) -> None:
+        report = {'role': 'publisher', 'node': self.get_name(), 'published': self.published,
+                  'params': self.params}
+        if hasattr(self.publisher, 'statistics'):
+            report['statistics'] = self.publisher.statistics()
+        print_report(report)
+
+
+def _from_cpu(backend: str, frame: numpy.ndarray):
+    if backend == 'demo':
+        from demo_buffer_backend import DemoBuffer
+        return DemoBuffer.from_cpu(frame)
+    raise ValueError(f"fill 'from_cpu' is implemented for the demo backend, not {backend!r}")
+
+
+def main(args=None) -> int:
+    return run_node(lambda: ImagePublisher(), lambda node: node.run())
+
+
+def legacy_main(args=None) -> int:
+    return run_node(lambda: ImagePublisher(legacy=True), lambda node: node.run())
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

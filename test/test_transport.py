@@ -1,0 +1,249 @@
+"""The buffer-aware transport over real Fast DDS: real rclpy nodes, real processes.
+
+The multi-process matrix is launch_free_demos.scenarios (the same scenarios users run); the
+edges that need finer control (restarts, SIGKILL, a second participant, one process) are here.
+Every frame carries a counter and a checksum that the subscriber verifies.
+"""
+import array
+import threading
+import time
+
+import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+
+import rosidl_buffer_py
+from launch_free_demos.runner import Run
+from launch_free_demos.scenarios import SCENARIOS, SMALL
+from rosidl_buffer_py import _dds, advertisement, codec
+from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
+from rosidl_buffer_py.nodes.frames import check_frame, pattern, stamp_frame
+
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.mark.parametrize('name', list(SCENARIOS))
+def test_scenario(name):
+    result = SCENARIOS[name].run(timeout=40.0)
+    assert result.ok, '\n'.join(result.failures) + '\n' + result.diagnostics
+
+
+def _sub_params(topic, count, **extra):
+    return dict(topic=topic, expected_count=count, timeout_sec=40.0, **extra)
+
+
+def _pub_params(topic, count, **extra):
+    params = dict(topic=topic, count=count, rate_hz=50.0, wait_for_subscribers=1,
+                  wait_timeout_sec=40.0, linger_sec=10.0, **SMALL)
+    params.update(extra)
+    return params
+
+
+def test_publisher_restarted():
+    topic = '/restart_image'
+    with Run() as run:
+        run.start('sub', 'image_subscriber', **_sub_params(
+            topic, 40, acceptable_buffer_backends='demo', expected_backend='demo'))
+        run.start('pub1', 'image_publisher', **_pub_params(
+            topic, 20, backend='demo', wait_for_buffer_peers=1, linger_sec=0.0))
+        assert run.wait(['pub1'], 60), run.diagnostics()
+        run.start('pub2', 'image_publisher', **_pub_params(
+            topic, 20, backend='demo', first_frame=20, wait_for_buffer_peers=1))
+        assert run.wait(['sub'], 60), run.diagnostics()
+        report = run.nodes['sub'].report
+    assert report['distinct'] == 40 and report['received'] == 40, report
+    assert report['duplicates'] == report['checksum_failures'] == report['gaps'] == 0, report
+    assert report['backends'] == {'demo': 40}, report
+
+
+def test_subscriber_killed_mid_stream():
+    topic = '/killed_image'
+    total = 150
+    with Run() as run:
+        run.start('survivor', 'image_subscriber', **_sub_params(
+            topic, total, acceptable_buffer_backends='any', expected_backend='demo'))
+        victim = run.start('victim', 'image_subscriber', **_sub_params(
+            topic, total, acceptable_buffer_backends='any'))
+        run.start('pub', 'image_publisher', **_pub_params(
+            topic, total, backend='demo', rate_hz=30.0, wait_for_subscribers=2,
+            wait_for_buffer_peers=2))
+        time.sleep(3.0)  # mid-stream (150 frames at 30 Hz take 5 s)
+        victim.kill()
+        assert run.wait(['survivor', 'pub'], 60), run.diagnostics()
+        survivor = run.nodes['survivor'].report
+        publisher = run.nodes['pub'].report
+    assert survivor['distinct'] == total and survivor['duplicates'] == 0, survivor
+    assert survivor['checksum_failures'] == 0 and survivor['backends'] == {'demo': total}
+    assert publisher['published'] == total
+    # the publisher dropped the dead subscriber's channel (and later the survivor's)
+    assert publisher['statistics']['peers_added'] == 2
+    assert publisher['statistics']['peers_removed'] == 2
+    assert publisher['statistics']['peers'] == []
+
+
+@pytest.fixture
+def context():
+    """A private rclpy context (its own DDS participant) for in-process tests."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _spin_until(executor, predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.05)
+    return True
+
+
+def _frame(counter, backend='cpu', height=8, width=8):
+    msg = allocate_image_msg(height, width, 'rgb8', backend=backend)
+    flat = from_output_msg(msg).reshape(-1)
+    flat[...] = pattern(flat.nbytes)
+    stamp_frame(msg, counter, flat)
+    return msg
+
+
+def test_second_participant_reads_user_data_and_stock_typehash(context):
+    """Another DDS participant reads BUFBE from discovery; stock rmw still has the typehash."""
+    topic = '/user_data_image'
+    with Run() as run:
+        run.start('pub', 'image_publisher', **_pub_params(
+            topic, 1, backend='demo', wait_for_subscribers=1, wait_timeout_sec=20.0,
+            linger_sec=0.0))
+        node = rclpy.create_node('observer', context=context)
+        _dds.install_discovery(node)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        seen = {}
+
+        def advertised():
+            for event in _dds.drain_discovery_events(node):
+                if event.topic == 'rt' + topic and event.kind == 'writer':
+                    seen[event.gid] = event.user_data
+            return any(advertisement.decode(u) for u in seen.values())
+
+        assert _spin_until(executor, advertised), seen
+        user_data = next(u for u in seen.values() if advertisement.decode(u))
+        assert user_data.startswith(b'typehash=RIHS01_')
+        assert b';\0BUFBE:cpu=;demo=shm1.' in user_data
+        assert set(advertisement.decode(user_data)) == {'cpu', 'demo'}
+        infos = node.get_publishers_info_by_topic(topic)
+        assert infos and infos[0].topic_type_hash.version == 1, infos  # parsed by stock rmw
+        run.stop_all()
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('backend, accept, expected', [
+    ('demo', 'any', 'demo'), ('demo', 'cpu', 'cpu'), ('cpu', 'any', 'cpu')])
+def test_in_process_one_publisher_two_subscriptions(context, backend, accept, expected):
+    """Publisher and subscriptions in one process (one participant), multi-threaded executor."""
+    pub_node = rclpy.create_node('inproc_pub', context=context)
+    sub_node = rclpy.create_node('inproc_sub', context=context)
+    received = {'a': [], 'b': []}
+    group = rclpy.callback_groups.ReentrantCallbackGroup()
+
+    def on_image(name):
+        def callback(msg, info):
+            check = check_frame(msg)
+            assert check.ok, check
+            assert 'source_timestamp' in info
+            received[name].append((check.counter, getattr(msg.data, 'backend_type', 'cpu')))
+        return callback
+
+    subs = [rosidl_buffer_py.create_subscription(
+        sub_node, Image, '/inproc_image', on_image(name), RELIABLE, callback_group=group,
+        acceptable_buffer_backends=accept) for name in 'ab']
+    pub = rosidl_buffer_py.create_publisher(pub_node, Image, '/inproc_image', RELIABLE)
+    executor = MultiThreadedExecutor(num_threads=2, context=context)
+    executor.add_node(pub_node)
+    executor.add_node(sub_node)
+    assert _spin_until(executor, lambda: sum(
+        1 for p in pub.buffer_peers() if p['channel_serving']) == 2)
+    for counter in range(30):
+        pub.publish(_frame(counter, backend))
+        executor.spin_once(timeout_sec=0.01)
+    assert _spin_until(executor, lambda: all(len(r) >= 30 for r in received.values()))
+    executor.spin_once(timeout_sec=0.2)
+    for name, frames in received.items():
+        assert sorted(c for c, _ in frames) == list(range(30)), (name, frames)
+        assert {b for _, b in frames} == {expected}, (name, frames)
+    assert all(s.statistics()['rejected'] == 0 for s in subs)
+    executor.shutdown()
+    pub_node.destroy_node()
+    sub_node.destroy_node()
+
+
+def test_destroy_node_removes_channels_and_destroy_is_idempotent(context):
+    node = rclpy.create_node('destroy_me', context=context)
+    observer = rclpy.create_node('observer2', context=context)
+    sub = rosidl_buffer_py.create_subscription(node, Image, '/destroy_image', lambda m: None,
+                                               10, acceptable_buffer_backends='demo')
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/destroy_image', 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.add_node(observer)
+
+    def channel_topics():
+        return [name for name, _ in observer.get_topic_names_and_types(no_demangle=True)
+                if '/_buf/' in name]
+
+    assert _spin_until(executor, lambda: len(channel_topics()) == 1), channel_topics()
+    assert pub.buffer_peers() and sub.buffer_peers()
+    name = channel_topics()[0]
+    assert name == (f'rt/destroy_image/_buf/{pub.statistics()["gid"]}_'
+                    f'{sub.statistics()["gid"]}')
+    node.destroy_node()
+    assert _spin_until(executor, lambda: not channel_topics()), channel_topics()
+    assert pub.buffer_peers() == [] and sub.buffer_peers() == []
+    observer.destroy_node()
+
+
+def test_malformed_descriptors_are_rejected_counted_and_survived(context):
+    """A rogue plain publisher sends descriptor bytes; the subscription rejects them and lives."""
+    node = rclpy.create_node('rogue', context=context)
+    good = []
+    sub = rosidl_buffer_py.create_subscription(node, Image, '/rogue_image', good.append, 10,
+                                               acceptable_buffer_backends='any')
+    rogue = node.create_publisher(Image, '/rogue_image', 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert _spin_until(executor, lambda: rogue.get_subscription_count() == 1)
+    bad = [codec.encode(_frame(0), ('demo', b'\x00' * 10)),             # garbage descriptor
+           codec.encode(_frame(1), ('nosuch', b'x')),                   # unknown backend
+           codec.encode(_frame(2))[:40],                                # truncated
+           b'\x00\x07\x00\x00' + bytes(60)]                             # bad encapsulation
+    for raw in bad:
+        rogue.publish(bytes(raw))
+    rogue.publish(bytes(codec.encode(_frame(3))))
+    assert _spin_until(executor, lambda: len(good) == 1)
+    executor.spin_once(timeout_sec=0.2)
+    assert check_frame(good[0]).counter == 3 and isinstance(good[0].data, array.array)
+    assert sub.statistics()['rejected'] == len(bad)
+    node.destroy_node()
+
+
+def test_other_rmw_falls_back_to_plain_rclpy(context, monkeypatch, capfd):
+    """Under another rmw the wrappers are plain rclpy pub/sub on the main topic, one warning."""
+    monkeypatch.setattr(rclpy, 'get_rmw_implementation_identifier', lambda: 'rmw_other_cpp')
+    monkeypatch.setattr(rosidl_buffer_py.transport, '_warned', set())
+    node = rclpy.create_node('fallback', context=context)
+    got = []
+    sub = rosidl_buffer_py.create_subscription(node, Image, '/fallback_image', got.append, 10,
+                                               acceptable_buffer_backends='any')
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/fallback_image', 10)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert _spin_until(executor, lambda: pub.get_subscription_count() == 1)
+    pub.publish(_frame(5))
+    assert _spin_until(executor, lambda: got)
+    assert check_frame(got[0]).ok and isinstance(got[0].data, array.array)
+    assert not sub.statistics()['buffer_aware']
+    err = capfd.readouterr().err
+    assert err.count('rmw_other_cpp is not supported by rosidl_buffer_py') == 1, err
+    node.destroy_node()
