@@ -6,9 +6,16 @@ descriptor crosses DDS and the subscriber gets a zero-copy read-only view.
 - :mod:`.buffer`: :class:`DemoBuffer` (``from_cpu``, ``allocate``, ``to_array``);
 - :mod:`.backend`: :class:`DemoBackend`, the plugin;
 - :mod:`.pool`: the process-wide slot pool and mapping cache, limits, counters, lifecycle;
-- :mod:`.shm`: segment files, header layout, liveness and scavenging;
+- :mod:`.shm`: segment files, header layout (with the per-process takers table), liveness and
+  scavenging;
+- :mod:`.presence`: per-process presence files, so that a publisher stops keeping slots for a
+  subscriber process that died (SIGKILL included) within ``pool.LIVENESS_TTL`` (0.1 s) instead of
+  the DDS lease;
 - :mod:`.locks`: Linux OFD byte-range locks;
 - :mod:`.descriptor`: the descriptor wire format and its validation.
+
+Backend metadata: ``shm1.<boot id>.<st_dev>.<st_ino of /dev/shm>.<euid>.<pid>_<16 hex>``, the shm
+domain (peers are compatible when it is equal) then the process's presence token.
 
 Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=)``, the environment
 variables ``RBPY_DEMO_MAX_POOL_BYTES``, ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, or

@@ -4,11 +4,17 @@ cache, the limits, the counters and the lifecycle (scavenging, atexit, fork).
 Publisher side: a pool of slots, one shm segment each, reused while they are free. A slot is free
 when no DemoBuffer of this process pins it, every descriptor created for its current generation
 has been taken (``taken >= sent`` in the header) and no process holds views of it (this process
-gets the exclusive OFD lock on its hold byte). Reuse bumps the generation under that lock. When
-no slot is free the pool grows up to the limits; at the limits, free slots of the wrong size are
-evicted, then slots whose last descriptor was created more than ``reclaim_timeout`` seconds ago
-and never taken are reclaimed (their late takers see a stale generation), and only then does the
-allocation fall back to private memory (the message then travels as CPU bytes).
+gets the exclusive OFD lock on its hold byte); reuse bumps the generation under that lock.
+Descriptors addressed to a subscriber process that died do not count: the pool records, per slot,
+how many descriptors it created for each recipient (by presence token, :mod:`.presence`),
+subscribers record their takes per token in the segment's takers table, and a slot whose untaken
+descriptors were all addressed to dead processes is free (``taken - taken_by_dead >= sent -
+sent_to_dead``). Liveness is an ``F_OFD_GETLK`` on the recipient's presence file, cached for
+``LIVENESS_TTL`` seconds. When no slot is free the pool grows up to the limits; at the limits,
+free slots of the wrong size are evicted, then slots whose last descriptor was created more than
+``reclaim_timeout`` seconds ago and never taken are reclaimed (their late takers see a stale
+generation), and only then does the allocation fall back to private memory (the message then
+travels as CPU bytes).
 
 Subscriber side: segments are mapped once and cached by name. Per segment and process, the
 number of live views is counted; the shared OFD lock on the hold byte is taken on 0 -> 1 and
@@ -27,7 +33,7 @@ from typing import Dict, List, Optional, Tuple
 from rclpy.logging import get_logger
 
 from demo_buffer_backend import descriptor as desc_codec
-from demo_buffer_backend import locks, shm
+from demo_buffer_backend import locks, presence, shm
 
 #: Defaults of the pool limits; each can be set with its environment variable, with
 #: :func:`configure` or with ``DemoBackend(...)`` keyword arguments.
@@ -42,6 +48,8 @@ ENV_RECLAIM_TIMEOUT = 'RBPY_DEMO_RECLAIM_TIMEOUT'
 MAX_MAPPINGS = 256
 #: Seconds between sweeps of the mapping cache (closing mappings of removed segments).
 SWEEP_INTERVAL = 1.0
+#: Seconds a recipient's liveness answer is trusted before its presence lock is tested again.
+LIVENESS_TTL = 0.1
 #: Bounded wait for the shared hold lock while a publisher briefly holds it exclusively.
 _HOLD_RETRIES = (0.0002,) * 10 + (0.002,) * 40
 
@@ -102,7 +110,7 @@ class _Slot:
     """A publisher-side slot: one segment this process created and owns."""
 
     __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'pins', 'generation',
-                 'last_used', 'closed')
+                 'last_used', 'closed', 'recipients')
 
     def __init__(self, name, fd, header, data, capacity):
         self.name = name
@@ -115,6 +123,8 @@ class _Slot:
         self.generation = 0
         self.last_used = 0
         self.closed = False
+        #: Descriptors of the current generation per recipient token (None: a peer without one).
+        self.recipients: Dict[Optional[str], int] = {}
 
 
 class Pin:
@@ -179,7 +189,8 @@ class Hold:
 
 _COUNTERS = ('segments_created', 'segments_removed', 'fallbacks', 'descriptors_created',
              'descriptors_declined', 'taken', 'rejected', 'stale', 'reclaimed', 'scavenged',
-             'mappings_opened', 'mappings_closed')
+             'mappings_opened', 'mappings_closed', 'released_dead_recipients',
+             'liveness_checks')
 
 
 class _Locked:
@@ -212,6 +223,9 @@ class State:
         self.started = False
         self.last_sweep = 0.0
         self.warned_fallback = False
+        self.presence: Optional[presence.Presence] = None
+        #: recipient token -> (alive, monotonic ns until which the answer holds)
+        self.liveness: Dict[str, Tuple[bool, int]] = {}
 
     # --- deferred releases -----------------------------------------------------------------
     def _defer(self, func, obj) -> None:
@@ -248,6 +262,32 @@ class State:
             return
         self.started = True
         self.counters['scavenged'] += shm.scavenge(skip=self.slots)
+        if _token_advertised():
+            self._ensure_presence()  # back after a shutdown: the advertised token stays valid
+
+    def _ensure_presence(self) -> Optional[str]:
+        if self.presence is None:
+            try:
+                self.presence = presence.Presence(own_token())
+            except OSError as exc:
+                _logger.warning(f'cannot create the demo presence file: {exc}; peers will keep '
+                                'slots for this process until their reclaim timeout',
+                                throttle_duration_sec=10.0)
+                return None
+        return self.presence.token
+
+    def presence_token(self) -> Optional[str]:
+        """This process's token, its presence file created (and locked) if need be; None when
+        the file cannot be created (the metadata then carries no token)."""
+        global _advertised_pid
+        with self.locked:
+            if self.closed:
+                return None
+            self._start()
+            token = self._ensure_presence()
+            if token is not None:
+                _advertised_pid = self.pid
+            return token
 
     def start(self) -> None:
         with self.locked:
@@ -267,6 +307,9 @@ class State:
                 self._close_mapping(mapping)
             for slot in list(self.slots.values()):
                 self._remove_slot(slot)
+            if self.presence is not None:
+                self.presence.close(remove=True)
+                self.presence = None
 
     def forget_after_fork(self) -> None:
         """In a forked child: drop the parent's resources without touching its segments."""
@@ -279,6 +322,9 @@ class State:
                 pass
         self.slots = {}
         self.mappings = {}
+        if self.presence is not None:  # the parent's: close our copy of the fd, keep the file
+            self.presence.close(remove=False)
+            self.presence = None
 
     # --- publisher side ----------------------------------------------------------------------
     def allocate(self, nbytes: int) -> Optional[Tuple[memoryview, Pin]]:
@@ -316,6 +362,8 @@ class State:
             return False
         if shm.read_u64(slot.header, shm.OFF_TAKEN) >= shm.read_u64(slot.header, shm.OFF_SENT):
             return True
+        if self._untaken_all_dead(slot, now_ns):
+            return True
         if not stale_ok:
             return False
         last = shm.read_u64(slot.header, shm.OFF_LAST_PUBLISH)
@@ -323,16 +371,58 @@ class State:
 
     def _lock_free(self, slot: _Slot, stale_ok: bool) -> Optional[bool]:
         """Take the exclusive hold lock of a free slot. Returns None when the slot is not free,
-        else whether it is reclaimed (descriptors never taken). The caller unlocks."""
+        else whether it is reclaimed (descriptors for live recipients never taken). The caller
+        unlocks."""
         if not locks.try_lock(slot.fd, shm.HOLD_BYTE, exclusive=True):
             return None  # some process holds views of it
-        # Takers increment `taken` only while holding the shared lock: stable now.
+        # Takers increment `taken` and the takers table only while holding the shared lock:
+        # both are stable now.
         untaken = shm.read_u64(slot.header, shm.OFF_TAKEN) < \
             shm.read_u64(slot.header, shm.OFF_SENT)
+        if untaken and self._untaken_all_dead(slot, time.monotonic_ns()):
+            self.counters['released_dead_recipients'] += 1
+            untaken = False
         if untaken and not stale_ok:
             locks.unlock(slot.fd, shm.HOLD_BYTE)
             return None
         return untaken
+
+    def _untaken_all_dead(self, slot: _Slot, now_ns: int) -> bool:
+        """Whether every descriptor of the slot's generation not yet taken was addressed to a
+        recipient process that is dead: ``taken - taken_by_dead >= sent - sent_to_dead``."""
+        dead_sent = 0
+        dead_ids = set()
+        for token, count in slot.recipients.items():
+            if token is not None and not self._alive(token, now_ns):
+                dead_sent += count
+                dead_ids.add(presence.token_id(token))
+        if not dead_sent:
+            return False
+        header = slot.header
+        dead_taken = shm.taken_by(header, dead_ids)
+        if dead_taken is None:
+            return False  # the takers table overflowed: cannot tell
+        return (shm.read_u64(header, shm.OFF_TAKEN) - dead_taken
+                >= shm.read_u64(header, shm.OFF_SENT) - dead_sent)
+
+    def _alive(self, token: str, now_ns: int) -> bool:
+        known = self.liveness.get(token)
+        if known is not None and now_ns < known[1]:
+            return known[0]
+        if token == own_token():
+            alive = True  # this process: in-process subscriptions
+        else:
+            alive = presence.alive(token)
+            self.counters['liveness_checks'] += 1
+        self.liveness[token] = (alive, now_ns + int(LIVENESS_TTL * 1e9))
+        if len(self.liveness) > 4 * MAX_MAPPINGS:  # forget long-expired answers
+            self.liveness = {t: a for t, a in self.liveness.items() if now_ns < a[1]}
+        return alive
+
+    def forget_liveness(self, token: Optional[str]) -> None:
+        """Test ``token``'s presence again on next use (its peer endpoint went away)."""
+        with self.locked:
+            self.liveness.pop(token, None)
 
     def _claim(self, slot: _Slot, nbytes: int, stale_ok: bool) -> bool:
         untaken = self._lock_free(slot, stale_ok)
@@ -355,7 +445,9 @@ class State:
         shm.write_u64(header, shm.OFF_OFFSET, 0)
         shm.write_u64(header, shm.OFF_SIZE, nbytes)
         shm.write_u64(header, shm.OFF_GENERATION, generation)
+        shm.reset_takers(header)
         slot.generation = generation
+        slot.recipients.clear()
 
     def _reuse(self, nbytes: int, stale_ok: bool) -> Optional[_Slot]:
         now = time.monotonic_ns()
@@ -411,8 +503,10 @@ class State:
                 pass  # a view is still exported: the mapping goes when it does
         os.close(slot.fd)
 
-    def describe(self, pin: Pin) -> Optional[bytes]:
-        """Record one more descriptor of ``pin``'s slot and return it (None when stale)."""
+    def describe(self, pin: Pin, recipient: Optional[str] = None) -> Optional[bytes]:
+        """Record one more descriptor of ``pin``'s slot, addressed to the process of presence
+        token ``recipient`` (None: unknown, never taken for dead), and return it (None when
+        stale)."""
         with self.locked:
             slot = pin.slot
             if pin.state is not self or slot.closed or slot.generation != pin.generation:
@@ -420,6 +514,7 @@ class State:
                 return None
             header = slot.header
             shm.write_u64(header, shm.OFF_SENT, shm.read_u64(header, shm.OFF_SENT) + 1)
+            slot.recipients[recipient] = slot.recipients.get(recipient, 0) + 1
             shm.write_u64(header, shm.OFF_LAST_PUBLISH, time.monotonic_ns())
             slot.last_used = time.monotonic_ns()
             self.counters['descriptors_created'] += 1
@@ -489,6 +584,7 @@ class State:
             locks.lock_wait(mapping.fd, shm.MUTEX_BYTE, exclusive=True)
             try:
                 shm.write_u64(header, shm.OFF_TAKEN, shm.read_u64(header, shm.OFF_TAKEN) + 1)
+                shm.record_taker(header, presence.token_id(own_token()))
             finally:
                 locks.unlock(mapping.fd, shm.MUTEX_BYTE)
             hold = Hold(self, mapping, generation)
@@ -598,6 +694,8 @@ class State:
                 mappings=len(self.mappings),
                 mappings_held=sum(1 for m in self.mappings.values() if m.refs),
                 views_held=sum(m.refs for m in self.mappings.values()),
+                presence=self.presence.token if self.presence is not None else None,
+                recipients_dead=sorted(t for t, (a, _) in self.liveness.items() if not a),
                 **_limits.as_dict())
             return result
 
@@ -605,6 +703,24 @@ class State:
 _state: Optional[State] = None
 _state_lock = threading.Lock()
 _atexit_registered = False
+#: (pid, token): this process's presence token, the same for its whole life (it is advertised in
+#: the backend metadata, which endpoints keep), even across pool shutdowns.
+_token: Optional[Tuple[int, str]] = None
+#: The pid that advertised its token: its pool re-creates the presence file after a shutdown.
+_advertised_pid = 0
+
+
+def own_token() -> str:
+    """This process's presence token (the presence file may not exist: see State)."""
+    global _token
+    token = _token
+    if token is None or token[0] != os.getpid():
+        token = _token = (os.getpid(), presence.new_token())
+    return token[1]
+
+
+def _token_advertised() -> bool:
+    return _advertised_pid == os.getpid()
 
 
 def get_state() -> State:

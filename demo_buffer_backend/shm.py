@@ -12,7 +12,13 @@ Besides its contents, three byte offsets of the file carry OFD locks (see :mod:`
   lock there means the owner is gone and the segment may be unlinked by anyone.
 - ``HOLD_BYTE``: every process that holds views of the slot's current bytes has a shared lock; the
   owner may reuse the slot (bump the generation) only while it holds the exclusive lock.
-- ``MUTEX_BYTE``: a short exclusive lock around the ``taken`` counter, written by subscribers.
+- ``MUTEX_BYTE``: a short exclusive lock around the ``taken`` counter and the takers table,
+  written by subscribers.
+
+After the header struct, the header page holds a small *takers table*: per subscriber process
+(identified by the 64-bit id of its presence token, see :mod:`.presence`) the number of
+descriptors of the current generation it took. With it the owner can tell apart the takes of a
+recipient that died from those of the live ones. It is reset with every generation.
 """
 import errno
 import mmap
@@ -22,7 +28,7 @@ import secrets
 import stat
 import struct
 import time
-from typing import Iterable, NamedTuple, Tuple
+from typing import Iterable, NamedTuple, Optional, Tuple
 
 from demo_buffer_backend import locks
 
@@ -40,6 +46,9 @@ HEADER_SIZE = max(4096, mmap.ALLOCATIONGRANULARITY)
 PAGE_SIZE = mmap.PAGESIZE
 
 MAGIC = b'RBPYDMO1'
+#: Magic of presence files (see :mod:`.presence`), which share the prefix, the owner byte and the
+#: scavenging of segments.
+PRESENCE_MAGIC = b'RBPYLIV1'
 
 # magic, header_size, owner_pid, capacity, generation, offset, size, sent, taken, last_publish_ns
 HEADER = struct.Struct('<8sIIQQQQQQQ')
@@ -50,6 +59,14 @@ OFF_SIZE = 40
 OFF_SENT = 48
 OFF_TAKEN = 56
 OFF_LAST_PUBLISH = 64
+
+#: Takers table: entry count, overflow flag (more takers than entries: the table is incomplete
+#: for this generation), then MAX_TAKERS entries of (taker id u64, descriptors taken u64).
+OFF_TAKERS_COUNT = 112
+OFF_TAKERS_OVERFLOW = 120
+OFF_TAKERS = 128
+_TAKER = struct.Struct('<QQ')
+MAX_TAKERS = 64
 
 OWNER_BYTE = 0
 HOLD_BYTE = 1
@@ -93,6 +110,46 @@ def read_u64(header: mmap.mmap, offset: int) -> int:
 
 def write_u64(header: mmap.mmap, offset: int, value: int) -> None:
     _U64.pack_into(header, offset, value)
+
+
+def record_taker(header: mmap.mmap, ident: int) -> None:
+    """Count one take by ``ident`` in the takers table (caller holds the mutex byte)."""
+    count = read_u64(header, OFF_TAKERS_COUNT)
+    if count > MAX_TAKERS:  # garbage: make the table unusable rather than trust it
+        write_u64(header, OFF_TAKERS_OVERFLOW, 1)
+        return
+    for i in range(count):
+        offset = OFF_TAKERS + i * _TAKER.size
+        if read_u64(header, offset) == ident:
+            write_u64(header, offset + 8, read_u64(header, offset + 8) + 1)
+            return
+    if count == MAX_TAKERS:
+        write_u64(header, OFF_TAKERS_OVERFLOW, 1)
+        return
+    _TAKER.pack_into(header, OFF_TAKERS + count * _TAKER.size, ident, 1)
+    write_u64(header, OFF_TAKERS_COUNT, count + 1)
+
+
+def reset_takers(header: mmap.mmap) -> None:
+    """Empty the takers table (owner only, with no taker able to write: new generation)."""
+    count = min(read_u64(header, OFF_TAKERS_COUNT), MAX_TAKERS)
+    if count:
+        header[OFF_TAKERS:OFF_TAKERS + count * _TAKER.size] = bytes(count * _TAKER.size)
+    write_u64(header, OFF_TAKERS_COUNT, 0)
+    write_u64(header, OFF_TAKERS_OVERFLOW, 0)
+
+
+def taken_by(header: mmap.mmap, idents) -> Optional[int]:
+    """Descriptors of this generation taken by the takers ``idents``; None when the table is
+    incomplete (overflow), so that the caller cannot tell."""
+    count = read_u64(header, OFF_TAKERS_COUNT)
+    if read_u64(header, OFF_TAKERS_OVERFLOW) or count > MAX_TAKERS:
+        return None
+    total = 0
+    for ident, taken in _TAKER.iter_unpack(header[OFF_TAKERS:OFF_TAKERS + count * _TAKER.size]):
+        if ident in idents:
+            total += taken
+    return total
 
 
 def round_capacity(nbytes: int) -> int:
@@ -176,11 +233,14 @@ def unlink(name: str) -> bool:
 
 
 def scavenge(skip: Iterable[str] = ()) -> int:
-    """Unlink every demo segment in /dev/shm whose owner process is gone; return how many.
+    """Unlink every demo segment and presence file in /dev/shm whose owner process is gone;
+    return how many.
 
-    A segment is garbage when nobody holds its owner lock and either its magic is written (the
+    A file is garbage when nobody holds its owner lock and either its magic is written (the
     owner had taken the lock, so it is dead now) or it is older than UNFINISHED_SEGMENT_AGE (its
-    creator died between creating the file and taking the lock).
+    creator died between creating the file and taking the lock). The magic is read *before* the
+    lock is tested: a creator takes the lock before writing the magic, so a magic seen before an
+    absent lock means the owner is really gone (not that it is just being created).
     """
     skip = set(skip)
     removed = 0
@@ -196,9 +256,9 @@ def scavenge(skip: Iterable[str] = ()) -> int:
         except OSError:
             continue  # gone meanwhile, or not ours to open
         try:
+            finished = os.pread(fd, len(MAGIC), 0) in (MAGIC, PRESENCE_MAGIC)
             if owner_alive(fd):
                 continue
-            finished = os.pread(fd, len(MAGIC), 0) == MAGIC
             age = time.time() - max(st.st_mtime, st.st_ctime)
             if finished or age > UNFINISHED_SEGMENT_AGE:
                 removed += unlink(name)

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy
 import pytest
@@ -21,7 +22,7 @@ import rosidl_buffer_py
 from rosidl_buffer_py import Buffer, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE
 
 import demo_buffer_backend
-from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, pool, shm
+from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, pool, presence, shm
 
 PEER_SCRIPT = os.path.join(os.path.dirname(__file__), 'demo_backend_peer.py')
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
@@ -106,6 +107,19 @@ def peers():
     yield start
     for peer in started:
         peer.reap()
+    if started:  # presence files of peers killed above (a normal exit removes its own)
+        demo_buffer_backend.scavenge()
+        for peer in started:
+            assert not _presence_of(peer.pid)
+
+
+def _presence_of(pid):
+    prefix = f'{presence.PREFIX}{pid}_'
+    return {n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)}
+
+
+def _token(metadata):
+    return metadata.rpartition('.')[2]
 
 
 def _sha(data):
@@ -200,7 +214,11 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
 
 def test_descriptor_round_trip_in_other_process_is_zero_copy(backend, peers):
     peer = peers()
-    assert peer.metadata == backend.get_backend_metadata()
+    ours = backend.get_backend_metadata()
+    # the same shm domain, another process's presence token
+    assert peer.metadata.rpartition('.')[0] == ours.rpartition('.')[0]
+    assert _token(peer.metadata) != _token(ours)
+    assert backend.parse_metadata(peer.metadata) == (True, _token(peer.metadata))
     buf = DemoBuffer.allocate(1 << 20)
     a = numpy.asarray(buf)
     a[:] = numpy.arange(len(buf)) % 253
@@ -483,6 +501,9 @@ def test_metadata_and_compatibility(fresh):
     same, other, legacy, unknown = (_endpoint(bytes([i]) * 16) for i in (1, 2, 3, 4))
     assert be.on_discovering_endpoint(same, [], {'demo': meta}) == (True, [])
     assert be.on_discovering_endpoint(other, [], {'demo': meta + 'x'}) == (False, [])
+    domain, _, token = meta.rpartition('.')
+    assert presence.parse_token(token) == token
+    assert meta.split('.')[:5] == domain.split('.') and domain.startswith('shm1.')
     assert be.on_discovering_endpoint(legacy, [], {'cpu': ''}) == (False, [])
     assert be.create_descriptor_with_endpoint(buf, same) is not None
     assert be.create_descriptor_with_endpoint(buf, other) is None
@@ -578,3 +599,159 @@ def test_threads_share_the_pool_safely(backend):
         t.join()
     assert not errors
     assert demo_buffer_backend.stats()['views_held'] == 0
+
+
+def test_compatibility_ignores_the_token_but_not_the_domain(fresh):
+    be = DemoBackend()
+    meta = be.get_backend_metadata()
+    domain, _, token = meta.rpartition('.')
+    buf = DemoBuffer.from_cpu(b't' * 10)
+    other = f'{os.getpid() + 1}_0123456789abcdef'  # another process of the same domain
+    cases = {
+        f'{domain}.{other}': (True, other),
+        meta: (True, token),
+        domain: (True, None),  # a peer without a token: compatible, never taken for dead
+        f'shm1.{"0" * 32}.1.2.3.{token}': (False, None),  # another boot
+        domain.rsplit('.', 1)[0] + f'.{os.geteuid() + 1:x}.{token}': (False, None),  # other user
+        f'{domain}.{token}.extra': (False, None),
+        f'{domain}.not_a_token': (False, None),
+        f'{domain}.12_0123456789ABCDEF': (False, None),
+        f'{domain}.0_0123456789abcdef': (False, None),
+        f'{domain}../../etc_0123456789abcdef': (False, None),
+        f'{domain}.': (False, None),
+        '': (False, None),
+    }
+    for i, (metadata, expected) in enumerate(cases.items()):
+        ep = _endpoint(bytes([i + 1]) * 16)
+        assert be.parse_metadata(metadata) == expected, metadata
+        assert be.on_discovering_endpoint(ep, [], {'demo': metadata}) == (expected[0], [])
+        assert be.is_compatible(ep) == expected[0]
+        assert be.peer_token(ep) == expected[1]
+        assert (be.create_descriptor_with_endpoint(buf, ep) is not None) == expected[0], metadata
+    assert be.parse_metadata(None) == (False, None)
+
+
+# --- dead recipients -----------------------------------------------------------------------------
+
+def test_presence_file_is_private_removed_at_exit_and_scavenged_after_sigkill(fresh, peers):
+    be = DemoBackend()
+    token = _token(be.get_backend_metadata())
+    path = presence.path_of(token)
+    st = os.stat(path)
+    assert st.st_mode & 0o777 == 0o600 and st.st_uid == os.geteuid()
+    assert demo_buffer_backend.stats()['presence'] == token
+    demo_buffer_backend.shutdown()
+    assert not os.path.exists(path)
+    assert _token(be.get_backend_metadata()) == token  # the advertised token stays valid
+    assert os.path.exists(path)
+
+    clean, killed = peers(), peers()
+    for peer in (clean, killed):
+        peer_path = presence.path_of(_token(peer.metadata))
+        assert os.stat(peer_path).st_mode & 0o777 == 0o600
+        assert presence.alive(_token(peer.metadata))
+        assert _presence_of(peer.pid) == {os.path.basename(peer_path)}
+    clean.exit()
+    assert not _presence_of(clean.pid)
+    assert not presence.alive(_token(clean.metadata))
+    killed.kill9()
+    assert _presence_of(killed.pid)  # nobody cleaned up yet
+    assert demo_buffer_backend.scavenge() >= 1
+    assert not _presence_of(killed.pid)
+    assert os.path.exists(path)  # ours is alive: never scavenged
+
+
+def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, peers):
+    """Descriptors for a SIGKILLed subscriber stop pinning slots at once; a live subscriber's
+    untaken descriptors and held views stay protected."""
+    demo_buffer_backend.configure(max_slots=4, reclaim_timeout=3600)
+    survivor, victim = peers(), peers()
+    to_survivor, to_victim = _endpoint(b'\xa1' * 16), _endpoint(b'\xb2' * 16)
+    for ep, peer in ((to_survivor, survivor), (to_victim, victim)):
+        assert backend.on_discovering_endpoint(ep, [], {'demo': peer.metadata}) == (True, [])
+    n = 50_000
+    frames = []
+    for i in range(4):
+        buf = DemoBuffer.allocate(n)
+        numpy.asarray(buf)[:] = 10 + i
+        assert buf.in_shm
+        frames.append(dict(name=buf.segment_name, sha=_sha(buf),
+                           a=backend.create_descriptor_with_endpoint(buf, to_survivor).hex(),
+                           b=backend.create_descriptor_with_endpoint(buf, to_victim).hex()))
+        del buf
+    # The survivor holds frame 0 and took frames 1 and 2; frame 3 is still in flight to it.
+    assert survivor('take', desc=frames[0]['a'], key='held')['sha'] == frames[0]['sha']
+    assert survivor('take_drop', descs=[f['a'] for f in frames[1:3]])['digests'] == \
+        [f['sha'] for f in frames[1:3]]
+    # The victim took only frame 3 (then died): its take must not count as the survivor's.
+    assert victim('take_drop', descs=[frames[3]['b']])['digests'] == [frames[3]['sha']]
+    assert not DemoBuffer.allocate(n).in_shm  # all alive: the slow victim pins frames 0..2
+    assert not DemoBuffer.allocate(n).in_shm  # (and again, from the liveness cache)
+
+    victim.kill9()
+    killed_at = time.monotonic()
+    reused = []
+    while True:
+        buf = DemoBuffer.allocate(n)
+        if buf.in_shm:
+            break
+        assert time.monotonic() - killed_at < 10.0, demo_buffer_backend.stats()
+        time.sleep(0.01)
+    latency = time.monotonic() - killed_at
+    reused.append(buf)
+    reused.append(DemoBuffer.allocate(n))
+    stats = demo_buffer_backend.stats()
+    # exactly frames 1 and 2 came back: 0 is held by the survivor, 3 is in flight to it
+    assert {b.segment_name for b in reused} == {frames[1]['name'], frames[2]['name']}, stats
+    assert all(b.in_shm and b.generation == 2 for b in reused)
+    assert not DemoBuffer.allocate(n).in_shm
+    assert stats['released_dead_recipients'] >= 2 and stats['reclaimed'] == 0, stats
+    assert _token(victim.metadata) in stats['recipients_dead']
+    assert stats['slots'] == 4
+    # the survivor's bytes are intact and its late take is not stale
+    assert survivor('sha', key='held')['sha'] == frames[0]['sha']
+    late = survivor('take', desc=frames[3]['a'], key='late')
+    assert late['ok'] and late['sha'] == frames[3]['sha'], late
+    assert not _presence_of(victim.pid)  # found dead: its presence file is gone already
+    survivor.exit()
+    print(f'slots reusable {latency * 1000:.0f} ms after the SIGKILL')
+
+
+def test_liveness_is_cached_not_tested_per_allocation(backend, peers):
+    demo_buffer_backend.configure(max_slots=1, reclaim_timeout=3600)
+    slow = peers()
+    ep = _endpoint(b'\xc3' * 16)
+    backend.on_discovering_endpoint(ep, [], {'demo': slow.metadata})
+    buf = DemoBuffer.allocate(1000)
+    backend.create_descriptor_with_endpoint(buf, ep)
+    del buf
+    before = demo_buffer_backend.stats()['liveness_checks']
+    started = time.monotonic()
+    for _ in range(300):
+        assert not DemoBuffer.allocate(1000).in_shm  # a live, slow subscriber keeps its slot
+    elapsed = time.monotonic() - started
+    checks = demo_buffer_backend.stats()['liveness_checks'] - before
+    assert 1 <= checks <= elapsed / pool.LIVENESS_TTL + 2, (checks, elapsed)
+    backend.on_removing_endpoint(ep)  # its endpoint went away but its process lives: kept
+    assert not DemoBuffer.allocate(1000).in_shm
+    slow.exit()  # now it is gone: the slot comes back within the cache's lifetime
+    deadline = time.monotonic() + 10.0
+    while not DemoBuffer.allocate(1000).in_shm:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+
+
+def test_takers_table_counts_per_process_and_overflows_safely(fresh):
+    buf = DemoBuffer.allocate(10)
+    header = buf._keepalive.slot.header
+    for ident in (5, 7, 5, 5):
+        shm.record_taker(header, ident)
+    assert shm.taken_by(header, {5}) == 3 and shm.taken_by(header, {5, 7}) == 4
+    assert shm.taken_by(header, {9}) == 0
+    for ident in range(100, 100 + shm.MAX_TAKERS):
+        shm.record_taker(header, ident)
+    assert shm.taken_by(header, {5}) is None  # incomplete: the caller cannot tell
+    shm.reset_takers(header)
+    assert shm.taken_by(header, {5}) == 0
+    assert bytes(header[shm.OFF_TAKERS:shm.OFF_TAKERS + 16 * shm.MAX_TAKERS]) == \
+        bytes(16 * shm.MAX_TAKERS)
