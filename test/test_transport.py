@@ -66,12 +66,17 @@ def test_subscriber_killed_mid_stream():
             topic, total, acceptable_buffer_backends='any', expected_backend='demo'))
         victim = run.start('victim', 'image_subscriber', **_sub_params(
             topic, total, acceptable_buffer_backends='any'))
+        # the publisher stays until no subscriber is matched: the victim's DDS lease must expire
         run.start('pub', 'image_publisher', **_pub_params(
             topic, total, backend='demo', rate_hz=30.0, wait_for_subscribers=2,
-            wait_for_buffer_peers=2))
+            wait_for_buffer_peers=2, linger_sec=60.0))
         time.sleep(3.0)  # mid-stream (150 frames at 30 Hz take 5 s)
         victim.kill()
-        assert run.wait(['survivor', 'pub'], 60), run.diagnostics()
+        killed_at = time.monotonic()
+        assert run.wait(['survivor'], 60), run.diagnostics()
+        assert run.wait(['pub'], 60), run.diagnostics()
+        print(f'publisher dropped the dead subscriber {time.monotonic() - killed_at:.1f} s '
+              'after SIGKILL')
         survivor = run.nodes['survivor'].report
         publisher = run.nodes['pub'].report
     assert survivor['distinct'] == total and survivor['duplicates'] == 0, survivor
