@@ -41,6 +41,7 @@ class ImageSubscriber(Node):
         self.backends = collections.Counter()
         self.problems = []
         self.seen = set()
+        self.last_size = 'none yet'
         self.start = time.monotonic()
         if p['legacy']:
             self.subscription = self.create_subscription(
@@ -63,6 +64,7 @@ class ImageSubscriber(Node):
 
     def on_image(self, msg: Image) -> None:
         self.latencies.append(latency_ms(msg))
+        self.last_size = f'{msg.width}x{msg.height} {msg.encoding}, {len(msg.data):,} bytes'
         self.counters['received'] += 1
         data = msg.data
         backend = data.backend_type if isinstance(data, rosidl_buffer_py.Buffer) else (
@@ -119,7 +121,8 @@ class ImageSubscriber(Node):
     def log_summary(self) -> None:
         r = self.report()
         self.get_logger().info(
-            f"received {r['received']} ({r['distinct']} distinct), backends {r['backends']}, "
+            f"received {r['received']} ({r['distinct']} distinct), last {self.last_size}, "
+            f"backends {r['backends']}, "
             f"latency p50 {r['latency_ms']['p50']} ms, checksum failures "
             f"{r['checksum_failures']}")
 

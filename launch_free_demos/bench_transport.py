@@ -1,0 +1,88 @@
+"""Cross-process latency: stock rclpy, this package's CPU path and the demo backend.
+
+For each payload, a publisher process sends ``--frames`` frames at ``--rate`` Hz to a subscriber
+process; the subscriber measures publish -> callback latency (wall clock, same machine) and
+verifies every frame's checksum. Prints a markdown table of medians and p90s and the ratios the
+project targets. A benchmark: it prints, it asserts nothing. ``./dev bench-transport``.
+"""
+import argparse
+import os
+import sys
+
+from launch_free_demos.runner import Run
+
+PAYLOADS = [  # label, width, height, encoding
+    ('1 KiB', 1024, 1, 'mono8'),
+    ('1 MiB', 1024, 1024, 'mono8'),
+    ('1920x1080 rgb8', 1920, 1080, 'rgb8'),
+    ('3840x2160 rgb8', 3840, 2160, 'rgb8'),
+]
+TRANSPORTS = {  # label: (publisher executable, backend, subscriber executable, accept)
+    'stock rclpy': ('legacy_image_publisher', 'cpu', 'legacy_image_subscriber', None),
+    'rosidl_buffer_py cpu': ('image_publisher', 'cpu', 'image_subscriber', 'cpu'),
+    'rosidl_buffer_py demo': ('image_publisher', 'demo', 'image_subscriber', 'demo'),
+}
+
+
+def measure(transport: str, width: int, height: int, encoding: str, frames: int,
+            rate: float) -> dict:
+    pub_exe, backend, sub_exe, accept = TRANSPORTS[transport]
+    topic = '/bench/image'
+    sub_params = dict(topic=topic, expected_count=frames, timeout_sec=120.0)
+    pub_params = dict(topic=topic, count=frames, rate_hz=rate, wait_for_subscribers=1,
+                      linger_sec=20.0, width=width, height=height, encoding=encoding)
+    if accept is not None:
+        sub_params['acceptable_buffer_backends'] = accept
+        pub_params.update(backend=backend, wait_for_buffer_peers=1)
+    with Run() as run:
+        run.start('bench_sub', sub_exe, **sub_params)
+        run.start('bench_pub', pub_exe, **pub_params)
+        run.wait(timeout=frames / rate + 150.0)
+        run.stop_all()
+        report = run.nodes['bench_sub'].report
+    if report is None or report['distinct'] != frames or report['checksum_failures']:
+        raise RuntimeError(f'{transport} {width}x{height}: incomplete run: {report}\n'
+                           f'{run.diagnostics()}')
+    return report
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--frames', type=int, default=30)
+    parser.add_argument('--rate', type=float, default=10.0)
+    parser.add_argument('--payloads', nargs='*', default=[p[0] for p in PAYLOADS],
+                        help='labels from: ' + ', '.join(p[0] for p in PAYLOADS))
+    args = parser.parse_args(argv)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    results = {}
+    for label, width, height, encoding in PAYLOADS:
+        if label not in args.payloads:
+            continue
+        for transport in TRANSPORTS:
+            report = measure(transport, width, height, encoding, args.frames, args.rate)
+            results[(label, transport)] = report
+            lat = report['latency_ms']
+            print(f'{label:>16} {transport:<22} p50 {lat["p50"]:9.3f} ms  p90 {lat["p90"]:9.3f} '
+                  f'ms  backends {report["backends"]}', file=sys.stderr, flush=True)
+    print(f'\nLatency publish -> callback in ms, median / p90 of {args.frames} frames at '
+          f'{args.rate:g} Hz, publisher and subscriber in separate processes.\n')
+    print('| payload | ' + ' | '.join(TRANSPORTS) + ' | cpu / stock | stock / demo |')
+    print('|---' * (len(TRANSPORTS) + 3) + '|')
+    for label, *_ in PAYLOADS:
+        if (label, 'stock rclpy') not in results:
+            continue
+        cells = [f"{results[(label, t)]['latency_ms']['p50']:.2f} / "
+                 f"{results[(label, t)]['latency_ms']['p90']:.2f}" for t in TRANSPORTS]
+        stock = results[(label, 'stock rclpy')]['latency_ms']['p50']
+        cpu = results[(label, 'rosidl_buffer_py cpu')]['latency_ms']['p50']
+        demo = results[(label, 'rosidl_buffer_py demo')]['latency_ms']['p50']
+        print(f'| {label} | ' + ' | '.join(cells) + f' | {cpu / stock:.2f} | {stock / demo:.1f} |')
+    small, big = ('1 KiB', 'rosidl_buffer_py demo'), ('3840x2160 rgb8', 'rosidl_buffer_py demo')
+    if small in results and big in results:
+        print(f"\ndemo 3840x2160 / demo 1 KiB latency: "
+              f"{results[big]['latency_ms']['p50'] / results[small]['latency_ms']['p50']:.2f}")
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
