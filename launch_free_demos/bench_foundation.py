@@ -85,7 +85,6 @@ def bench_payload(label: str, height: int, width: int, encoding: str,
             lambda: backend.create_descriptor_with_endpoint(demo, subscriber), repeat)),
         'demo from_descriptor': summarize(measure(from_descriptor, repeat)),
     }
-    del demo
     return row
 
 

@@ -25,7 +25,8 @@ from rosidl_buffer_py.channel import channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
-from rosidl_buffer_py.transport import hook_destruction, qos_of, warn_unsupported_rmw
+from rosidl_buffer_py.transport import (
+    BufferEndpoint, hook_destruction, qos_of, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.publisher')
 
@@ -48,7 +49,7 @@ class _SubscriptionPeer:
     matched_since: Optional[float] = None
 
 
-class Publisher:
+class Publisher(BufferEndpoint):
     """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
 
     Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
@@ -60,6 +61,7 @@ class Publisher:
                  callback_group=None, event_callbacks=None) -> None:
         self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
+        self._peer_kind = EndpointKind.SUBSCRIPTION
         self._node = node
         self.msg_type = msg_type
         self._lock = threading.RLock()
@@ -243,71 +245,26 @@ class Publisher:
     def _on_wake(self) -> None:
         self._discovery.process()
 
-    def _on_peer(self, peer: 'discovery.PeerEndpoint') -> None:
-        if peer.kind is not EndpointKind.SUBSCRIPTION:
-            return
-        with self._lock:
-            if self._destroyed:
-                return
-            if peer.new and not peer.local:
-                self._announce()
-            known = self._peers.get(peer.gid)
-            if not peer.buffer_aware:
-                if known is not None:  # it withdrew its advertisement: treat as legacy
-                    self._drop_peer(peer.gid)
-                return
-            info = EndpointInfo(peer.gid, self.topic_name, EndpointKind.SUBSCRIPTION)
-            existing = [p.info for p in self._peers.values() if p.info.gid != peer.gid]
-            compatible = set()
-            for name in peer.backends:
-                backend = self._backends.get(name)
-                if backend is None or name == CPU_BACKEND:
-                    continue
-                try:
-                    ok, _groups = backend.on_discovering_endpoint(info, existing, peer.backends)
-                except Exception as exc:
-                    _logger.error(f'backend {name!r} on_discovering_endpoint failed: {exc}')
-                    ok = False
-                if ok:
-                    compatible.add(name)
-            if known is None:
-                known = _SubscriptionPeer(info=info, backends=dict(peer.backends))
-                known.channel_topic = channel_topic(self.topic_name, self._gid, peer.gid)
-                known.channel = _dds.create_channel_publisher(
-                    self._node, self.msg_type, known.channel_topic, self.qos_profile)
-                self._peers[peer.gid] = known
-                self._peers_added += 1
-            known.backends = dict(peer.backends)
-            known.compatible = compatible
+    def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
+        record = _SubscriptionPeer(info=info, backends=backends)
+        record.channel_topic = channel_topic(self._topic_name, self._gid, info.gid)
+        record.channel = _dds.create_channel_publisher(
+            self._node, self.msg_type, record.channel_topic, self.qos_profile)
+        self._peers_added += 1
+        return record
 
-    def _on_peer_gone(self, gid: bytes) -> None:
-        with self._lock:
-            self._drop_peer(gid)
+    def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
+        record.compatible = compatible
 
-    def _drop_peer(self, gid: bytes) -> None:
-        peer = self._peers.pop(gid, None)
-        if peer is None:
-            return
-        self._peers_removed += 1
-        if peer.channel is not None:
-            peer.channel.destroy()
-        for backend in self._backends.values():
-            backend.on_removing_endpoint(peer.info)
+    def _forget_peer(self, gid: bytes) -> None:
+        if gid in self._peers:
+            self._peers_removed += 1
 
-    def _teardown(self) -> None:
-        with self._lock:
-            if self._destroyed:
-                return
-            self._destroyed = True
-            self._discovery.unwatch(dds_topic(self.topic_name), self)
-            self._discovery.remove_wakeup(self._guard)
-            for gid in list(self._peers):
-                self._drop_peer(gid)
+    def _release(self) -> None:
         try:
             self._node.destroy_publisher(self._publisher)
         except Exception as exc:  # already destroyed with the node
             _logger.debug(f'destroy_publisher: {exc}')
-
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
                      callback_group=None, event_callbacks=None) -> Publisher:

@@ -26,7 +26,8 @@ from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import channel_topic, dds_topic
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
-from rosidl_buffer_py.transport import hook_destruction, qos_of, warn_unsupported_rmw
+from rosidl_buffer_py.transport import (
+    BufferEndpoint, hook_destruction, qos_of, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.subscription')
 
@@ -53,7 +54,7 @@ class _PublisherPeer:
     backend_in_use: Optional[str] = None
 
 
-class Subscription:
+class Subscription(BufferEndpoint):
     """Receive messages whose ``uint8[]`` payload may arrive as a backend Buffer.
 
     Create it with :func:`rosidl_buffer_py.create_subscription`. The callback gets ``(msg)`` or
@@ -67,6 +68,7 @@ class Subscription:
                  acceptable_buffer_backends: Optional[str] = 'cpu') -> None:
         self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
+        self._peer_kind = EndpointKind.PUBLISHER
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         self._node = node
         self.msg_type = msg_type
@@ -318,65 +320,22 @@ class Subscription:
                 throttle_duration_sec=5.0)
             return None
 
-    def _on_peer(self, peer: 'discovery.PeerEndpoint') -> None:
-        if peer.kind is not EndpointKind.PUBLISHER:
-            return
-        with self._lock:
-            if self._destroyed:
-                return
-            if peer.new and not peer.local:
-                self._announce()
-            known = self._peers.get(peer.gid)
-            if not peer.buffer_aware:
-                if known is not None:
-                    self._drop_peer(peer.gid)
-                return
-            info = EndpointInfo(peer.gid, self._topic_name, EndpointKind.PUBLISHER)
-            existing = [p.info for p in self._peers.values() if p.info.gid != peer.gid]
-            for name, backend in self._backends.items():
-                if name in peer.backends:
-                    try:
-                        backend.on_discovering_endpoint(info, existing, peer.backends)
-                    except Exception as exc:
-                        _logger.error(f'backend {name!r} on_discovering_endpoint failed: {exc}')
-            if known is None:
-                known = _PublisherPeer(info=info, backends=dict(peer.backends))
-                known.channel_topic = channel_topic(self._topic_name, peer.gid, self._gid)
-                known.channel = _dds.create_channel_subscription(
-                    self._node, self.msg_type, known.channel_topic, self.qos_profile,
-                    self._guard)
-                self._peers[peer.gid] = known
-            known.backends = dict(peer.backends)
+    def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
+        record = _PublisherPeer(info=info, backends=backends)
+        record.channel_topic = channel_topic(self._topic_name, info.gid, self._gid)
+        record.channel = _dds.create_channel_subscription(
+            self._node, self.msg_type, record.channel_topic, self.qos_profile, self._guard)
+        return record
 
-    def _on_peer_gone(self, gid: bytes) -> None:
-        with self._lock:
-            self._drop_peer(gid)
-
-    def _drop_peer(self, gid: bytes) -> None:
-        peer = self._peers.pop(gid, None)
+    def _forget_peer(self, gid: bytes) -> None:
         self._seen.pop(gid, None)
-        if peer is None:
-            return
-        if peer.channel is not None:
-            peer.channel.destroy()
-        for backend in self._backends.values():
-            backend.on_removing_endpoint(peer.info)
 
-    def _teardown(self) -> None:
-        with self._lock:
-            if self._destroyed:
-                return
-            self._destroyed = True
-            self._discovery.unwatch(dds_topic(self._topic_name), self)
-            self._discovery.remove_wakeup(self._guard)
-            for gid in list(self._peers):
-                self._drop_peer(gid)
-            if self._hold_timer is not None:
-                self._hold_timer.cancel()
-            self._held.clear()
-            _dds.clear_new_message_wakeup(self._sub)
-            self._sub.destroy_when_not_in_use()
-
+    def _release(self) -> None:
+        if self._hold_timer is not None:
+            self._hold_timer.cancel()
+        self._held.clear()
+        _dds.clear_new_message_wakeup(self._sub)
+        self._sub.destroy_when_not_in_use()
 
 def _takes_message_info(callback: Callable) -> bool:
     """True when ``callback`` accepts ``(msg, message_info)`` (the rule rclpy applies)."""

@@ -1,9 +1,13 @@
-"""Small pieces shared by the buffer-aware publisher and subscription."""
+"""What the buffer-aware publisher and subscription share: peer bookkeeping and small helpers."""
 import threading
-from typing import Callable, Union
+from typing import Callable, Dict, Mapping, Set, Union
 
 from rclpy.logging import get_logger
 from rclpy.qos import QoSProfile
+
+from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
+from rosidl_buffer_py.channel import dds_topic
+from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 
 _logger = get_logger('rosidl_buffer_py')
 _warned = set()
@@ -52,3 +56,96 @@ def hook_destruction(guard_condition, teardown: Callable[[], None]) -> None:
             destroy()
 
     guard_condition.destroy = destroy_with_teardown
+
+
+class BufferEndpoint:
+    """Peer bookkeeping of a buffer-aware endpoint (publisher or subscription).
+
+    Peers are the buffer-aware endpoints of the opposite kind on our topic, each with a channel.
+    Subclasses set ``_peer_kind`` and implement ``_announce()``, ``_add_peer(info, backends)``
+    (create the record and its channel), and optionally ``_update_peer(record, compatible)``,
+    ``_forget_peer(gid)`` and ``_release()`` (free the endpoint itself, under the lock).
+    The subclass constructor sets ``_lock``, ``_peers``, ``_destroyed``, ``_backends``,
+    ``_discovery``, ``_guard`` and ``_topic_name``.
+    """
+
+    _peer_kind: EndpointKind
+    _lock: threading.RLock
+    _peers: Dict[bytes, object]
+    _backends: Mapping[str, BufferBackend]
+
+    def _on_peer(self, peer) -> None:
+        """Discovery: a peer of our topic appeared or changed its advertisement."""
+        if peer.kind is not self._peer_kind:
+            return
+        with self._lock:
+            if self._destroyed:
+                return
+            if peer.new and not peer.local:
+                self._announce()  # it may have missed our advertisement (see discovery.py)
+            known = self._peers.get(peer.gid)
+            if not peer.buffer_aware:
+                if known is not None:  # it withdrew its advertisement: now a legacy endpoint
+                    self._drop_peer(peer.gid)
+                return
+            info = EndpointInfo(peer.gid, self._topic_name, self._peer_kind)
+            compatible = self._compatible_backends(info, peer.backends)
+            if known is None:
+                known = self._add_peer(info, dict(peer.backends))
+                self._peers[peer.gid] = known
+            known.backends = dict(peer.backends)
+            self._update_peer(known, compatible)
+
+    def _compatible_backends(self, info: EndpointInfo, advertised: Mapping[str, str]) -> Set[str]:
+        """Ask each backend both sides have whether it can serve this peer."""
+        existing = [p.info for p in self._peers.values() if p.info.gid != info.gid]
+        compatible = set()
+        for name in advertised:
+            backend = self._backends.get(name)
+            if backend is None or name == CPU_BACKEND:
+                continue
+            try:
+                ok, _groups = backend.on_discovering_endpoint(info, existing, advertised)
+            except Exception as exc:  # a broken backend degrades this peer to CPU bytes
+                _logger.error(f'backend {name!r} on_discovering_endpoint failed: '
+                              f'{type(exc).__name__}: {exc}')
+                ok = False
+            if ok:
+                compatible.add(name)
+        return compatible
+
+    def _update_peer(self, record, compatible: Set[str]) -> None:
+        """Hook: the peer's advertisement was (re)read; ``compatible`` backends can serve it."""
+
+    def _on_peer_gone(self, gid: bytes) -> None:
+        """Discovery: a peer went away."""
+        with self._lock:
+            self._drop_peer(gid)
+
+    def _drop_peer(self, gid: bytes) -> None:
+        self._forget_peer(gid)
+        peer = self._peers.pop(gid, None)
+        if peer is None:
+            return
+        if peer.channel is not None:
+            peer.channel.destroy()
+        for backend in self._backends.values():
+            backend.on_removing_endpoint(peer.info)
+
+    def _forget_peer(self, gid: bytes) -> None:
+        """Hook: drop per-peer state kept outside ``_peers``."""
+
+    def _teardown(self) -> None:
+        """Destroy channels, stop discovery and free the endpoint (once)."""
+        with self._lock:
+            if self._destroyed:
+                return
+            self._destroyed = True
+            self._discovery.unwatch(dds_topic(self._topic_name), self)
+            self._discovery.remove_wakeup(self._guard)
+            for gid in list(self._peers):
+                self._drop_peer(gid)
+            self._release()
+
+    def _release(self) -> None:
+        """Hook: free the endpoint itself (called once, under the lock)."""

@@ -5,7 +5,6 @@ edges that need finer control (restarts, SIGKILL, a second participant, one proc
 Every frame carries a counter and a checksum that the subscriber verifies.
 """
 import array
-import threading
 import time
 
 import pytest

@@ -17,7 +17,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
-from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
+from rosidl_buffer_py.image import allocate_image_msg
 from rosidl_buffer_py.nodes.common import declare_qos_parameters, print_report, run_node
 from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
 
