@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional, Union
 
+from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.qos import QoSProfile
@@ -190,7 +191,17 @@ class Subscription(BufferEndpoint):
                 self.callback(msg, info)
             else:
                 self.callback(msg)
-        self._guard.trigger()  # more may be waiting: let other callbacks run first
+        self._wake()  # more may be waiting: let other callbacks run first
+
+    def _wake(self) -> None:
+        """Trigger our guard condition, unless the subscription is being destroyed."""
+        with self._lock:
+            if self._destroyed:
+                return
+            try:
+                self._guard.trigger()
+            except InvalidHandle:  # the node is being destroyed
+                pass
 
     def _take_one(self):
         """Take and decode the next deliverable message, or return None when none is left.
@@ -260,7 +271,7 @@ class Subscription(BufferEndpoint):
             return False  # its twin was already delivered: let the duplicate check drop it
         self._held.append((time.monotonic() + HOLD_SECONDS, taken, peer))
         if self._hold_timer is None or not self._hold_timer.is_alive():
-            self._hold_timer = threading.Timer(HOLD_SECONDS, self._guard.trigger)
+            self._hold_timer = threading.Timer(HOLD_SECONDS, self._wake)
             self._hold_timer.daemon = True
             self._hold_timer.start()
         return True
@@ -272,7 +283,7 @@ class Subscription(BufferEndpoint):
             return raw, publisher_gid, info, peer
         if self._held and (self._hold_timer is None or not self._hold_timer.is_alive()):
             self._hold_timer = threading.Timer(
-                max(0.0, self._held[0][0] - time.monotonic()), self._guard.trigger)
+                max(0.0, self._held[0][0] - time.monotonic()), self._wake)
             self._hold_timer.daemon = True
             self._hold_timer.start()
         return None

@@ -20,7 +20,7 @@ from rosidl_buffer_py import _dds, advertisement, codec
 from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
 from rosidl_buffer_py.nodes.frames import check_frame, pattern, stamp_frame
 
-RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # bursts fit
 
 
 @pytest.mark.parametrize('name', list(SCENARIOS))
@@ -143,13 +143,15 @@ def test_second_participant_reads_user_data_and_stock_typehash(context):
         node.destroy_node()
 
 
+@pytest.mark.parametrize('publishers, subscriptions', [(1, 1), (1, 2), (2, 2)])
 @pytest.mark.parametrize('backend, accept, expected', [
     ('demo', 'any', 'demo'), ('demo', 'cpu', 'cpu'), ('cpu', 'any', 'cpu')])
-def test_in_process_one_publisher_two_subscriptions(context, backend, accept, expected):
-    """Publisher and subscriptions in one process (one participant), multi-threaded executor."""
+def test_in_process(context, publishers, subscriptions, backend, accept, expected):
+    """Publishers and subscriptions in one process (one participant), multi-threaded executor."""
+    frames = 20
     pub_node = rclpy.create_node('inproc_pub', context=context)
     sub_node = rclpy.create_node('inproc_sub', context=context)
-    received = {'a': [], 'b': []}
+    received = {name: [] for name in range(subscriptions)}
     group = rclpy.callback_groups.ReentrantCallbackGroup()
 
     def on_image(name):
@@ -162,21 +164,26 @@ def test_in_process_one_publisher_two_subscriptions(context, backend, accept, ex
 
     subs = [rosidl_buffer_py.create_subscription(
         sub_node, Image, '/inproc_image', on_image(name), RELIABLE, callback_group=group,
-        acceptable_buffer_backends=accept) for name in 'ab']
-    pub = rosidl_buffer_py.create_publisher(pub_node, Image, '/inproc_image', RELIABLE)
+        acceptable_buffer_backends=accept) for name in received]
+    pubs = [rosidl_buffer_py.create_publisher(pub_node, Image, '/inproc_image', RELIABLE)
+            for _ in range(publishers)]
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(pub_node)
     executor.add_node(sub_node)
-    assert _spin_until(executor, lambda: sum(
-        1 for p in pub.buffer_peers() if p['channel_serving']) == 2)
-    for counter in range(30):
-        pub.publish(_frame(counter, backend))
-        executor.spin_once(timeout_sec=0.01)
-    assert _spin_until(executor, lambda: all(len(r) >= 30 for r in received.values()))
+    assert _spin_until(executor, lambda: all(sum(
+        1 for p in pub.buffer_peers() if p['channel_serving']) == subscriptions for pub in pubs))
+    for index, pub in enumerate(pubs):
+        for counter in range(index * frames, (index + 1) * frames):
+            pub.publish(_frame(counter, backend))
+            executor.spin_once(timeout_sec=0.01)
+    total = frames * publishers
+    assert _spin_until(executor, lambda: all(len(r) >= total for r in received.values())), (
+        {name: sorted(set(range(total)) - {c for c, _ in got}) for name, got in received.items()},
+        [s.statistics() for s in subs], [p.statistics() for p in pubs])
     executor.spin_once(timeout_sec=0.2)
-    for name, frames in received.items():
-        assert sorted(c for c, _ in frames) == list(range(30)), (name, frames)
-        assert {b for _, b in frames} == {expected}, (name, frames)
+    for name, got in received.items():
+        assert sorted(c for c, _ in got) == list(range(total)), (name, got)  # exactly once
+        assert {b for _, b in got} == {expected}, (name, got)
     assert all(s.statistics()['rejected'] == 0 for s in subs)
     executor.shutdown()
     pub_node.destroy_node()
