@@ -32,6 +32,8 @@ _logger = get_logger('rosidl_buffer_py.publisher')
 
 #: How long a channel must have been matched before it serves its subscription.
 CHANNEL_SETTLE_SECONDS = 0.2
+#: publish() polls discovery at most this often (spinning nodes are woken by discovery).
+DISCOVERY_POLL_SECONDS = 0.02
 
 
 @dataclass
@@ -96,7 +98,9 @@ class Publisher(BufferEndpoint):
             backend.on_creating_endpoint(self._info)
         self._guard = node.create_guard_condition(self._on_wake, callback_group)
         hook_destruction(self._guard, self._teardown)
+        self._discovery_guard = self._guard
         self._discovery.add_wakeup(node, self._guard)
+        self._polled_at = 0.0
         with self._lock:
             for peer in self._discovery.watch(dds_topic(self.topic_name), self):
                 self._on_peer(peer)
@@ -138,7 +142,10 @@ class Publisher(BufferEndpoint):
                 serialized = bytes(codec.encode(msg))  # stock rclpy cannot convert a Buffer
             self._publisher.publish(bytes(serialized) if serialized is not None else msg)
             return
-        self._discovery.process()
+        now = time.monotonic()
+        if now - self._polled_at >= DISCOVERY_POLL_SECONDS:  # for nodes that do not spin
+            self._polled_at = now
+            self._discovery.process()
         payload = None if serialized is not None else getattr(msg, self._field)
         vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
             else None

@@ -115,7 +115,10 @@ class Subscription(BufferEndpoint):
         self._guard = node.create_guard_condition(self._on_wake, callback_group)
         hook_destruction(self._guard, self._teardown)
         _dds.set_new_message_wakeup(self._sub, self._guard)
-        self._discovery.add_wakeup(node, self._guard)
+        # discovery wakes its own guard: data wake-ups do not poll discovery
+        self._discovery_guard = node.create_guard_condition(self._discovery.process,
+                                                            callback_group)
+        self._discovery.add_wakeup(node, self._discovery_guard)
         with self._lock:
             for peer in self._discovery.watch(dds_topic(self._topic_name), self):
                 self._on_peer(peer)
@@ -178,7 +181,6 @@ class Subscription(BufferEndpoint):
         _dds.set_user_data(self._sub, self._user_data, 'subscription')
 
     def _on_wake(self) -> None:
-        self._discovery.process()
         for _ in range(MAX_BATCH):
             with self._lock:
                 if self._destroyed:
@@ -342,6 +344,7 @@ class Subscription(BufferEndpoint):
         self._seen.pop(gid, None)
 
     def _release(self) -> None:
+        self._node.destroy_guard_condition(self._discovery_guard)
         if self._hold_timer is not None:
             self._hold_timer.cancel()
         self._held.clear()

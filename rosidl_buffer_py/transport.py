@@ -66,7 +66,8 @@ class BufferEndpoint:
     (create the record and its channel), and optionally ``_update_peer(record, compatible)``,
     ``_forget_peer(gid)`` and ``_release()`` (free the endpoint itself, under the lock).
     The subclass constructor sets ``_lock``, ``_peers``, ``_destroyed``, ``_backends``,
-    ``_discovery``, ``_guard`` and ``_topic_name``.
+    ``_discovery``, ``_guard``, ``_discovery_guard`` (woken by discovery events) and
+    ``_topic_name``.
     """
 
     _peer_kind: EndpointKind
@@ -142,7 +143,7 @@ class BufferEndpoint:
                 return
             self._destroyed = True
             self._discovery.unwatch(dds_topic(self._topic_name), self)
-            self._discovery.remove_wakeup(self._guard)
+            self._discovery.remove_wakeup(self._discovery_guard)
             for gid in list(self._peers):
                 self._drop_peer(gid)
             self._release()
