@@ -137,13 +137,18 @@ class BufferEndpoint:
         """Hook: drop per-peer state kept outside ``_peers``."""
 
     def _teardown(self) -> None:
-        """Destroy channels, stop discovery and free the endpoint (once)."""
+        """Destroy channels, stop discovery and free the endpoint (once).
+
+        Lock order: discovery dispatch holds the discovery lock and then takes ours
+        (``_on_peer``), so ours is never held while taking the discovery's.
+        """
         with self._lock:
             if self._destroyed:
                 return
-            self._destroyed = True
-            self._discovery.unwatch(dds_topic(self._topic_name), self)
-            self._discovery.remove_wakeup(self._discovery_guard)
+            self._destroyed = True  # from here on _on_peer adds nothing
+        self._discovery.unwatch(dds_topic(self._topic_name), self)
+        self._discovery.remove_wakeup(self._discovery_guard)
+        with self._lock:
             for gid in list(self._peers):
                 self._drop_peer(gid)
             self._release()
