@@ -23,7 +23,7 @@ from rosidl_buffer_py.registry import (
 
 from rosidl_buffer_py import message_support as _message_support
 
-_message_support.enable_common_types()
+_message_support.enable_all_message_types()
 
 __all__ = [
     'Buffer',

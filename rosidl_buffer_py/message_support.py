@@ -3,9 +3,15 @@
 Stock generated setters turn anything that is not an ``array.array('B')`` into one, which would
 copy a Buffer's bytes (or fail). :func:`enable_buffer_fields` wraps the setter of each
 ``uint8[]`` field of a message class so that a Buffer is stored as-is; every other value goes to
-the original setter untouched. ``import rosidl_buffer_py`` enables the common image types, and the
-package's publishers, subscriptions and codec enable any type they are given.
+the original setter untouched.
+
+``import rosidl_buffer_py`` enables every generated message class: those already imported, and,
+through a meta path hook on generated message modules (``<pkg>.msg._<name>``, also ``srv`` and
+``action``), every one imported later.
 """
+import importlib.abc
+import re
+import sys
 import threading
 from typing import Tuple, Type
 
@@ -60,8 +66,61 @@ def enable_buffer_fields(msg_type: Type) -> Tuple[str, ...]:
         return names
 
 
-def enable_common_types() -> None:
-    """Enable the message types users publish images and blobs with."""
-    from sensor_msgs.msg import CompressedImage, Image
-    for msg_type in (Image, CompressedImage):
-        enable_buffer_fields(msg_type)
+#: Generated Python message modules, e.g. ``sensor_msgs.msg._image``.
+_GENERATED_MODULE = re.compile(r'^[A-Za-z_]\w*\.(msg|srv|action)\._\w+$')
+
+
+def enable_module(module) -> None:
+    """Enable every generated message class with ``uint8[]`` fields defined in ``module``."""
+    for value in list(vars(module).values()):
+        if (isinstance(value, type) and value.__module__ == module.__name__ and
+                hasattr(value, 'get_fields_and_field_types')):
+            try:
+                if buffer_fields(value):
+                    enable_buffer_fields(value)
+            except Exception:  # not a generated message after all: leave it alone
+                pass
+
+
+class _EnablingLoader(importlib.abc.Loader):
+    """Runs the real loader of a generated message module, then enables its classes."""
+
+    def __init__(self, loader) -> None:
+        self._loader = loader
+
+    def create_module(self, spec):
+        return self._loader.create_module(spec)
+
+    def exec_module(self, module) -> None:
+        self._loader.exec_module(module)
+        enable_module(module)
+
+    def __getattr__(self, name):  # get_filename, get_source, ... of the real loader
+        return getattr(self._loader, name)
+
+
+class _GeneratedModuleFinder(importlib.abc.MetaPathFinder):
+    """Wraps the loader of generated message modules found by the other finders."""
+
+    def find_spec(self, fullname, path, target=None):
+        if not _GENERATED_MODULE.match(fullname):
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, 'find_spec'):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None:
+                if spec.loader is not None and hasattr(spec.loader, 'exec_module'):
+                    spec.loader = _EnablingLoader(spec.loader)
+                return spec
+        return None
+
+
+def enable_all_message_types() -> None:
+    """Enable every generated message class imported so far and every one imported later."""
+    with _lock:
+        if not any(isinstance(f, _GeneratedModuleFinder) for f in sys.meta_path):
+            sys.meta_path.insert(0, _GeneratedModuleFinder())
+    for name, module in list(sys.modules.items()):
+        if module is not None and _GENERATED_MODULE.match(name):
+            enable_module(module)

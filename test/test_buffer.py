@@ -163,3 +163,29 @@ def test_common_types_enabled_on_import_and_others_on_request():
     assert u.data is buf
     with pytest.raises(TypeError, match='not a generated ROS message'):
         enable_buffer_fields(int)
+
+
+def test_every_message_type_is_enabled_after_import_even_imported_later():
+    """A fresh interpreter: types imported before and after rosidl_buffer_py store Buffers."""
+    import subprocess
+    import sys
+    code = '''
+import array
+from std_msgs.msg import UInt8MultiArray          # imported before
+import rosidl_buffer_py
+from sensor_msgs.msg import PointCloud2           # imported after
+from std_msgs.msg import String                   # no uint8[] field: untouched
+buf = rosidl_buffer_py.Buffer('demo', bytearray(4))
+for cls in (UInt8MultiArray, PointCloud2):
+    msg = cls()
+    msg.data = buf
+    assert msg.data is buf, cls
+    msg.data = [1, 2]
+    assert msg.data == array.array('B', [1, 2]), cls
+assert not hasattr(String, '_rosidl_buffer_py_fields')
+s = String(data='x')
+assert s.data == 'x'
+print('ok')
+'''
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.strip() == 'ok', out.stderr
