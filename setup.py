@@ -3,8 +3,9 @@
 The native extension ``rosidl_buffer_py._native`` is compiled from ``src/native``. Where the
 ROS 2 headers and libraries come from is decided by :func:`ros_prefixes` and nowhere else:
 
-1. the running interpreter's prefix (``sys.prefix``), where the PyPI ROS wheels put
-   ``include/<pkg>/`` and ``lib/`` (a venv made by ``./dev``);
+1. the running interpreter's prefix (``sys.prefix``, or ``sys.real_prefix`` when colcon
+   overrides it), where the PyPI ROS wheels put ``include/<pkg>/`` and ``lib/`` (a venv made by
+   ``./dev``);
 2. then every entry of ``AMENT_PREFIX_PATH``, in order (``/opt/ros/jazzy`` once its
    ``setup.bash`` is sourced, and colcon workspaces above it).
 
@@ -22,7 +23,9 @@ HERE = Path(__file__).resolve().parent
 
 def ros_prefixes() -> list:
     """Return the ROS install prefixes to build against, most preferred first."""
-    candidates = [sys.prefix] + [
+    # colcon's sitecustomize points sys.prefix at the install space and keeps the interpreter's
+    # own prefix in sys.real_prefix
+    candidates = [sys.prefix, getattr(sys, 'real_prefix', sys.prefix)] + [
         p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
     found = []
     for prefix in candidates:
@@ -86,6 +89,13 @@ setup(
         'rosidl_buffer_py.backends': [
             'demo = demo_buffer_backend:DemoBackend',
         ],
-        'console_scripts': [],
+        # installed in lib/rosidl_buffer_py (setup.cfg), where `ros2 run rosidl_buffer_py` looks
+        'console_scripts': [
+            'image_publisher = rosidl_buffer_py.nodes.image_publisher:main',
+            'image_subscriber = rosidl_buffer_py.nodes.image_subscriber:main',
+            'legacy_image_publisher = rosidl_buffer_py.nodes.image_publisher:legacy_main',
+            'legacy_image_subscriber = rosidl_buffer_py.nodes.image_subscriber:legacy_main',
+            'buffer_topic_info = rosidl_buffer_py.info:main',
+        ],
     },
 )

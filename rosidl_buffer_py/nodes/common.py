@@ -32,7 +32,9 @@ def print_report(report: dict) -> None:
 def run_node(make_node: Callable, run: Callable) -> int:
     """Init rclpy, build the node, run it; SIGINT and SIGTERM end it cleanly with its report."""
     rclpy.init(args=sys.argv)
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
+    # SIGTERM takes Ctrl-C's path. (Shutting the context down from the handler instead leaves
+    # the next rclpy.spin_once() building a global executor on a dead context: a traceback.)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     node = None
     try:
         node = make_node()
@@ -40,6 +42,9 @@ def run_node(make_node: Callable, run: Callable) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # a second Ctrl-C or SIGTERM must not interrupt the report and the cleanup
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if node is not None:
             node.finish()
             node.destroy_node()

@@ -1,0 +1,199 @@
+"""The node executables, as ``ros2 run rosidl_buffer_py <name>`` starts them.
+
+``ros2 run`` runs ``<prefix>/lib/<package>/<name>``, the prefix found through the ament index
+(``share/ament_index/resource_index/packages/<package>``). setup.cfg sends console scripts there.
+Checked twice: in the venv that ``./dev setup`` makes (``setup.py develop``: scripts yes, but no
+ament index entry, since develop skips data_files), and with colcon's own install command
+(``setup.py install --single-version-externally-managed``) into a temporary prefix, where the
+lookup goes exactly as in ``ros2run``. ``pip install`` (a wheel) would put them in ``bin/``.
+Then every node is stopped mid-stream with SIGINT and with SIGTERM: exit 0, a REPORT line, no
+traceback, nothing of its own left in /dev/shm.
+"""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+
+REPO = Path(__file__).resolve().parent.parent
+PACKAGE = 'rosidl_buffer_py'
+EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
+               'legacy_image_subscriber', 'buffer_topic_info']
+DEV_LIB = Path(sys.prefix) / 'lib' / PACKAGE
+
+
+def _report(stdout: str) -> dict:
+    lines = [line for line in stdout.splitlines() if line.startswith(REPORT_PREFIX)]
+    assert lines, f'no REPORT line in:\n{stdout[-2000:]}'
+    return json.loads(lines[-1][len(REPORT_PREFIX):])
+
+
+def _run(command, timeout=60, **kwargs):
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True, **kwargs)
+    try:
+        out, err = process.communicate(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    _assert_no_shm_of(process.pid)
+    return process.returncode, out, err
+
+
+def _assert_no_shm_of(pid: int) -> None:
+    left = [n for n in os.listdir('/dev/shm') if n.startswith('rbpy_') and f'_{pid}_' in n]
+    assert not left, f'process {pid} left {left} in /dev/shm'
+
+
+def _short_publisher_args(**extra):
+    params = dict(count=3, width=16, height=8, rate_hz=50.0, linger_sec=0.0, settle_sec=0.0)
+    params.update(extra)
+    args = ['--ros-args', '-r', '__node:=short_pub']
+    for name, value in params.items():
+        args += ['-p', f'{name}:={value}']
+    return args
+
+
+@pytest.mark.parametrize('name', EXECUTABLES)
+def test_console_scripts_in_dev_venv(name):
+    path = DEV_LIB / name
+    assert path.is_file() and os.access(path, os.X_OK), (
+        f'{path} missing: run ./dev setup (setup.cfg [develop] script_dir)')
+
+
+def test_ros_args_parameters_and_every_script_runs():
+    code, out, err = _run([str(DEV_LIB / 'image_publisher')] + _short_publisher_args(
+        backend='demo', encoding='mono8'))
+    assert code == 0, err
+    report = _report(out)
+    assert report['node'] == 'short_pub' and report['published'] == 3, report
+    assert report['params']['backend'] == 'demo' and report['params']['width'] == 16
+    assert report['params']['encoding'] == 'mono8'
+    code, out, err = _run([str(DEV_LIB / 'legacy_image_publisher')] + _short_publisher_args())
+    assert code == 0, err
+    assert _report(out)['params']['legacy'] is True
+    for name in ('image_subscriber', 'legacy_image_subscriber'):
+        code, out, err = _run([str(DEV_LIB / name), '--ros-args', '-p', 'timeout_sec:=0.3',
+                               '-p', 'topic:=/nobody_publishes', '-p', 'depth:=3'])
+        assert code == 0, err
+        report = _report(out)
+        assert report['params']['topic'] == '/nobody_publishes' and report['received'] == 0
+    code, out, err = _run([str(DEV_LIB / 'buffer_topic_info'), '--help'])
+    assert code == 0 and '--probe' in out, err
+
+
+def test_colcon_style_install_where_ros2_run_looks(tmp_path):
+    """``setup.py install`` into a prefix; look the scripts up as ros2run does and run one."""
+    prefix = tmp_path / 'install'
+    build = tmp_path / 'build'
+    if (REPO / 'build').is_dir():  # reuse compiled objects (timestamps kept): no recompile
+        shutil.copytree(REPO / 'build', build, dirs_exist_ok=True)
+    code, out, err = _run(
+        [sys.executable, 'setup.py', '-q', 'egg_info', '--egg-base', str(tmp_path),
+         'build', '--build-base', str(build),
+         'install', '--prefix', str(prefix), '--single-version-externally-managed',
+         '--record', str(tmp_path / 'record.txt')], timeout=600, cwd=REPO)
+    assert code == 0, err[-3000:]
+    site = prefix / 'lib' / f'python{sys.version_info[0]}.{sys.version_info[1]}' / \
+        'site-packages'
+    env = dict(os.environ, AMENT_PREFIX_PATH=str(prefix), PYTHONPATH=str(site))
+    # ros2run.api.get_executable_path: <get_package_prefix(pkg)>/lib/<pkg>/<executable>
+    code, out, err = _run([sys.executable, '-c', (
+        'import os, sys; from ament_index_python.packages import get_package_prefix; '
+        f'base = os.path.join(get_package_prefix("{PACKAGE}"), "lib", "{PACKAGE}"); '
+        'print(sorted(n for n in os.listdir(base) '
+        'if os.access(os.path.join(base, n), os.X_OK)))')], env=env, cwd=tmp_path)
+    assert code == 0, err
+    assert eval(out) == sorted(EXECUTABLES), out
+    code, out, err = _run([str(prefix / 'lib' / PACKAGE / 'image_publisher')] +
+                          _short_publisher_args(backend='demo'), env=env, cwd=tmp_path)
+    assert code == 0, err
+    assert _report(out)['published'] == 3
+    code, out, err = _run([sys.executable, '-c', f'import {PACKAGE}; print({PACKAGE}.__file__)'],
+                          env=env, cwd=tmp_path)
+    assert out.startswith(str(site)), out  # the installed copy, not the source tree
+
+
+class _Node:
+    def __init__(self, label, executable, **params):
+        command = [str(DEV_LIB / executable), '--ros-args', '-r', f'__node:={label}']
+        for name, value in params.items():
+            command += ['-p', f'{name}:={value}']
+        self.label = label
+        self.out, self.err = [], []
+        self.process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                        text=True, start_new_session=True,
+                                        env=dict(os.environ, PYTHONUNBUFFERED='1'))
+        self.threads = [threading.Thread(target=self._pump, args=(s, sink), daemon=True)
+                        for s, sink in ((self.process.stdout, self.out),
+                                        (self.process.stderr, self.err))]
+        for thread in self.threads:
+            thread.start()
+
+    @staticmethod
+    def _pump(stream, sink):
+        for line in stream:
+            sink.append(line)
+
+    def reap(self):
+        if self.process.poll() is None:
+            self.process.kill()
+        self.process.wait()
+        for thread in self.threads:
+            thread.join(5)
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
+def test_signal_mid_stream_ends_every_node_cleanly(signum):
+    frame = dict(width=64, height=48, rate_hz=20.0)
+    nodes = []
+    try:
+        nodes = [
+            _Node('pub', 'image_publisher', topic='/sig_demo', backend='demo', **frame),
+            _Node('sub', 'image_subscriber', topic='/sig_demo', acceptable_buffer_backends='demo',
+                  timeout_sec=0.0, report_period_sec=0.3),
+            _Node('lpub', 'legacy_image_publisher', topic='/sig_legacy', **frame),
+            _Node('lsub', 'legacy_image_subscriber', topic='/sig_legacy', timeout_sec=0.0,
+                  report_period_sec=0.3),
+        ]
+        streaming = {'sub': False, 'lsub': False}
+        deadline = time.monotonic() + 40  # a guard against hanging, not a timing assertion
+        while not all(streaming.values()) and time.monotonic() < deadline:
+            for node in nodes:
+                if node.label in streaming:
+                    lines = list(node.err) + list(node.out)
+                    streaming[node.label] = any(
+                        'received' in line and 'received 0 ' not in line and
+                        (node.label != 'sub' or "'demo'" in line) for line in lines)
+            assert all(n.process.poll() is None for n in nodes), [
+                (n.label, ''.join(n.err[-20:])) for n in nodes]
+            time.sleep(0.2)
+        assert all(streaming.values()), streaming
+        for node in nodes:
+            node.process.send_signal(signum)
+        for node in nodes:
+            node.process.wait(60)
+            node.reap()
+    finally:
+        for node in nodes:
+            node.reap()
+    for node in nodes:
+        err = ''.join(node.err)
+        assert node.process.returncode == 0, (node.label, err[-3000:])
+        assert 'Traceback' not in err and 'Error' not in err, (node.label, err[-3000:])
+        report = _report(''.join(node.out))
+        assert report['node'] == node.label
+        _assert_no_shm_of(node.process.pid)
+    by_label = {node.label: _report(''.join(node.out)) for node in nodes}
+    assert by_label['pub']['published'] > 0 and by_label['lpub']['published'] > 0
+    assert by_label['sub']['backends'].get('demo', 0) > 0, by_label['sub']
+    assert by_label['sub']['checksum_failures'] == by_label['lsub']['checksum_failures'] == 0
