@@ -6,8 +6,16 @@ domain id), so parallel runs never see each other's traffic. Child processes inh
 import fcntl
 import os
 import random
+import sys
+from pathlib import Path
 
 import pytest
+
+# Under `colcon test` pytest runs in the source tree, whose rosidl_buffer_py/ has no compiled
+# extension (colcon built it into the install space): let the installed package be imported.
+_ROOT = Path(__file__).resolve().parent.parent
+if not list((_ROOT / 'rosidl_buffer_py').glob('_native*.so')):
+    sys.path[:] = [p for p in sys.path if Path(p or '.').resolve() != _ROOT]
 
 _DOMAIN_LOCK_DIR = '/tmp'
 _domain_lock_file = None
