@@ -1,0 +1,752 @@
+"""Benchmark suite: zero-copy images against stock rclpy, side by side, with a plot.
+
+``python -m launch_free_demos.benchmark [--quick | --smoke] [--out DIR]``
+
+Every measurement starts a fresh publisher process and fresh subscriber processes (the project's
+node executables through ``launch_free_demos.runner``) on a topic of its own, under RELIABLE QoS
+with depth 10. Transports:
+
+- ``stock rclpy``: legacy_image_publisher -> legacy_image_subscriber (plain rclpy);
+- ``rosidl_buffer_py cpu``: image_publisher backend cpu -> image_subscriber accepting cpu;
+- ``demo from_cpu`` / ``demo allocate``: image_publisher backend demo (frame copied into shared
+  memory / written in place) -> image_subscriber accepting demo;
+- ``one memcpy``: ``numpy.copyto`` of the payload in this process, the physical reference.
+
+Measured, from outside the nodes (nothing in the nodes is changed):
+
+- latency publish -> callback: the subscriber's report (p50 / p90 / p99), frames at a low rate;
+- maximum sustained rate: rates are tried in ascending order, ``rate x seconds`` frames each; a
+  rate is sustained when every frame arrives exactly once (distinct == count, gaps == 0, no
+  checksum failure) and the subscriber's receive rate is at least 90 % of it. The search stops
+  at the first rate that is not sustained;
+- CPU time per message of every process: each process's CPU clock (``clock_getcpuclockid``,
+  all threads, nanoseconds) is sampled every 10 ms; the window runs from the first to the last
+  progress line the subscribers log (``report_period_sec``), and its CPU time is divided by the
+  frames received in it. It includes the nodes' own work on every frame (the publisher writes
+  and CRC32s each frame, the subscriber verifies the CRC32), their idle spinning and the
+  subscriber's progress log: the same for every transport, and visible as the 1 KiB floor;
+- peak resident memory of every process: VmHWM from ``/proc/<pid>/status``, read every 10 ms
+  until the process exits (shared-memory pages the process touched count too); processes are
+  reaped with ``os.wait4``;
+- fan-out: 1..8 subscribers on one publisher, stock against demo (allocate).
+
+Output: a markdown report on stdout and in ``DIR/benchmark.md``, and ``DIR/benchmark.png``
+(latency against payload size; publisher CPU per message against subscriber count). The target
+checks are printed as computed ratios: a benchmark reports, it asserts nothing about time.
+"""
+import argparse
+import ctypes
+import datetime
+import fcntl
+import os
+import platform
+import re
+import signal
+import statistics
+import sys
+import time
+import zlib
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+import numpy
+
+from launch_free_demos.runner import NodeProcess, Run
+
+# label, width, height, encoding
+PAYLOADS = [
+    ('1 KiB', 1024, 1, 'mono8'),
+    ('1 MiB', 1024, 1024, 'mono8'),
+    ('640x480 rgb8', 640, 480, 'rgb8'),
+    ('1920x1080 rgb8', 1920, 1080, 'rgb8'),
+    ('3840x2160 rgb8', 3840, 2160, 'rgb8'),
+]
+PAYLOAD = {p[0]: p for p in PAYLOADS}
+BYTES_PER_PIXEL = {'mono8': 1, 'rgb8': 3}
+
+
+@dataclass(frozen=True)
+class Transport:
+    label: str
+    publisher: str
+    subscriber: str
+    backend: Optional[str] = None  # None: a legacy node, no rosidl_buffer_py parameters
+    fill: str = 'allocate'
+    accept: Optional[str] = None
+
+
+STOCK, CPU, DEMO_FROM_CPU, DEMO_ALLOCATE = (
+    'stock rclpy', 'rosidl_buffer_py cpu', 'demo from_cpu', 'demo allocate')
+MEMCPY = 'one memcpy (in-process)'
+TRANSPORTS = [
+    Transport(STOCK, 'legacy_image_publisher', 'legacy_image_subscriber'),
+    Transport(CPU, 'image_publisher', 'image_subscriber', 'cpu', 'allocate', 'cpu'),
+    Transport(DEMO_FROM_CPU, 'image_publisher', 'image_subscriber', 'demo', 'from_cpu', 'demo'),
+    Transport(DEMO_ALLOCATE, 'image_publisher', 'image_subscriber', 'demo', 'allocate', 'demo'),
+]
+TRANSPORT = {t.label: t for t in TRANSPORTS}
+ALL_ROWS = [t.label for t in TRANSPORTS] + [MEMCPY]
+FANOUT_TRANSPORTS = [STOCK, DEMO_ALLOCATE]
+BIG, SMALL = '3840x2160 rgb8', '1 KiB'
+
+
+@dataclass
+class Mode:
+    name: str
+    payloads: List[str]          # latency / CPU / memory table
+    frames: int                  # frames per latency run (and per fan-out run)
+    rate: float                  # Hz of latency and fan-out runs (low: no queueing)
+    rate_payloads: List[str]     # where the maximum sustained rate is searched
+    rates: List[float]
+    rate_seconds: float          # each rate runs rate x this many frames (at least 20)
+    fanout_payloads: List[str]
+    fanout_subscribers: List[int]
+    memcpy_repeat: int
+
+
+MODES = {
+    'full': Mode('full', [p[0] for p in PAYLOADS], 30, 5.0, [p[0] for p in PAYLOADS],
+                 [10.0, 30.0, 60.0, 120.0, 240.0], 2.0, ['1920x1080 rgb8', BIG], [1, 2, 4, 8],
+                 50),
+    'quick': Mode('quick', [SMALL, '1920x1080 rgb8', BIG], 8, 5.0, [BIG], [30.0, 60.0], 1.0,
+                  [BIG], [1, 4], 20),
+    'smoke': Mode('smoke', [SMALL, '640x480 rgb8'], 5, 5.0, ['640x480 rgb8'], [30.0], 1.0,
+                  ['640x480 rgb8'], [1, 2], 10),
+}
+
+LOG_RECEIVED = re.compile(r'\[(\d+\.\d+)\] \[[^\]]*\]: received (\d+) \((\d+) distinct\)')
+SAMPLE_PERIOD = 0.01
+LOG_PERIOD = 0.05       # subscribers' progress log (the CPU window's marks), latency runs
+RATE_LOG_PERIOD = 0.02  # finer for rate runs: the receive rate is fitted from these marks
+DRAIN_SEC = 3.0         # after the publisher exited, subscribers get this long to finish
+
+
+# --- CPU time of another process ------------------------------------------------------------
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [('tv_sec', ctypes.c_long), ('tv_nsec', ctypes.c_long)]
+
+
+try:
+    _LIBC = ctypes.CDLL(None, use_errno=True)
+    _LIBC.clock_getcpuclockid.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_int)]
+    _LIBC.clock_gettime.argtypes = [ctypes.c_int, ctypes.POINTER(_Timespec)]
+except (OSError, AttributeError):  # pragma: no cover - not glibc: /proc ticks instead
+    _LIBC = None
+_CLK_TCK = os.sysconf('SC_CLK_TCK')
+
+
+def cpu_clock_of(pid: int) -> Optional[int]:
+    """The process-wide CPU-time clock of ``pid`` (all its threads), or None."""
+    if _LIBC is None:
+        return None
+    clock = ctypes.c_int()
+    return clock.value if _LIBC.clock_getcpuclockid(pid, ctypes.byref(clock)) == 0 else None
+
+
+def cpu_seconds(pid: int, clock: Optional[int]) -> Optional[float]:
+    """CPU time (user + system) of a live process so far, or None once it is gone."""
+    if clock is not None:
+        ts = _Timespec()
+        if _LIBC.clock_gettime(clock, ctypes.byref(ts)) == 0:
+            return ts.tv_sec + ts.tv_nsec * 1e-9
+        return None
+    try:  # fallback: utime + stime in clock ticks
+        with open(f'/proc/{pid}/stat') as f:
+            fields = f.read().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+# --- node processes reaped with os.wait4 (their rusage) -------------------------------------
+
+@dataclass
+class MeasuredNode(NodeProcess):
+    """A runner NodeProcess that is reaped with ``os.wait4`` (keeping its rusage), samples its
+    CPU clock and parses the subscriber's progress lines."""
+
+    rusage: Optional[object] = None
+    hwm_kib: Optional[int] = None
+    clock: Optional[int] = None
+    marks: List[Tuple[float, int]] = field(default_factory=list)  # (wall time, distinct)
+    _log_index: int = 0
+
+    def start(self, echo: bool = False) -> None:
+        super().start(echo)
+        self.clock = cpu_clock_of(self.process.pid)
+
+    @property
+    def reaped(self) -> bool:
+        return self.process is None or self.process.returncode is not None
+
+    def cpu(self) -> Optional[float]:
+        return None if self.reaped else cpu_seconds(self.process.pid, self.clock)
+
+    def read_peak_rss(self) -> None:
+        """Note VmHWM (peak resident set) from /proc while the process lives. (Not ru_maxrss:
+        after a vfork + exec it also counts the parent's resident set at the fork.)"""
+        if self.reaped:
+            return
+        try:
+            with open(f'/proc/{self.process.pid}/status') as f:
+                for line in f:
+                    if line.startswith('VmHWM:'):
+                        self.hwm_kib = max(self.hwm_kib or 0, int(line.split()[1]))
+                        return
+        except (OSError, ValueError, IndexError):
+            pass
+
+    def try_reap(self, block: bool = False) -> bool:
+        """Reap the process if it exited (never through Popen: that would lose the rusage)."""
+        if self.reaped:
+            return True
+        try:
+            pid, status, rusage = os.wait4(self.process.pid, 0 if block else os.WNOHANG)
+        except ChildProcessError:  # reaped elsewhere: no rusage
+            self.process.returncode = -1
+            return True
+        if pid == 0:
+            return False
+        self.rusage = rusage
+        self.process.returncode = os.waitstatus_to_exitcode(status)
+        return True
+
+    def _signal(self, sig: int) -> None:
+        if not self.reaped:  # an unreaped pid (even a zombie) is still ours
+            os.kill(self.process.pid, sig)
+
+    def stop(self, grace: float = 5.0) -> None:
+        """SIGINT, then SIGKILL after ``grace`` seconds; always reaps."""
+        if self.process is None:
+            return
+        if not self.try_reap():
+            self._signal(signal.SIGINT)
+            deadline = time.monotonic() + grace
+            while not self.try_reap() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            if not self.reaped:
+                self._signal(signal.SIGKILL)
+                self.try_reap(block=True)
+        for thread in self._threads:
+            thread.join(5)
+
+    def kill(self) -> None:
+        self._signal(signal.SIGKILL)
+        self.try_reap(block=True)
+
+    def read_log(self) -> None:
+        lines = self.stderr[self._log_index:]
+        self._log_index += len(lines)
+        for line in lines:
+            match = LOG_RECEIVED.search(line)
+            if match:
+                self.marks.append((float(match.group(1)), int(match.group(3))))
+
+    def distinct_now(self) -> int:
+        return self.marks[-1][1] if self.marks else 0
+
+    @property
+    def peak_rss_mib(self) -> Optional[float]:
+        return self.hwm_kib / 1024 if self.hwm_kib is not None else None
+
+
+class MeasuredRun(Run):
+    def start(self, label: str, executable: str, **parameters) -> MeasuredNode:
+        node = MeasuredNode(label, executable, dict(parameters))
+        self.nodes[label] = node  # registered first: reaped by __exit__ whatever happens
+        node.start(self.echo)
+        return node
+
+
+# --- one measurement ------------------------------------------------------------------------
+
+@dataclass
+class Result:
+    transport: str
+    payload: str
+    subscribers: int
+    count: int
+    rate: float
+    complete: bool = False
+    distinct: List[int] = field(default_factory=list)
+    latency: Dict[str, float] = field(default_factory=dict)  # median over subscribers
+    pub_cpu_ms: Optional[float] = None                     # see cpu_per_message
+    sub_cpu_ms: Optional[float] = None                     # mean over subscribers
+    pub_rss_mib: Optional[float] = None
+    sub_rss_mib: Optional[float] = None                    # max over subscribers
+    receive_rate: Optional[float] = None                   # min over subscribers
+    backends: Dict[str, int] = field(default_factory=dict)
+    problem: str = ''
+    setup_retries: int = 0
+
+
+_topic_counter = 0
+
+
+def next_topic(kind: str) -> str:
+    global _topic_counter
+    _topic_counter += 1
+    return f'/benchmark_{os.getpid()}/{kind}_{_topic_counter}'
+
+
+SETUP_ATTEMPTS = 3  # a run whose publisher gave up before any frame was sent is started again
+SETUP_FAILURES: List[str] = []  # such runs, for the report
+
+
+def measure(transport_label: str, payload: str, subscribers: int, count: int, rate: float,
+            log_period: float = LOG_PERIOD, linger: float = 20.0) -> Result:
+    """Run one publisher and ``subscribers`` subscribers; measure from outside.
+
+    If the publisher gave up waiting for its subscribers (or their channels) and nothing was
+    delivered, the run is repeated on a new topic, up to SETUP_ATTEMPTS times; the retries are
+    counted in the result.
+    """
+    for attempt in range(SETUP_ATTEMPTS):
+        result = _measure_once(transport_label, payload, subscribers, count, rate, log_period,
+                               linger)
+        result.setup_retries = attempt
+        if not (result.problem and max(result.distinct, default=0) == 0):
+            break
+        SETUP_FAILURES.append(f'{transport_label}, {payload}, {subscribers} subscriber(s), '
+                              f'{rate:g} Hz: {result.problem}')
+        print(f'    setup failed, attempt {attempt + 1} of {SETUP_ATTEMPTS}', file=sys.stderr)
+    return result
+
+
+def _measure_once(transport_label: str, payload: str, subscribers: int, count: int,
+                  rate: float, log_period: float, linger: float) -> Result:
+    t = TRANSPORT[transport_label]
+    _, width, height, encoding = PAYLOAD[payload]
+    topic = next_topic(f'{transport_label.split()[0]}_{width}x{height}_{subscribers}s')
+    expected_sec = count / rate
+    sub_params = dict(topic=topic, expected_count=count, timeout_sec=expected_sec + 120.0,
+                      report_period_sec=log_period)
+    pub_params = dict(topic=topic, count=count, rate_hz=rate, wait_for_subscribers=subscribers,
+                      wait_timeout_sec=20.0 + 5.0 * subscribers, linger_sec=linger,
+                      width=width, height=height, encoding=encoding)
+    if t.backend is not None:
+        sub_params['acceptable_buffer_backends'] = t.accept
+        pub_params.update(backend=t.backend, fill=t.fill, wait_for_buffer_peers=subscribers)
+    result = Result(transport_label, payload, subscribers, count, rate)
+    samples: List[Sample] = []  # taken while every process is alive
+    with MeasuredRun() as run:
+        subs = [run.start(f'bench_sub{i}', t.subscriber, **sub_params)
+                for i in range(subscribers)]
+        pub = run.start('bench_pub', t.publisher, **pub_params)
+        nodes = subs + [pub]
+        deadline = time.monotonic() + expected_sec + 180.0
+        pub_exited = None
+        while True:
+            for sub in subs:
+                sub.read_log()
+            cpus = [node.cpu() for node in nodes]
+            for node in nodes:
+                node.read_peak_rss()
+            if None not in cpus:
+                samples.append(Sample(time.time(), cpus[-1], cpus[:-1],
+                                      [sub.marks[-1] if sub.marks else (0.0, 0) for sub in subs]))
+            reaped = [node.try_reap() for node in nodes]
+            now = time.monotonic()
+            if all(reaped):
+                break
+            if pub.reaped and pub_exited is None:
+                pub_exited = now
+            if (pub_exited is not None and now - pub_exited > DRAIN_SEC) or now > deadline:
+                result.problem = 'timed out' if now > deadline else 'publisher gone first'
+                break
+            time.sleep(SAMPLE_PERIOD)
+        run.stop_all()  # SIGINT (the nodes print their report), then SIGKILL; reaps all
+        for sub in subs:
+            sub.read_log()
+        reports = [sub.report for sub in subs]
+        diagnostics = run.diagnostics()
+
+    if any(r is None for r in reports):
+        result.problem = result.problem or 'no report'
+        print(f'    {transport_label} {payload} x{subscribers}: missing report\n{diagnostics}',
+              file=sys.stderr)
+        return result
+    result.distinct = [r['distinct'] for r in reports]
+    result.complete = all(r['distinct'] == count and r['gaps'] == 0 and
+                          not r['checksum_failures'] and not r['timed_out'] for r in reports)
+    for r in reports:
+        for backend, n in r['backends'].items():
+            result.backends[backend] = result.backends.get(backend, 0) + n
+    result.latency = {q: statistics.median(r['latency_ms'][q] for r in reports)
+                      for q in ('p50', 'p90', 'p99', 'max')}
+    result.pub_rss_mib = pub.peak_rss_mib
+    rss = [s.peak_rss_mib for s in subs if s.peak_rss_mib is not None]
+    result.sub_rss_mib = max(rss) if rss else None
+
+    # CPU per message, per process: see cpu_per_message. The publisher's frames are counted by
+    # the first subscriber (every subscriber gets the same frames).
+    per_sub = [cpu_per_message(samples, i, lambda s, i=i: s.subs[i])
+               for i in range(subscribers)]
+    if per_sub and None not in per_sub:
+        result.sub_cpu_ms = statistics.mean(per_sub)
+    result.pub_cpu_ms = cpu_per_message(samples, 0, lambda s: s.pub)
+    rates = [receive_rate(sub.marks, count) for sub in subs]
+    if None not in rates:
+        result.receive_rate = min(rates)
+    if not result.complete:
+        print(f'    {transport_label} {payload} x{subscribers} at {rate:g} Hz: incomplete '
+              f'(distinct {result.distinct} of {count}, {result.problem or "lost frames"})',
+              file=sys.stderr)
+        if result.problem:
+            print(diagnostics, file=sys.stderr)
+    return result
+
+
+@dataclass
+class Sample:
+    wall: float                     # time.time() when taken
+    pub: float                      # CPU seconds of the publisher
+    subs: List[float]               # CPU seconds of each subscriber
+    marks: List[Tuple[float, int]]  # each subscriber's last progress line: (wall time, distinct)
+
+
+FRESH_SEC = 0.02  # a sample counts frames only if it follows a progress line this closely
+
+
+def cpu_per_message(samples: List[Sample], sub_index: int, cpu) -> Optional[float]:
+    """CPU ms per frame of one process: the CPU time of a window / the frames received in it.
+
+    The window runs between the first and the last sample taken right after a progress line of
+    subscriber ``sub_index`` (so its frame count is current), from that subscriber's second
+    frame on (the first one comes in the tail of discovery). The node's idle spinning between
+    frames is included.
+    """
+    fresh = [s for s in samples if s.marks[sub_index][1] >= 2 and
+             0 <= s.wall - s.marks[sub_index][0] <= FRESH_SEC]
+    if len(fresh) < 2:
+        return None
+    first, last = fresh[0], fresh[-1]
+    frames = last.marks[sub_index][1] - first.marks[sub_index][1]
+    return (cpu(last) - cpu(first)) * 1e3 / frames if frames >= 2 else None
+
+
+def receive_rate(marks: List[Tuple[float, int]], count: int) -> Optional[float]:
+    """Frames per second between the first and the last progress line inside the run."""
+    inside = [(t, n) for t, n in marks if 0 < n < count]
+    if len(inside) < 2 or inside[-1][0] - inside[0][0] < 0.2 or inside[-1][1] == inside[0][1]:
+        return None
+    return (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+
+
+def max_sustained_rate(transport: str, payload: str, mode: Mode) -> Tuple[Optional[float], str]:
+    """The highest rate of ``mode.rates`` that is sustained, and how the search ended."""
+    best = None
+    for rate in mode.rates:
+        count = max(20, round(rate * mode.rate_seconds))
+        result = measure(transport, payload, 1, count, rate, log_period=RATE_LOG_PERIOD,
+                         linger=2.0)
+        achieved = result.receive_rate
+        ok = result.complete and (achieved is None or achieved >= 0.9 * rate)
+        print(f'    rate {transport:<22} {payload:>15} {rate:6g} Hz: '
+              f'{"sustained" if ok else "NOT sustained"} (distinct {result.distinct} of '
+              f'{count}, receive rate {_fmt(achieved, 1)} Hz)', file=sys.stderr, flush=True)
+        if not ok:
+            return best, f'< {rate:g}' if best is None else f'{best:g}'
+        best = rate
+    return best, f'>= {best:g}'
+
+
+def measure_memcpy(payload: str, repeat: int) -> Dict[str, float]:
+    """numpy.copyto of the payload (the physical reference) and zlib.crc32 (what the nodes
+    add on every frame); ms percentiles."""
+    _, width, height, encoding = PAYLOAD[payload]
+    nbytes = width * height * BYTES_PER_PIXEL[encoding]
+    source = numpy.random.default_rng(0).integers(0, 256, size=nbytes, dtype=numpy.uint8)
+    target = numpy.empty_like(source)
+
+    def timed(func):
+        func()
+        times = []
+        for _ in range(repeat):
+            start = time.perf_counter()
+            func()
+            times.append((time.perf_counter() - start) * 1e3)
+        return numpy.array(times)
+
+    copy = timed(lambda: numpy.copyto(target, source))
+    crc = timed(lambda: zlib.crc32(source))
+    out = {q: float(numpy.percentile(copy, p)) for q, p in
+           (('p50', 50), ('p90', 90), ('p99', 99), ('max', 100))}
+    out['crc32'] = float(numpy.median(crc))
+    return out
+
+
+# --- domain isolation (as test/conftest.py does) --------------------------------------------
+
+_domain_lock = None
+
+
+def claim_domain_id() -> None:
+    """Take a ROS_DOMAIN_ID nobody else on the machine holds, unless one is set already."""
+    global _domain_lock
+    if os.environ.get('ROS_DOMAIN_ID'):
+        return
+    for domain_id in numpy.random.default_rng().permutation(numpy.arange(101, 201)):
+        f = open(f'/tmp/rosidl_buffer_py_domain_{domain_id}.lock', 'w')
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        _domain_lock = f  # held until we exit
+        os.environ['ROS_DOMAIN_ID'] = str(domain_id)
+        return
+    raise RuntimeError('no free ROS_DOMAIN_ID in 101..200')
+
+
+# --- report ---------------------------------------------------------------------------------
+
+def _fmt(value: Optional[float], digits: int = 2) -> str:
+    return '—' if value is None else f'{value:.{digits}f}'
+
+
+def _lat(latency: Dict[str, float]) -> str:
+    if not latency:
+        return '—'
+    return ' / '.join(_fmt(latency[q], 2 if latency[q] < 100 else 0) for q in ('p50', 'p90',
+                                                                                 'p99'))
+
+
+def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
+    return None if a is None or b is None or b == 0 else a / b
+
+
+def slope(points: List[Tuple[int, float]]) -> Optional[float]:
+    """Least-squares growth of y per added x."""
+    points = [(x, y) for x, y in points if y is not None]
+    if len(points) < 2:
+        return None
+    xs, ys = numpy.array(points, dtype=float).T
+    return float(numpy.polyfit(xs, ys, 1)[0])
+
+
+def target_checks(mode: Mode, lat: Dict, rates: Dict, fanout: Dict) -> List[Tuple]:
+    """(check, computed value, target, met) rows; value None when not measured in this mode."""
+    def p50(transport, payload):
+        result = lat.get((transport, payload))
+        return result.latency.get('p50') if result and result.latency else None
+
+    checks = []
+    for demo in (DEMO_FROM_CPU, DEMO_ALLOCATE):
+        value = _ratio(p50(demo, BIG), p50(demo, SMALL))
+        checks.append((f'{demo}: latency 3840x2160 / 1 KiB', value, '<= 2',
+                       None if value is None else value <= 2))
+    for demo in (DEMO_FROM_CPU, DEMO_ALLOCATE):
+        value = _ratio(p50(STOCK, BIG), p50(demo, BIG))
+        checks.append((f'latency stock / {demo} at 3840x2160', value, '>= 30',
+                       None if value is None else value >= 30))
+    for payload in mode.payloads:
+        value = _ratio(p50(CPU, payload), p50(STOCK, payload))
+        checks.append((f'latency CPU path / stock at {payload}', value, '<= 1.1',
+                       None if value is None else value <= 1.1))
+    for payload in mode.payloads:
+        cpu_path, stock = lat.get((CPU, payload)), lat.get((STOCK, payload))
+        value = _ratio(cpu_path and cpu_path.pub_cpu_ms, stock and stock.pub_cpu_ms)
+        checks.append((f'publisher CPU per message, CPU path / stock at {payload}', value,
+                       '<= 1.1', None if value is None else value <= 1.1))
+    for demo in (DEMO_FROM_CPU, DEMO_ALLOCATE):
+        name = (f'{demo}: sustained rate at 3840x2160, Hz (tried '
+                f'{", ".join(f"{r:g}" for r in mode.rates)})')
+        if (demo, BIG) in rates:
+            best, shown = rates[(demo, BIG)]
+            checks.append((name, shown, '>= 60', (best or 0) >= 60))
+        else:
+            checks.append((name, None, '>= 60', None))
+    for payload in mode.fanout_payloads:
+        growth = {t: slope([(n, fanout[(t, payload, n)].pub_cpu_ms)
+                            for n in mode.fanout_subscribers if (t, payload, n) in fanout])
+                  for t in FANOUT_TRANSPORTS}
+        for t in FANOUT_TRANSPORTS:
+            checks.append((f'{t}: publisher CPU growth per added subscriber at {payload}, '
+                           f'ms/msg', growth[t], 'demo << stock', None))
+        value = _ratio(growth[DEMO_ALLOCATE], growth[STOCK])
+        checks.append((f'fan-out growth demo / stock at {payload}', value, '<< 1 (no fixed target)',
+                       None))
+    return checks
+
+
+def markdown(mode: Mode, lat: Dict, memcpy: Dict, rates: Dict, fanout: Dict,
+             checks: List[Tuple], header: str) -> str:
+    out = [header, '']
+    out.append(f'## Per payload and transport\n\nLatency: publish -> callback in ms, p50 / p90 / '
+               f'p99 of {mode.frames} frames at {mode.rate:g} Hz, one subscriber. Max rate: '
+               f'highest of {", ".join(f"{r:g}" for r in mode.rates)} Hz with every frame '
+               f'delivered once ({mode.rate_seconds:g} s of frames each, RELIABLE depth 10); '
+               f'"—" where not searched in this mode. CPU: ms of process CPU time (all threads) '
+               f'per message in the latency run, from the second frame on; it includes the '
+               f'nodes\' idle spinning between frames, which at {mode.rate:g} Hz is most of it '
+               f'for small payloads (the 1 KiB rows show that floor). Peak RSS: MiB '
+               f'(VmHWM, last read before exit). Frames: distinct frames received '
+               f'of those sent. The memcpy row is one numpy.copyto of the payload in one '
+               f'process (its latency column is the copy time).\n')
+    out.append('| payload | transport | latency p50 / p90 / p99 ms | max rate Hz | '
+               'pub CPU ms/msg | sub CPU ms/msg | pub peak RSS MiB | sub peak RSS MiB | frames |')
+    out.append('|---|---|---|---|---|---|---|---|---|')
+    for payload in mode.payloads:
+        for t in TRANSPORTS:
+            r = lat[(t.label, payload)]
+            rate = rates[(t.label, payload)][1] if (t.label, payload) in rates else '—'
+            frames = f'{min(r.distinct) if r.distinct else 0}/{r.count}' + (
+                '' if r.complete else ' !')
+            out.append(f'| {payload} | {t.label} | {_lat(r.latency)} | {rate} | '
+                       f'{_fmt(r.pub_cpu_ms)} | {_fmt(r.sub_cpu_ms)} | '
+                       f'{_fmt(r.pub_rss_mib, 0)} '
+                       f'| {_fmt(r.sub_rss_mib, 0)} | {frames} |')
+        m = memcpy[payload]
+        out.append(f'| {payload} | {MEMCPY} | {_lat(m)} | — | '
+                   f'{_fmt(m["p50"], 3)} | — | — | — | — |')
+    out.append('\nCRC32 of the payload, which every publisher and subscriber node computes on '
+               'every frame (included in their CPU above), ms: ' +
+               ', '.join(f'{p} {memcpy[p]["crc32"]:.3f}' for p in mode.payloads) + '.')
+    out.append(f'\n## Fan-out\n\nOne publisher, N subscriber processes, {mode.frames} frames at '
+               f'{mode.rate:g} Hz. CPU per message as above; sub columns: mean (CPU) and median '
+               f'(latency p50) over the subscribers.\n')
+    out.append('| payload | transport | subscribers | pub CPU ms/msg | sub CPU ms/msg | '
+               'latency p50 ms | pub peak RSS MiB | frames (min) |')
+    out.append('|---|---|---|---|---|---|---|---|')
+    for payload in mode.fanout_payloads:
+        for t in FANOUT_TRANSPORTS:
+            for n in mode.fanout_subscribers:
+                r = fanout[(t, payload, n)]
+                frames = f'{min(r.distinct) if r.distinct else 0}/{r.count}' + (
+                    '' if r.complete else ' !')
+                out.append(f'| {payload} | {t} | {n} | {_fmt(r.pub_cpu_ms)} | '
+                           f'{_fmt(r.sub_cpu_ms)} | '
+                           f'{_fmt(r.latency.get("p50"))} | '
+                           f'{_fmt(r.pub_rss_mib, 0)} | {frames} |')
+    out.append('\n## Target checks (computed, not asserted)\n')
+    out.append('| check | value | target | met |')
+    out.append('|---|---|---|---|')
+    for name, value, target, met in checks:
+        shown = ('not measured in this mode' if value is None else
+                 value if isinstance(value, str) else f'{value:.2f}')
+        out.append(f'| {name} | {shown} | {target} | '
+                   f'{"—" if met is None else ("yes" if met else "NO")} |')
+    out.append('\n"!" marks a run that lost frames or did not finish; its numbers are shown '
+               'as measured.')
+    if SETUP_FAILURES:
+        out.append(f'\nRuns started again because nothing was delivered (the publisher gave up '
+                   f'waiting for its subscribers or channels): {len(SETUP_FAILURES)}.')
+        out.extend(f'- {failure}' for failure in SETUP_FAILURES)
+    return '\n'.join(out) + '\n'
+
+
+def plot(path: str, mode: Mode, lat: Dict, memcpy: Dict, fanout: Dict) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(13, 5.2))
+    sizes = {p: PAYLOAD[p][1] * PAYLOAD[p][2] * BYTES_PER_PIXEL[PAYLOAD[p][3]]
+             for p in mode.payloads}
+    for label in ALL_ROWS:
+        points = []
+        for payload in mode.payloads:
+            latency = memcpy[payload] if label == MEMCPY else lat[(label, payload)].latency
+            if latency:
+                points.append((sizes[payload], latency['p50'], latency['p90']))
+        if points:
+            xs, p50, p90 = zip(*points)
+            line, = left.plot(xs, p50, marker='o', label=label,
+                              linestyle='--' if label == MEMCPY else '-')
+            left.fill_between(xs, p50, p90, color=line.get_color(), alpha=0.12)
+    left.set_xscale('log')
+    left.set_yscale('log')
+    left.set_xlabel('payload bytes')
+    left.set_ylabel('latency publish -> callback, ms (p50; band to p90)')
+    left.set_title('Latency against payload size')
+    left.grid(True, which='both', alpha=0.3)
+    left.legend(fontsize=8)
+
+    for payload in mode.fanout_payloads:
+        for t in FANOUT_TRANSPORTS:
+            points = [(n, fanout[(t, payload, n)].pub_cpu_ms) for n in mode.fanout_subscribers
+                      if fanout[(t, payload, n)].pub_cpu_ms is not None]
+            if points:
+                xs, ys = zip(*points)
+                right.plot(xs, ys, marker='o', label=f'{t}, {payload}')
+    right.set_xlabel('subscribers')
+    right.set_ylabel('publisher CPU per message, ms')
+    right.set_yscale('log')
+    right.set_xticks(mode.fanout_subscribers)
+    right.set_title('Publisher CPU against fan-out')
+    right.grid(True, which='both', alpha=0.3)
+    right.legend(fontsize=8)
+    fig.suptitle(f'rosidl_buffer_py benchmark ({mode.name} mode, {os.cpu_count()} cores)')
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --- main -----------------------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument('--quick', action='store_true',
+                       help='fewer frames, payloads, rates and fan-outs (under two minutes)')
+    group.add_argument('--smoke', action='store_true',
+                       help='the smallest run that still fills every table row (for tests)')
+    parser.add_argument('--out', default='benchmark_out',
+                        help='directory for benchmark.md and benchmark.png (default: %(default)s)')
+    args = parser.parse_args(argv)
+    mode = MODES['smoke' if args.smoke else 'quick' if args.quick else 'full']
+    os.makedirs(args.out, exist_ok=True)
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    claim_domain_id()
+    began, load_before = time.monotonic(), os.getloadavg()
+
+    def progress(text: str) -> None:
+        print(f'[{time.monotonic() - began:6.1f} s] {text}', file=sys.stderr, flush=True)
+
+    memcpy = {p: measure_memcpy(p, mode.memcpy_repeat) for p in mode.payloads}
+    lat: Dict[Tuple[str, str], Result] = {}
+    for payload in mode.payloads:
+        for t in TRANSPORTS:
+            r = lat[(t.label, payload)] = measure(t.label, payload, 1, mode.frames, mode.rate)
+            progress(f'latency {t.label:<22} {payload:>15}: p50 {_fmt(r.latency.get("p50"))} ms'
+                     f', pub CPU {_fmt(r.pub_cpu_ms)} ms/msg, backends {r.backends}')
+    rates: Dict[Tuple[str, str], Tuple[Optional[float], str]] = {}
+    for payload in mode.rate_payloads:
+        for t in TRANSPORTS:
+            rates[(t.label, payload)] = max_sustained_rate(t.label, payload, mode)
+            progress(f'max rate {t.label:<22} {payload:>15}: {rates[(t.label, payload)][1]} Hz')
+    fanout: Dict[Tuple[str, str, int], Result] = {}
+    for payload in mode.fanout_payloads:
+        for t in FANOUT_TRANSPORTS:
+            for n in mode.fanout_subscribers:
+                if n == 1 and (t, payload) in lat:  # the same run as the latency table's
+                    fanout[(t, payload, n)] = lat[(t, payload)]
+                    continue
+                r = fanout[(t, payload, n)] = measure(t, payload, n, mode.frames, mode.rate)
+                progress(f'fan-out {t:<22} {payload:>15} x{n}: pub CPU '
+                         f'{_fmt(r.pub_cpu_ms)} ms/msg, sub CPU {_fmt(r.sub_cpu_ms)} ms/msg')
+
+    checks = target_checks(mode, lat, rates, fanout)
+    load_after = os.getloadavg()
+    header = (f'# rosidl_buffer_py benchmark: zero-copy images against stock rclpy\n\n'
+              f'{mode.name} mode, {datetime.datetime.now().isoformat(timespec="seconds")}, '
+              f'{platform.node()}, {os.cpu_count()} cores, load average '
+              f'{load_before[0]:.2f} before / {load_after[0]:.2f} after, '
+              f'{os.environ["RMW_IMPLEMENTATION"]}, ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}'
+              f', {time.monotonic() - began:.0f} s. Publisher and subscribers in separate '
+              f'processes on this machine; a shared machine makes every number noisy.')
+    text = markdown(mode, lat, memcpy, rates, fanout, checks, header)
+    png = os.path.join(args.out, 'benchmark.png')
+    plot(png, mode, lat, memcpy, fanout)
+    with open(os.path.join(args.out, 'benchmark.md'), 'w') as f:
+        f.write(text + '\n![benchmark plot](benchmark.png)\n')
+    print(text)
+    print(f'Wrote {os.path.join(args.out, "benchmark.md")} and {png}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""The benchmark suite runs end to end and writes its table and plot (no timing asserts).
+
+Runs ``python -m launch_free_demos.benchmark --smoke`` (the smallest mode that still fills every
+table row) in a subprocess, inside this test session's ROS domain (see conftest.py).
+"""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from launch_free_demos.benchmark import ALL_ROWS, FANOUT_TRANSPORTS, MODES
+
+ROOT = Path(__file__).resolve().parent.parent
+PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
+
+
+def table_rows(text: str):
+    """The cells of every markdown table row that is not a header separator."""
+    rows = []
+    for line in text.splitlines():
+        if line.startswith('|') and not line.startswith('|---'):
+            rows.append([cell.strip() for cell in line.strip('|').split('|')])
+    return rows
+
+
+@pytest.fixture(scope='module')
+def smoke_run(tmp_path_factory):
+    pytest.importorskip('matplotlib')
+    out = tmp_path_factory.mktemp('benchmark')
+    completed = subprocess.run(
+        [sys.executable, '-m', 'launch_free_demos.benchmark', '--smoke', '--out', str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=140, env=dict(os.environ))
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    return out, completed.stdout
+
+
+def test_markdown_has_every_transport_row_for_every_payload(smoke_run):
+    out, stdout = smoke_run
+    saved = (out / 'benchmark.md').read_text()
+    assert stdout.split('Wrote ')[0].strip() in saved  # stdout and the file agree
+    rows = table_rows(saved)
+    for payload in MODES['smoke'].payloads:
+        found = {cells[1] for cells in rows if cells[0] == payload}
+        assert set(ALL_ROWS) <= found, (payload, found)
+    for payload in MODES['smoke'].fanout_payloads:
+        for transport in FANOUT_TRANSPORTS:
+            counts = {cells[2] for cells in rows if cells[:2] == [payload, transport]}
+            assert {str(n) for n in MODES['smoke'].fanout_subscribers} <= counts
+    assert '## Target checks' in saved
+    assert 'latency CPU path / stock' in saved
+
+
+def test_plot_is_a_png(smoke_run):
+    out, _ = smoke_run
+    png = out / 'benchmark.png'
+    data = png.read_bytes()
+    assert data[:8] == PNG_MAGIC and len(data) > 10_000
+    assert '![benchmark plot](benchmark.png)' in (out / 'benchmark.md').read_text()
+
+
+def test_modes_cover_every_transport_and_the_quick_mode_stays_small():
+    quick = MODES['quick']
+    assert quick.frames <= MODES['full'].frames and len(quick.rates) <= 3
+    for mode in MODES.values():
+        assert mode.payloads and mode.rate_payloads and mode.fanout_payloads
+        assert 1 in mode.fanout_subscribers and len(mode.fanout_subscribers) >= 2
