@@ -42,7 +42,13 @@ class Scenario:
     subscribers: List[Sub]
     count: int = 20
     subscribers_first: bool = True
-    extra: Dict[str, object] = field(default_factory=dict)
+    rate_hz: float = 50.0
+    #: label of a subscriber to SIGKILL ``kill_after`` seconds after the publishers start
+    kill: Optional[str] = None
+    kill_after: float = 2.0
+    #: how long publishers may take to leave once their subscribers are done (a SIGKILLed
+    #: subscriber stays matched until its DDS lease expires, about 20 s by default)
+    publisher_exit_timeout: float = 15.0
 
     @property
     def topic(self) -> str:
@@ -71,8 +77,10 @@ class Scenario:
                 for index, pub in enumerate(self.publishers):
                     params = dict(topic=self.topic, backend=pub.backend,
                                   count=self.count, first_frame=index * self.count,
-                                  rate_hz=50.0, wait_for_subscribers=len(self.subscribers),
-                                  wait_timeout_sec=timeout, linger_sec=10.0, **SMALL)
+                                  rate_hz=self.rate_hz,
+                                  wait_for_subscribers=len(self.subscribers),
+                                  wait_timeout_sec=timeout,
+                                  linger_sec=self.publisher_exit_timeout, **SMALL)
                     if not pub.legacy:
                         params.update(fill=pub.fill, wait_for_buffer_peers=buffer_subs)
                     run.start(pub.label, 'legacy_image_publisher' if pub.legacy
@@ -83,8 +91,12 @@ class Scenario:
             order[0]()
             time.sleep(0.5)
             order[1]()
-            finished = run.wait([s.label for s in self.subscribers], timeout + 15)
-            run.wait([p.label for p in self.publishers], 15)
+            survivors = [s.label for s in self.subscribers if s.label != self.kill]
+            if self.kill:
+                time.sleep(self.kill_after)
+                run.nodes[self.kill].kill()
+            finished = run.wait(survivors, timeout + 15)
+            run.wait([p.label for p in self.publishers], self.publisher_exit_timeout + 5)
             run.stop_all()
             result.reports = run.reports()
             if not finished:
@@ -111,9 +123,15 @@ class Result:
             report = self.reports.get(pub.label)
             if report is None:
                 self.failures.append(f'{pub.label}: no report')
-            elif report['published'] != self.scenario.count:
+                continue
+            if report['published'] != self.scenario.count:
                 self.failures.append(f"{pub.label}: published {report['published']}")
+            stats = report.get('statistics') or {}
+            if self.scenario.kill and stats.get('peers'):
+                self.failures.append(f"{pub.label}: still serves {stats['peers']} at exit")
         for sub in self.scenario.subscribers:
+            if sub.label == self.scenario.kill:
+                continue  # SIGKILLed mid-stream: it reports nothing
             report = self.reports.get(sub.label)
             if report is None:
                 self.failures.append(f'{sub.label}: no report')
@@ -176,6 +194,12 @@ def _matrix() -> Dict[str, Scenario]:
     s.append(Scenario('demo_pub_to_raw_legacy_sub', 'a raw plain rclpy subscription (what a bag '
                       'recorder stores) gets canonical CPU bytes from a demo publisher',
                       [Pub('pub', 'demo')], [Sub('sub', 'cpu', legacy=True, raw=True)]))
+    s.append(Scenario('subscriber_killed', 'a demo publisher keeps serving one subscriber while '
+                      'another is SIGKILLed mid-stream; it drops the dead one when its DDS lease '
+                      'expires', [Pub('pub', 'demo')],
+                      [Sub('survivor', 'demo', 'any'), Sub('victim', None, 'any')],
+                      count=150, rate_hz=30.0, kill='victim', kill_after=3.0,
+                      publisher_exit_timeout=60.0))
     s.append(Scenario('publisher_first', 'the publisher starts before the subscriber',
                       [Pub('pub', 'demo')], [Sub('sub', 'demo', 'demo')],
                       subscribers_first=False))
