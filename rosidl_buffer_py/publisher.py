@@ -45,6 +45,7 @@ class _SubscriptionPeer:
     compatible: Set[str] = field(default_factory=set)
     channel: Optional['_dds.ChannelPublisher'] = None
     channel_topic: str = ''
+    created_at: float = 0.0
     sent_descriptor: int = 0
     sent_cpu: int = 0
     backend_in_use: Optional[str] = None
@@ -100,6 +101,7 @@ class Publisher(BufferEndpoint):
         hook_destruction(self._guard, self._teardown)
         self._discovery_guard = self._guard
         self._discovery.add_wakeup(node, self._guard)
+        self._start_reannounce_timer(node, callback_group)
         self._polled_at = 0.0
         with self._lock:
             for peer in self._discovery.watch(dds_topic(self.topic_name), self):
@@ -146,6 +148,7 @@ class Publisher(BufferEndpoint):
         if now - self._polled_at >= DISCOVERY_POLL_SECONDS:  # for nodes that do not spin
             self._polled_at = now
             self._discovery.process()
+            self._reannounce_if_unmatched()
         payload = None if serialized is not None else getattr(msg, self._field)
         vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
             else None

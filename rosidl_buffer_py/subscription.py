@@ -50,6 +50,7 @@ class _PublisherPeer:
     backends: Dict[str, str]
     channel: Optional['_dds.ChannelSubscription'] = None
     channel_topic: str = ''
+    created_at: float = 0.0
     received_descriptor: int = 0
     received_cpu: int = 0
     backend_in_use: Optional[str] = None
@@ -119,6 +120,7 @@ class Subscription(BufferEndpoint):
         self._discovery_guard = node.create_guard_condition(self._discovery.process,
                                                             callback_group)
         self._discovery.add_wakeup(node, self._discovery_guard)
+        self._start_reannounce_timer(node, callback_group)
         with self._lock:
             for peer in self._discovery.watch(dds_topic(self._topic_name), self):
                 self._on_peer(peer)

@@ -1,5 +1,6 @@
 """What the buffer-aware publisher and subscription share: peer bookkeeping and small helpers."""
 import threading
+import time
 from typing import Callable, Dict, Mapping, Set, Union
 
 from rclpy.logging import get_logger
@@ -10,6 +11,10 @@ from rosidl_buffer_py.channel import dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 
 _logger = get_logger('rosidl_buffer_py')
+
+#: A channel unmatched this long means the peer probably missed our advertisement: re-announce
+#: (at most this often). See BufferEndpoint._reannounce_if_unmatched.
+UNMATCHED_REANNOUNCE_SECONDS = 1.0
 _warned = set()
 _warned_lock = threading.Lock()
 
@@ -93,9 +98,37 @@ class BufferEndpoint:
             compatible = self._compatible_backends(info, peer.backends)
             if known is None:
                 known = self._add_peer(info, dict(peer.backends))
+                known.created_at = time.monotonic()
                 self._peers[peer.gid] = known
             known.backends = dict(peer.backends)
             self._update_peer(known, compatible)
+
+    def _start_reannounce_timer(self, node, callback_group) -> None:
+        """Check once a second for channels that stay unmatched (see below)."""
+        self._announced_at = time.monotonic()
+        self._reannounce_timer = node.create_timer(
+            UNMATCHED_REANNOUNCE_SECONDS, self._reannounce_if_unmatched, callback_group)
+
+    def _reannounce_if_unmatched(self) -> None:
+        """Re-announce our USER_DATA if a known peer's channel stays unmatched.
+
+        Both ends create the channel once each knows the other's advertisement. If one of them
+        missed ours (discovery before its listener existed, or a lost update), our end of the
+        channel stays unmatched: announcing again lets it see us as a 'changed' endpoint. Each
+        side detects this on its own, so no back channel is needed.
+        """
+        with self._lock:
+            if self._destroyed:
+                return
+            now = time.monotonic()
+            if now - self._announced_at < UNMATCHED_REANNOUNCE_SECONDS:
+                return
+            for peer in self._peers.values():
+                if (peer.channel is not None and peer.channel.matched_count() == 0 and
+                        now - peer.created_at >= UNMATCHED_REANNOUNCE_SECONDS):
+                    self._announced_at = now
+                    self._announce()
+                    return
 
     def _compatible_backends(self, info: EndpointInfo, advertised: Mapping[str, str]) -> Set[str]:
         """Ask each backend both sides have whether it can serve this peer."""
@@ -151,6 +184,7 @@ class BufferEndpoint:
         with self._lock:
             for gid in list(self._peers):
                 self._drop_peer(gid)
+            self._node.destroy_timer(self._reannounce_timer)
             self._release()
 
     def _release(self) -> None:

@@ -73,7 +73,8 @@ class ImagePublisher(Node):
                                    f"{p['wait_for_subscribers']} subscribers and "
                                    f"{self.served_buffer_peers()} of "
                                    f"{p['wait_for_buffer_peers']} channels after "
-                                   f"{p['wait_timeout_sec']} s")
+                                   f"{p['wait_timeout_sec']} s; peers: "
+                                   f"{getattr(self.publisher, 'buffer_peers', list)()}")
             rclpy.spin_once(self, timeout_sec=0.05)
         settle_until = time.monotonic() + p['settle_sec']
         while time.monotonic() < settle_until:
