@@ -25,6 +25,7 @@ COVERAGE = {
     './dev bench': 'here',
     './dev bench-transport': 'here',                      # with fewer frames and payloads
     './dev benchmark --quick': 'test_benchmark.py',
+    './dev benchmark': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
     './dev setup': 'here',
     '.venv/bin/python -m launch_free_demos.scenarios': 'test_transport.py',  # every scenario
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
