@@ -5,7 +5,7 @@ upstream's test nodes do), expected_backend (optional: count frames of any other
 wrong), expected_count (exit once that many distinct frames arrived; 0 = until stopped),
 timeout_sec (give up after this long; 0 = never), reliability, depth, legacy (a plain rclpy
 subscription), raw (legacy only: take serialized bytes and check they are canonical CDR),
-report_period_sec (log a summary this often; 0 = never).
+report_period_sec (log a summary this often, default 5 s; 0 = never).
 The report (a JSON line at exit): received, distinct, duplicates, gaps, checksum failures,
 backends seen, wrong-backend frames and latency percentiles.
 """
@@ -33,7 +33,7 @@ class ImageSubscriber(Node):
         p = {name: self.declare_parameter(name, default).value for name, default in [
             ('topic', 'image'), ('acceptable_buffer_backends', DEFAULT_SENTINEL),
             ('expected_backend', ''), ('expected_count', 0), ('timeout_sec', 60.0),
-            ('legacy', legacy), ('raw', False), ('report_period_sec', 0.0)]}
+            ('legacy', legacy), ('raw', False), ('report_period_sec', 5.0)]}
         self.params = p
         qos = declare_qos_parameters(self)
         self.latencies = []
