@@ -25,7 +25,7 @@ def _info(*args):
     return process.returncode, process.stdout, process.stderr
 
 
-def _inspect_until_complete(topic, *extra, attempts=4):
+def _inspect_until_complete(topic, *extra, attempts=6):
     result = None
     for _ in range(attempts):
         code, out, err = _info(topic, '--json', '--wait', '4', *extra)
