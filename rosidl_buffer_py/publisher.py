@@ -194,9 +194,11 @@ class Publisher(BufferEndpoint):
 
     def buffer_peers(self) -> List[dict]:
         """The buffer-aware subscriptions this publisher serves, and how."""
+        names = self._peer_node_names()
         with self._lock:
             return [{
                 'gid': peer.info.gid_hex,
+                'node': names.get(peer.info.gid, ''),
                 'advertised_backends': dict(peer.backends),
                 'compatible_backends': sorted(peer.compatible),
                 'channel_topic': peer.channel_topic,

@@ -155,9 +155,11 @@ class Subscription(BufferEndpoint):
 
     def buffer_peers(self) -> List[dict]:
         """The buffer-aware publishers serving this subscription, and how."""
+        names = self._peer_node_names()
         with self._lock:
             return [{
                 'gid': peer.info.gid_hex,
+                'node': names.get(peer.info.gid, ''),
                 'advertised_backends': dict(peer.backends),
                 'channel_topic': peer.channel_topic,
                 'backend_in_use': peer.backend_in_use,

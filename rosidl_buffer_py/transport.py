@@ -130,6 +130,18 @@ class BufferEndpoint:
                     self._announce()
                     return
 
+    def _peer_node_names(self) -> Dict[bytes, str]:
+        """GID -> fully qualified node name of the peers, from the ROS graph (diagnostics)."""
+        graph = (self._node.get_subscriptions_info_by_topic
+                 if self._peer_kind is EndpointKind.SUBSCRIPTION
+                 else self._node.get_publishers_info_by_topic)
+        try:
+            infos = graph(self._topic_name)
+        except Exception:  # the node is being destroyed
+            return {}
+        return {bytes(info.endpoint_gid): (info.node_namespace.rstrip('/') + '/' +
+                                           info.node_name) for info in infos}
+
     def _compatible_backends(self, info: EndpointInfo, advertised: Mapping[str, str]) -> Set[str]:
         """Ask each backend both sides have whether it can serve this peer."""
         existing = [p.info for p in self._peers.values() if p.info.gid != info.gid]

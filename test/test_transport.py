@@ -178,6 +178,9 @@ def test_destroy_node_removes_channels_and_destroy_is_idempotent(context):
 
     assert _spin_until(executor, lambda: len(channel_topics()) == 1), channel_topics()
     assert pub.buffer_peers() and sub.buffer_peers()
+    # diagnostics name each peer's node (from the ROS graph)
+    assert _spin_until(executor, lambda: pub.buffer_peers()[0]['node'] == '/destroy_me')
+    assert sub.buffer_peers()[0]['node'] == '/destroy_me'
     name = channel_topics()[0]
     assert name == (f'rt/destroy_image/_buf/{pub.statistics()["gid"]}_'
                     f'{sub.statistics()["gid"]}')
