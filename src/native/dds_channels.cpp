@@ -417,33 +417,45 @@ PyObject * pub_matched_gids(PyObject * op, PyObject *)
   return gid_list(gids);
 }
 
-PyObject * pub_matched_count(PyObject * op, PyObject *)
+/// Matched count of a channel's rmw entity (GIL released, serialised against destroy()).
+/// `entity` is the member that destroy() clears; `count_fn` the rmw call that counts.
+template<typename Entity, typename CountFn>
+PyObject * matched_count(
+  ChannelBase & base, Entity * const & entity, CountFn count_fn, const char * type_name,
+  const char * call_name)
 {
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
   size_t count = 0;
   rmw_ret_t ret = RMW_RET_OK;
   bool valid = true;
   std::string error;
   {
     GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->publisher == nullptr) {
+    std::lock_guard<std::mutex> lock(*base.op_mutex);
+    if (entity == nullptr) {
       valid = false;
     } else {
-      ret = rmw_publisher_count_matched_subscriptions(self->publisher, &count);
+      ret = count_fn(entity, &count);
       if (ret != RMW_RET_OK) {
         error = take_rmw_error();
       }
     }
   }
   if (!valid) {
-    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    PyErr_Format(DdsError, "%s was destroyed", type_name);
     return nullptr;
   }
   if (ret != RMW_RET_OK) {
-    return raise_rmw_error("rmw_publisher_count_matched_subscriptions failed", error);
+    return raise_rmw_error(std::string(call_name) + " failed", error);
   }
   return PyLong_FromSize_t(count);
+}
+
+PyObject * pub_matched_count(PyObject * op, PyObject *)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  return matched_count(
+    self->base, self->publisher, rmw_publisher_count_matched_subscriptions, "ChannelPublisher",
+    "rmw_publisher_count_matched_subscriptions");
 }
 
 PyObject * pub_valid(PyObject * op, void *)
@@ -725,30 +737,9 @@ PyObject * sub_take(PyObject * op, PyObject *)
 PyObject * sub_matched_count(PyObject * op, PyObject *)
 {
   auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
-  size_t count = 0;
-  rmw_ret_t ret = RMW_RET_OK;
-  bool valid = true;
-  std::string error;
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->subscription == nullptr) {
-      valid = false;
-    } else {
-      ret = rmw_subscription_count_matched_publishers(self->subscription, &count);
-      if (ret != RMW_RET_OK) {
-        error = take_rmw_error();
-      }
-    }
-  }
-  if (!valid) {
-    PyErr_SetString(DdsError, "ChannelSubscription was destroyed");
-    return nullptr;
-  }
-  if (ret != RMW_RET_OK) {
-    return raise_rmw_error("rmw_subscription_count_matched_publishers failed", error);
-  }
-  return PyLong_FromSize_t(count);
+  return matched_count(
+    self->base, self->subscription, rmw_subscription_count_matched_publishers,
+    "ChannelSubscription", "rmw_subscription_count_matched_publishers");
 }
 
 PyObject * sub_valid(PyObject * op, void *)

@@ -93,6 +93,21 @@ int resolve_endpoint(void * rcl_endpoint, bool is_publisher, DdsEndpoint * out)
   return 0;
 }
 
+/// Parse `kind`, pin the rclpy endpoint handle and find its DataWriter/DataReader.
+/// Returns 0, or -1 with an exception set; `pin` keeps the handle alive for the caller.
+int open_endpoint(
+  PyObject * endpoint_arg, const char * kind, PinnedHandle * pin, DdsEndpoint * dds)
+{
+  bool is_publisher;
+  if (parse_kind(kind, &is_publisher) < 0) {
+    return -1;
+  }
+  if (pin->acquire(endpoint_arg, "endpoint") < 0) {
+    return -1;
+  }
+  return resolve_endpoint(pin->get(), is_publisher, dds);
+}
+
 PyObject * endpoint_gid(PyObject *, PyObject * args)
 {
   PyObject * endpoint_arg;
@@ -100,16 +115,9 @@ PyObject * endpoint_gid(PyObject *, PyObject * args)
   if (!PyArg_ParseTuple(args, "Os:endpoint_gid", &endpoint_arg, &kind)) {
     return nullptr;
   }
-  bool is_publisher;
-  if (parse_kind(kind, &is_publisher) < 0) {
-    return nullptr;
-  }
   PinnedHandle endpoint;
-  if (endpoint.acquire(endpoint_arg, "endpoint") < 0) {
-    return nullptr;
-  }
   DdsEndpoint dds;
-  if (resolve_endpoint(endpoint.get(), is_publisher, &dds) < 0) {
+  if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
     return nullptr;
   }
   uint8_t gid[RMW_GID_STORAGE_SIZE] = {};
@@ -128,16 +136,9 @@ PyObject * get_user_data(PyObject *, PyObject * args)
   if (!PyArg_ParseTuple(args, "Os:get_user_data", &endpoint_arg, &kind)) {
     return nullptr;
   }
-  bool is_publisher;
-  if (parse_kind(kind, &is_publisher) < 0) {
-    return nullptr;
-  }
   PinnedHandle endpoint;
-  if (endpoint.acquire(endpoint_arg, "endpoint") < 0) {
-    return nullptr;
-  }
   DdsEndpoint dds;
-  if (resolve_endpoint(endpoint.get(), is_publisher, &dds) < 0) {
+  if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
     return nullptr;
   }
   std::vector<uint8_t> data;
@@ -164,21 +165,14 @@ PyObject * set_user_data(PyObject *, PyObject * args)
   std::vector<uint8_t> data(
     static_cast<const uint8_t *>(view.buf), static_cast<const uint8_t *>(view.buf) + view.len);
   PyBuffer_Release(&view);
-  bool is_publisher;
-  if (parse_kind(kind, &is_publisher) < 0) {
-    return nullptr;
-  }
   // USER_DATA travels in a parameter whose length is a uint16; keep well below it.
   if (data.size() > 32768) {
     PyErr_Format(PyExc_ValueError, "user_data too long (%zu bytes, at most 32768)", data.size());
     return nullptr;
   }
   PinnedHandle endpoint;
-  if (endpoint.acquire(endpoint_arg, "endpoint") < 0) {
-    return nullptr;
-  }
   DdsEndpoint dds;
-  if (resolve_endpoint(endpoint.get(), is_publisher, &dds) < 0) {
+  if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
     return nullptr;
   }
   ReturnCode_t rc;
