@@ -6,6 +6,7 @@ Every frame carries a counter and a checksum that the subscriber verifies.
 """
 import array
 import time
+import warnings
 
 import pytest
 import rclpy
@@ -20,6 +21,9 @@ from rosidl_buffer_py import _dds, advertisement, codec
 from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
 from rosidl_buffer_py.nodes.frames import check_frame, pattern, stamp_frame
 
+#: What a publisher node reports when not one subscriber matched its main topic in time.
+NO_DDS_MATCH = 'TimeoutError: 0 of '
+
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # bursts fit
 
 
@@ -28,6 +32,13 @@ def test_scenario(name):
     """Every named scenario; ``subscriber_killed`` also checks that the publisher dropped the
     dead subscriber's channel (its report at exit lists no peer) once its lease expired."""
     result = SCENARIOS[name].run(timeout=40.0)
+    if not result.ok and NO_DDS_MATCH in result.diagnostics:
+        # Plain DDS discovery never matched the main topic (seen once in about 150 scenario
+        # runs: a subscriber process stuck at start-up, root cause open). Nothing of the
+        # transport ran; run the scenario once more, visibly. Every other failure is final.
+        warnings.warn(f'scenario {name}: no DDS match on the main topic, re-run once:\n'
+                      + '\n'.join(result.failures))
+        result = SCENARIOS[name].run(timeout=40.0)
     assert result.ok, '\n'.join(result.failures) + '\n' + result.diagnostics
 
 
