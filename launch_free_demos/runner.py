@@ -1,7 +1,8 @@
 """Start node processes with ROS parameters, wait for them, collect their reports.
 
 The one process runner of the project: the demos, the scenarios and the integration tests all
-use it. Every process it starts is reaped: on timeout it gets SIGINT, then SIGKILL.
+use it. Every process it starts is reaped: on timeout it gets SIGINT, then SIGKILL (after a
+SIGUSR1, on which the nodes print their threads' Python stacks to stderr).
 """
 import json
 import os
@@ -35,6 +36,10 @@ def format_parameter(value) -> str:
     return json.dumps(str(value))  # a YAML double-quoted string: '' and '1' stay strings
 
 
+#: How long a node that ignored SIGINT gets to print its stacks (SIGUSR1) before SIGKILL.
+STACK_DUMP_SECONDS = 1.0
+
+
 @dataclass
 class NodeProcess:
     """One node process of a scenario."""
@@ -46,6 +51,8 @@ class NodeProcess:
     output: List[str] = field(default_factory=list)
     stderr: List[str] = field(default_factory=list)
     _threads: List[threading.Thread] = field(default_factory=list)
+    #: True once the process outlived SIGINT's grace period (it was then dumped and killed).
+    stuck: bool = False
 
     def command(self) -> List[str]:
         args = [sys.executable, '-m', NODES[self.executable], '--ros-args',
@@ -66,7 +73,12 @@ class NodeProcess:
             self._threads.append(thread)
 
     def stop(self, grace: float = 5.0) -> None:
-        """SIGINT, then SIGKILL after ``grace`` seconds; always reaps."""
+        """SIGINT, then SIGKILL after ``grace`` seconds; always reaps.
+
+        A node still running after the grace period first gets SIGUSR1 (the nodes dump their
+        Python stacks on it, see ``rosidl_buffer_py.nodes.common``): the dump lands in
+        ``stderr`` and so in ``Run.diagnostics()``.
+        """
         if self.process is None:
             return
         if self.process.poll() is None:
@@ -74,6 +86,12 @@ class NodeProcess:
             try:
                 self.process.wait(grace)
             except subprocess.TimeoutExpired:
+                self.stuck = True
+                self.process.send_signal(signal.SIGUSR1)
+                try:
+                    self.process.wait(STACK_DUMP_SECONDS)
+                except subprocess.TimeoutExpired:
+                    pass
                 self.process.kill()
                 self.process.wait()
         for thread in self._threads:
@@ -132,11 +150,13 @@ class Run:
         return {label: node.report for label, node in self.nodes.items()}
 
     def diagnostics(self) -> str:
-        """Exit codes and the tails of stderr, for failure messages."""
+        """Exit codes and the tails of stderr (longer for a stuck node), for failure messages."""
         parts = []
         for label, node in self.nodes.items():
             code = node.process.returncode if node.process else None
-            parts.append(f'--- {label} (exit {code})\n' + '\n'.join(node.stderr[-15:]))
+            stuck = ', stuck: ignored SIGINT, stacks below' if node.stuck else ''
+            tail = node.stderr[-80:] if node.stuck else node.stderr[-15:]
+            parts.append(f'--- {label} (exit {code}{stuck})\n' + '\n'.join(tail))
         return '\n'.join(parts)
 
     def __enter__(self) -> 'Run':

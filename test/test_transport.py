@@ -37,7 +37,7 @@ def test_scenario(name):
         # runs: a subscriber process stuck at start-up, root cause open). Nothing of the
         # transport ran; run the scenario once more, visibly. Every other failure is final.
         warnings.warn(f'scenario {name}: no DDS match on the main topic, re-run once:\n'
-                      + '\n'.join(result.failures))
+                      + '\n'.join(result.failures) + '\n' + result.diagnostics)
         result = SCENARIOS[name].run(timeout=40.0)
     assert result.ok, '\n'.join(result.failures) + '\n' + result.diagnostics
 

@@ -1,4 +1,5 @@
 """What the runnable nodes share: QoS parameters, reports, clean shutdown on SIGINT/SIGTERM."""
+import faulthandler
 import json
 import signal
 import sys
@@ -31,6 +32,9 @@ def print_report(report: dict) -> None:
 
 def run_node(make_node: Callable, run: Callable) -> int:
     """Init rclpy, build the node, run it; SIGINT and SIGTERM end it cleanly with its report."""
+    # SIGUSR1 prints every thread's Python stack to stderr: the process runner sends it to a
+    # node that ignores SIGINT, before SIGKILL, so that a stuck node says where it is stuck.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=sys.argv)
     # SIGTERM takes Ctrl-C's path. (Shutting the context down from the handler instead leaves
     # the next rclpy.spin_once() building a global executor on a dead context: a traceback.)
