@@ -8,7 +8,10 @@ in USER_DATA (``BUFBE:``), and the per-endpoint descriptor channels
 
 How it learns the advertisements: a normal rclpy node installs the discovery tap
 (``_dds.install_discovery``) right after it is created, then listens for ``--wait`` seconds
-(default 2). Fast DDS cannot replay USER_DATA of endpoints discovered before the tap existed, and
+(default 3: a new Fast DDS participant can need up to one announcement period, about 3 s, to
+discover a running one). When what it heard by then is visibly incomplete (a channel names an
+endpoint not seen yet, an endpoint is known to DDS but not yet to the ROS graph, a channel has
+only one side) it keeps listening, up to ``COMPLETION_GRACE_SECONDS`` more. Fast DDS cannot replay USER_DATA of endpoints discovered before the tap existed, and
 a node's participant starts discovering at ``rclpy.init``, so an endpoint found in that short gap
 is reported with ``"advertisement": "unknown"``. ``--probe`` closes the gap: it creates a
 temporary plain subscription and a plain publisher on the topic (for ``--wait`` seconds more);
@@ -40,6 +43,11 @@ from rosidl_buffer_py import advertisement
 from rosidl_buffer_py.channel import CHANNEL_INFIX, dds_topic
 
 _KIND = {'writer': 'publisher', 'reader': 'subscription'}
+
+#: After ``--wait``, how much longer to listen while the view is visibly incomplete.
+COMPLETION_GRACE_SECONDS = 3.0
+#: How often the view is re-checked during that grace.
+_RECHECK_SECONDS = 0.1
 
 
 def _gid_hex(gid) -> str:
@@ -99,6 +107,30 @@ def _channels(topic: str, node, known) -> List[dict]:
     return result
 
 
+def _missing(node, topic: str, tapped: bool, own: set) -> List[str]:
+    """What discovery visibly has not delivered yet about ``topic`` (empty: consistent view).
+
+    Each buffer-aware pair names both endpoints in its channel, and every endpoint DDS reports
+    should also reach the ROS graph; a gap in either means discovery is still under way.
+    """
+    from rosidl_buffer_py import _dds
+    graph = {_gid_hex(i.endpoint_gid) for i in node.get_publishers_info_by_topic(topic)}
+    graph |= {_gid_hex(i.endpoint_gid) for i in node.get_subscriptions_info_by_topic(topic)}
+    graph -= own
+    known = _dds.list_known_endpoints(node) if tapped else []
+    main = dds_topic(topic)
+    dds = {_gid_hex(e.gid) for e in known
+           if e.topic == main and e.kind in _KIND and not e.local} - own
+    missing = [f'{gid} known to DDS, not to the ROS graph' for gid in sorted(dds - graph)]
+    for channel in _channels(topic, node, known):
+        for side in ('publisher_gid', 'subscription_gid'):
+            if channel[side] not in graph:
+                missing.append(f"{channel[side]} named by channel {channel['dds_topic']}")
+        if not (channel['writer'] and channel['reader']):
+            missing.append(f"channel {channel['dds_topic']} has one side only")
+    return missing
+
+
 def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> dict:
     """Collect what the graph and the discovery tap know about ``topic`` (fully qualified)."""
     from rosidl_buffer_py import _dds
@@ -122,6 +154,9 @@ def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> d
     if tapped:
         for entity in probes:
             own.add(_gid_hex(_dds.endpoint_gid(entity)))
+    deadline = time.monotonic() + COMPLETION_GRACE_SECONDS
+    while _missing(node, topic, tapped, own) and time.monotonic() < deadline:
+        time.sleep(_RECHECK_SECONDS)
     known = _dds.list_known_endpoints(node) if tapped else []
     endpoints: Dict[str, dict] = {}
 
@@ -229,8 +264,10 @@ def _parser() -> argparse.ArgumentParser:
         description='Show the publishers, subscriptions, buffer backends and descriptor '
                     'channels of a topic (like "ros2 topic info -v").')
     parser.add_argument('topic', help='topic name (relative names use the node namespace)')
-    parser.add_argument('--wait', type=float, default=2.0, metavar='SECONDS',
-                        help='how long to listen to discovery (default 2)')
+    parser.add_argument('--wait', type=float, default=3.0, metavar='SECONDS',
+                        help='how long to listen to discovery (default 3; up to '
+                             f'{COMPLETION_GRACE_SECONDS:g} s more while the view is visibly '
+                             'incomplete)')
     parser.add_argument('--probe', action='store_true',
                         help='create a temporary plain subscription and publisher on the topic '
                              'so that running buffer-aware endpoints re-announce their '

@@ -50,7 +50,11 @@ def test_lists_endpoints_backends_and_channels():
         run.start('recorder', 'legacy_image_subscriber', topic=topic, timeout_sec=0.0)
         result = _inspect_until_complete(topic)
         probed = _inspect_until_complete(topic, '--probe')
-        code, text, err = _info(topic, '--wait', '3')
+        for _ in range(6):  # the text form, re-run like the JSON one until all three are seen
+            code, text, err = _info(topic)
+            if code == 0 and 'Publisher count: 1 (1 buffer-aware' in text and \
+                    'Subscription count: 2 (1 buffer-aware, 1 legacy' in text:
+                break
         alive = {label: node.process.poll() for label, node in run.nodes.items()}
     for node in run.nodes.values():  # stopped with SIGINT by the runner: nothing left
         pid = node.process.pid
