@@ -11,9 +11,11 @@ How it learns the advertisements: a normal rclpy node installs the discovery tap
 (default 3: a new Fast DDS participant can need up to one announcement period, about 3 s, to
 discover a running one). When what it heard by then is visibly incomplete (a channel names an
 endpoint not seen yet, an endpoint is known to DDS but not yet to the ROS graph, a channel has
-only one side) it keeps listening, up to ``COMPLETION_GRACE_SECONDS`` more. Fast DDS cannot replay USER_DATA of endpoints discovered before the tap existed, and
-a node's participant starts discovering at ``rclpy.init``, so an endpoint found in that short gap
-is reported with ``"advertisement": "unknown"``. ``--probe`` closes the gap: it creates a
+only one side) it keeps listening, up to ``COMPLETION_GRACE_SECONDS`` more, and says in a note
+what was still missing if that did not suffice. Fast DDS cannot replay USER_DATA of endpoints
+discovered before the tap existed, and a node's participant starts discovering at
+``rclpy.init``, so an endpoint found in that short gap is reported with
+``"advertisement": "unknown"``. ``--probe`` closes the gap: it creates a
 temporary plain subscription and a plain publisher on the topic (for ``--wait`` seconds more);
 buffer-aware endpoints re-announce when they see a new endpoint of the opposite kind. The price
 is a short disturbance of the topic: while the probe subscription exists, buffer-aware publishers
@@ -155,8 +157,13 @@ def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> d
         for entity in probes:
             own.add(_gid_hex(_dds.endpoint_gid(entity)))
     deadline = time.monotonic() + COMPLETION_GRACE_SECONDS
-    while _missing(node, topic, tapped, own) and time.monotonic() < deadline:
+    missing = _missing(node, topic, tapped, own)
+    while missing and time.monotonic() < deadline:
         time.sleep(_RECHECK_SECONDS)
+        missing = _missing(node, topic, tapped, own)
+    if missing:
+        notes.append(f'discovery still incomplete after {COMPLETION_GRACE_SECONDS:g} s more: '
+                     + '; '.join(missing))
     known = _dds.list_known_endpoints(node) if tapped else []
     endpoints: Dict[str, dict] = {}
 
