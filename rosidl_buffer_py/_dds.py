@@ -20,15 +20,17 @@ UnsupportedRmwError = _native.UnsupportedRmwError
 #: ``.gid``, ``.topic_name``, ``.valid``.
 ChannelPublisher = _native.ChannelPublisher
 #: ``ChannelSubscription(node, type_support, topic_name, ..., guard_condition=None)``:
-#: ``.take() -> Optional[TakenMessage]``, ``.matched_count() -> int``, ``.destroy()``,
-#: ``.gid``, ``.topic_name``, ``.valid``.
+#: ``.take() -> Optional[TakenMessage]``, ``.take_message(msg_class) -> Optional[TakenMessage]``
+#: (the message deserialized in C when it can be, see :func:`take_message_with_gid`),
+#: ``.matched_count() -> int``, ``.destroy()``, ``.gid``, ``.topic_name``, ``.valid``.
 ChannelSubscription = _native.ChannelSubscription
 
 #: The rmw implementation the native layer works with.
 RMW_IMPLEMENTATION: str = _native.RMW_IMPLEMENTATION
 
-#: (CDR bytes incl. encapsulation header, publisher GID, message info dict)
-TakenMessage = Tuple[bytes, bytes, dict]
+#: (CDR bytes incl. encapsulation header, or a deserialized message; publisher GID; message info
+#: dict)
+TakenMessage = Tuple[Any, bytes, dict]
 
 
 class EndpointEvent(NamedTuple):
@@ -91,6 +93,26 @@ def set_user_data(endpoint: Any, data: bytes, kind: Optional[str] = None) -> Non
 def take_serialized_with_gid(subscription: Any) -> Optional[TakenMessage]:
     """Take one serialized message from an rclpy subscription, with its publisher's GID."""
     return _native.take_serialized_with_gid(subscription)
+
+
+def take_message_with_gid(subscription: Any, msg_type: Any) -> Optional[TakenMessage]:
+    """Take one message from an rclpy subscription, deserialized in C as rclpy's take does.
+
+    The first item is a ``msg_type`` instance, or the CDR ``bytes`` when they do not deserialize
+    with the type's own type support (a descriptor payload or malformed data: hand them to
+    :func:`rosidl_buffer_py.codec.decode`). No Python-level CDR work for ordinary messages.
+    """
+    return _native.take_message_with_gid(subscription, msg_type)
+
+
+def write_message(msg: Any, source_timestamp: int, targets: List[Any]) -> None:
+    """Write a ROS message to channel publishers and/or rclpy publishers of its type.
+
+    The message is converted to its C struct once, as rclpy's ``publish`` does, and rmw
+    serializes it into each target's DDS payload with ``source_timestamp`` (ns since the epoch).
+    ``targets``: :class:`ChannelPublisher` objects and rclpy publishers (or their handles).
+    """
+    _native.write_message(msg, source_timestamp, targets)
 
 
 def publish_serialized(publisher: Any, data: Any, source_timestamp: int) -> None:

@@ -32,7 +32,8 @@ _logger = get_logger('rosidl_buffer_py.publisher')
 
 #: How long a channel must have been matched before it serves its subscription.
 CHANNEL_SETTLE_SECONDS = 0.2
-#: publish() polls discovery at most this often (spinning nodes are woken by discovery).
+#: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
+#: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
 
 
@@ -145,11 +146,14 @@ class Publisher(BufferEndpoint):
             self._publisher.publish(bytes(serialized) if serialized is not None else msg)
             return
         now = time.monotonic()
-        if now - self._polled_at >= DISCOVERY_POLL_SECONDS:  # for nodes that do not spin
+        if now - self._polled_at >= DISCOVERY_POLL_SECONDS and not self._spinning(now):
             self._polled_at = now
             self._discovery.process()
             self._reannounce_if_unmatched()
         payload = None if serialized is not None else getattr(msg, self._field)
+        if serialized is None and not isinstance(payload, Buffer):
+            self._publish_cpu_message(msg)
+            return
         vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
             else None
         cpu_bytes = serialized
@@ -177,11 +181,38 @@ class Publisher(BufferEndpoint):
                     peer.backend_in_use = CPU_BACKEND
                 channel.publish(data, timestamp)
                 served.add(peer.info.gid)
-            if any(gid not in served for gid in _dds.matched_subscription_gids(self._publisher)):
+            if self._main_topic_needed(served):
                 if cpu_bytes is None:
                     cpu_bytes = codec.encode(msg)
                 _dds.publish_serialized(self._publisher, cpu_bytes, timestamp)
                 self._sent_main += 1
+
+    def _publish_cpu_message(self, msg) -> None:
+        """Publish a message whose payload is CPU memory (``array.array``): the common case.
+
+        Every target gets the same legacy CPU encoding, so rmw serializes the message itself, as
+        rclpy's ``publish`` does: one conversion to C, no Python-level CDR work.
+        """
+        with self._lock:
+            if self._destroyed:
+                raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
+            peers = [peer for peer in self._peers.values()
+                     if peer.channel is not None and self._channel_ready(peer)]
+            targets = [peer.channel for peer in peers]
+            main = self._main_topic_needed({peer.info.gid for peer in peers})
+            if main:
+                targets.append(self._publisher)
+            if not targets:
+                return
+            _dds.write_message(msg, self._next_timestamp(), targets)
+            for peer in peers:
+                peer.sent_cpu += 1
+                peer.backend_in_use = CPU_BACKEND
+            self._sent_main += main
+
+    def _main_topic_needed(self, served: Set[bytes]) -> bool:
+        """Whether a matched subscription is not served by one of the ``served`` channels."""
+        return any(gid not in served for gid in _dds.matched_subscription_gids(self._publisher))
 
     def destroy(self) -> None:
         """Destroy the publisher, its channels and its main-topic publisher."""

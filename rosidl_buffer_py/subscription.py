@@ -25,6 +25,7 @@ from rclpy.qos import QoSProfile
 from rosidl_buffer_py import _dds, advertisement, codec, discovery
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.transport import (
@@ -54,6 +55,8 @@ class _PublisherPeer:
     received_descriptor: int = 0
     received_cpu: int = 0
     backend_in_use: Optional[str] = None
+    #: The publisher advertises a backend we accept besides CPU: descriptors may come.
+    descriptors_possible: bool = False
 
 
 class Subscription(BufferEndpoint):
@@ -240,7 +243,8 @@ class Subscription(BufferEndpoint):
                 channels = [p for p in self._peers.values() if p.channel is not None]
                 for i in range(len(channels)):
                     candidate = channels[(self._next_channel + i) % len(channels)]
-                    taken = candidate.channel.take()
+                    taken = candidate.channel.take() if candidate.descriptors_possible else \
+                        candidate.channel.take_message(self.msg_type)
                     if taken is not None:
                         self._counts['from_channels'] += 1
                         peer = candidate
@@ -295,7 +299,8 @@ class Subscription(BufferEndpoint):
         return None
 
     def _take_main(self):
-        taken = _dds.take_serialized_with_gid(self._sub)
+        # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
+        taken = _dds.take_message_with_gid(self._sub, self.msg_type)
         if taken is None:
             return None, None
         self._counts['from_main_topic'] += 1
@@ -311,7 +316,13 @@ class Subscription(BufferEndpoint):
             seen.popitem(last=False)
         return False
 
-    def _decode(self, raw: bytes, peer: Optional[_PublisherPeer], publisher_gid: bytes):
+    def _decode(self, raw, peer: Optional[_PublisherPeer], publisher_gid: bytes):
+        """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes."""
+        if type(raw) is self.msg_type:
+            if peer is not None:
+                peer.received_cpu += 1
+                peer.backend_in_use = 'cpu'
+            return raw
         try:
             decoded = codec.decode(raw, self.msg_type, known_backends=self._backends)
             if decoded.backend_type is None:
@@ -343,6 +354,13 @@ class Subscription(BufferEndpoint):
         record.channel = _dds.create_channel_subscription(
             self._node, self.msg_type, record.channel_topic, self.qos_profile, self._guard)
         return record
+
+    def _update_peer(self, record: _PublisherPeer, compatible) -> None:
+        # Channels of a peer that cannot send us descriptors are taken as messages (C
+        # deserialization); the others as bytes for the codec. Either way a message of the other
+        # kind is still decoded correctly: this only picks the cheaper take.
+        record.descriptors_possible = any(
+            name != CPU_BACKEND and name in self._backends for name in record.backends)
 
     def _forget_peer(self, gid: bytes) -> None:
         self._seen.pop(gid, None)

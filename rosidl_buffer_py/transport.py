@@ -19,6 +19,10 @@ _warned = set()
 _warned_lock = threading.Lock()
 
 
+#: How recently the re-announce timer must have run for the node to count as spinning.
+SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
+
+
 def qos_of(qos_profile: Union[QoSProfile, int]) -> QoSProfile:
     """A QoSProfile from a profile or a history depth, as rclpy's create_* accept."""
     if isinstance(qos_profile, QoSProfile):
@@ -106,8 +110,17 @@ class BufferEndpoint:
     def _start_reannounce_timer(self, node, callback_group) -> None:
         """Check once a second for channels that stay unmatched (see below)."""
         self._announced_at = time.monotonic()
+        self._spun_at = 0.0
         self._reannounce_timer = node.create_timer(
-            UNMATCHED_REANNOUNCE_SECONDS, self._reannounce_if_unmatched, callback_group)
+            UNMATCHED_REANNOUNCE_SECONDS, self._on_reannounce_timer, callback_group)
+
+    def _on_reannounce_timer(self) -> None:
+        self._spun_at = time.monotonic()  # evidence that an executor spins our node
+        self._reannounce_if_unmatched()
+
+    def _spinning(self, now: float) -> bool:
+        """Whether an executor ran our timer lately: then discovery wakes us by itself."""
+        return now - self._spun_at < SPIN_EVIDENCE_SECONDS
 
     def _reannounce_if_unmatched(self) -> None:
         """Re-announce our USER_DATA if a known peer's channel stays unmatched.

@@ -17,7 +17,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
-from rclpy.serialization import serialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 
 from rosidl_buffer_py import _dds
@@ -433,6 +433,99 @@ def test_channel_publish_source_timestamp(ctx):
     assert _wait(lambda: pub.matched_gids() == [local.gid])
     local.destroy()
     pub.destroy()
+    node.destroy_node()
+
+
+# ---------------------------------------------------------------- messages converted in C
+
+
+def test_write_message_and_take_message(ctx):
+    """One C conversion, written to a channel and an rclpy publisher; taken back as messages."""
+    topic = '/' + _unique('wmsg')
+    chan_topic = _channel_topic(_unique('wmsg'))
+    messages = [_image(300, seed=1), _image(7, seed=2), _image(1 << 20, seed=3)]
+    messages[1].header.frame_id = 'camera'
+    peer = Peer('raw_take', topic, len(messages))
+    try:
+        peer.expect('READY ')
+        node = _node(ctx, 'wmsg')
+        main = node.create_publisher(Image, topic, 10)
+        local = node.create_subscription(Image, topic, lambda m: None, 10)
+        chan = _dds.create_channel_publisher(node, Image, chan_topic, QoSProfile(depth=10))
+        chan_sub = _dds.create_channel_subscription(node, Image, chan_topic, QoSProfile(depth=10))
+        assert _wait(lambda: main.get_subscription_count() == 2 and chan.matched_count() == 1,
+                     timeout=15)
+        for msg, stamp in zip(messages, STAMPS):
+            _dds.write_message(msg, stamp, [chan, main])
+        result = peer.expect('RESULT ')
+        assert peer.proc.wait(timeout=15) == 0
+    finally:
+        peer.close()
+    # rclpy's own take in another process: the stamps, and the same messages
+    got = result['received']
+    assert [r['source_timestamp'] for r in got] == STAMPS[:len(messages)]
+    assert [deserialize_message(bytes.fromhex(r['hex']), Image) for r in got[:2]] == \
+        messages[:2]
+    for msg, stamp in zip(messages, STAMPS):
+        taken = _wait(lambda: chan_sub.take_message(Image))
+        assert type(taken[0]) is Image and taken[0] == msg
+        assert taken[1] == chan.gid and taken[2]['source_timestamp'] == stamp
+        taken = _wait(lambda: _dds.take_message_with_gid(local, Image))
+        assert type(taken[0]) is Image and taken[0] == msg
+        assert taken[1] == _dds.endpoint_gid(main) and taken[2]['source_timestamp'] == stamp
+    assert chan_sub.take_message(Image) is None
+    assert _dds.take_message_with_gid(local, Image) is None
+    node.destroy_node()
+
+
+def test_take_message_hands_back_what_does_not_deserialize(ctx):
+    """Descriptor payloads, truncated CDR and other encapsulations come back as the bytes."""
+    from rosidl_buffer_py import codec
+    node = _node(ctx, 'take_bytes')
+    topic = '/' + _unique('take_bytes')
+    chan_topic = _channel_topic(_unique('take_bytes'))
+    pub = node.create_publisher(Image, topic, 10)
+    sub = node.create_subscription(Image, topic, lambda m: None, 10)
+    chan = _dds.create_channel_publisher(node, Image, chan_topic, QoSProfile(depth=10))
+    chan_sub = _dds.create_channel_subscription(node, Image, chan_topic, QoSProfile(depth=10))
+    assert _wait(lambda: pub.get_subscription_count() == 1 and chan.matched_count() == 1)
+    good = serialize_message(_image(12, seed=4))
+    samples = [bytes(codec.encode(_image(12), ('demo', b'descriptor'))), good[:30],
+               b'\x00\x07' + good[2:], good]
+    for data in samples:
+        pub.publish(data)
+        chan.publish(data, source_timestamp=1)
+    for take in (lambda: _dds.take_message_with_gid(sub, Image),
+                 lambda: chan_sub.take_message(Image)):
+        results = [_wait(take)[0] for _ in samples]
+        assert results[:3] == samples[:3]
+        assert results[3] == _image(12, seed=4)
+    node.destroy_node()
+
+
+def test_write_message_errors(ctx):
+    from std_msgs.msg import String
+    node = _node(ctx, 'wmsg_errors')
+    pub = node.create_publisher(Image, '/' + _unique('wmsg_err'), 10)
+    sub = node.create_subscription(Image, '/' + _unique('wmsg_err'), lambda m: None, 10)
+    chan = _dds.create_channel_publisher(node, Image, 'rt/err/_buf/5_6', QoSProfile(depth=1))
+    msg = _image(4)
+    with pytest.raises(TypeError, match='does not publish'):
+        _dds.write_message(String(data='x'), 1, [chan])
+    with pytest.raises(TypeError, match='does not publish'):
+        _dds.write_message(String(data='x'), 1, [pub])
+    with pytest.raises(TypeError, match='Publisher'):
+        _dds.write_message(msg, 1, [sub])
+    with pytest.raises(ValueError, match='source_timestamp'):
+        _dds.write_message(msg, -1, [pub])
+    with pytest.raises(TypeError, match='not a generated ROS message class'):
+        _dds.write_message(object(), 1, [pub])
+    with pytest.raises(TypeError, match='not a generated ROS message class'):
+        _dds.take_message_with_gid(sub, dict)
+    _dds.write_message(msg, 1, [])  # nothing to write to
+    chan.destroy()
+    with pytest.raises(_dds.DdsError, match='destroyed'):
+        _dds.write_message(msg, 1, [pub, chan])
     node.destroy_node()
 
 

@@ -13,14 +13,19 @@
 //   ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,
 //                       guard_condition=None)
 //     .take() -> (bytes, publisher_gid, info) | None
+//     .take_message(msg_class) -> (message | bytes, publisher_gid, info) | None
 //     .matched_count() -> int   matched publishers
 //     .gid, .topic_name, .valid
 //     .destroy()
+//
+//   write_message(message, source_timestamp, targets)  convert once, write to each target
+//                               (ChannelPublisher or rclpy Publisher) with that timestamp
 //
 // Both pin the node's rclpy handle (rclpy defers destroy_node() until destroy()) and the
 // subscription pins its guard condition, which it triggers from the DDS thread (rmw's
 // on-new-message callback) whenever data arrives.
 #include <cstring>
+#include <memory>
 #include <mutex>
 #include <string>
 #include <vector>
@@ -32,6 +37,7 @@
 #include "rcutils/error_handling.h"
 #include "rcl/guard_condition.h"
 #include "rcl/node.h"
+#include "rcl/publisher.h"
 #include "rmw/rmw.h"
 #include "rmw/serialized_message.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
@@ -687,14 +693,20 @@ PyObject * sub_destroy(PyObject * op, PyObject *)
   Py_RETURN_NONE;
 }
 
-PyObject * sub_take(PyObject * op, PyObject *)
+/// take() and take_message(): one serialized take; with `support`, the CDR is deserialized
+/// into a Python message when it can be (see taken_message_object).
+PyObject * sub_take_impl(ChannelSubscriptionObject * self, const MessageSupport * support)
 {
-  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
   rmw_ret_t ret = RMW_RET_OK;
   bool valid = true;
   bool taken = false;
+  bool deserialized = false;
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   std::string error;
+  std::unique_ptr<OwnedRosMessage> ros_message;
+  if (support != nullptr) {
+    ros_message = std::make_unique<OwnedRosMessage>(*support);
+  }
   PyThreadState * ts = PyEval_SaveThread();
   // Held until the bytes are copied out of the reused buffer (taken with the GIL released,
   // so no thread ever holds the GIL while waiting for it).
@@ -706,6 +718,8 @@ PyObject * sub_take(PyObject * op, PyObject *)
       self->subscription, self->buffer, &taken, &info, nullptr);
     if (ret != RMW_RET_OK) {
       error = take_rmw_error();
+    } else if (taken && support != nullptr) {
+      deserialized = try_deserialize(*support, *self->buffer, ros_message->get());
     }
   }
   PyEval_RestoreThread(ts);
@@ -718,9 +732,17 @@ PyObject * sub_take(PyObject * op, PyObject *)
     Py_INCREF(Py_None);
     result = Py_None;
   } else {
-    PyObject * data = PyBytes_FromStringAndSize(
-      reinterpret_cast<const char *>(self->buffer->buffer),
-      static_cast<Py_ssize_t>(self->buffer->buffer_length));
+    PyObject * data = nullptr;
+    if (support == nullptr) {
+      data = PyBytes_FromStringAndSize(
+        reinterpret_cast<const char *>(self->buffer->buffer),
+        static_cast<Py_ssize_t>(self->buffer->buffer_length));
+    } else if (!deserialized) {
+      data = taken_message_object(*support, nullptr, false, *self->buffer);
+    } else {
+      lock.unlock();  // the C message is ours: convert it without holding the channel
+      data = taken_message_object(*support, ros_message->get(), true, *self->buffer);
+    }
     PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
     PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
     if (info_dict) {
@@ -730,8 +752,24 @@ PyObject * sub_take(PyObject * op, PyObject *)
     Py_XDECREF(gid);
     Py_XDECREF(info_dict);
   }
-  lock.unlock();
+  if (lock.owns_lock()) {
+    lock.unlock();
+  }
   return result;
+}
+
+PyObject * sub_take(PyObject * op, PyObject *)
+{
+  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), nullptr);
+}
+
+PyObject * sub_take_message(PyObject * op, PyObject * msg_class)
+{
+  MessageSupport support;
+  if (support.load(msg_class) < 0) {
+    return nullptr;
+  }
+  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), &support);
 }
 
 PyObject * sub_matched_count(PyObject * op, PyObject *)
@@ -752,6 +790,10 @@ PyMethodDef sub_methods[] = {
   {"take", sub_take, METH_NOARGS,
     "take() -> (bytes, publisher_gid, info) | None\n\nTake one serialized message: CDR "
     "bytes, the writer's 16-byte GID and an rclpy-like message info dict."},
+  {"take_message", sub_take_message, METH_O,
+    "take_message(msg_class) -> (message | bytes, publisher_gid, info) | None\n\nTake one "
+    "message and deserialize it into a msg_class instance, as rclpy's take does; CDR that does "
+    "not deserialize (a descriptor payload, malformed data) comes back as bytes instead."},
   {"matched_count", sub_matched_count, METH_NOARGS,
     "matched_count() -> int: publishers currently matched."},
   {"destroy", sub_destroy, METH_NOARGS,
@@ -789,6 +831,148 @@ PyType_Spec sub_spec = {
   sub_slots,
 };
 
+/// The ChannelPublisher type (set at registration), to recognise write_message's targets.
+PyObject * g_channel_publisher_type = nullptr;
+
+/// One target of write_message: a ChannelPublisher or an rclpy publisher (pinned).
+struct WriteTarget
+{
+  ChannelPublisherObject * channel = nullptr;  // borrowed (the targets sequence holds it)
+  std::unique_ptr<PinnedHandle> pin;
+  rmw_publisher_t * rmw_publisher = nullptr;   // rclpy publishers only
+};
+
+int resolve_target(PyObject * target, WriteTarget * out)
+{
+  if (PyObject_TypeCheck(target, reinterpret_cast<PyTypeObject *>(g_channel_publisher_type))) {
+    out->channel = reinterpret_cast<ChannelPublisherObject *>(target);
+    return 0;
+  }
+  if (check_handle_kind(target, "Publisher", "target") < 0) {
+    return -1;
+  }
+  out->pin = std::make_unique<PinnedHandle>();
+  if (out->pin->acquire(target, "target") < 0) {
+    return -1;
+  }
+  rmw_publisher_t * rmw_pub;
+  {
+    GilRelease nogil;
+    rmw_pub = rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(out->pin->get()));
+    if (rmw_pub == nullptr) {
+      rcl_reset_error();
+    }
+  }
+  if (rmw_pub == nullptr) {
+    PyErr_SetString(DdsError, "write_message: the rcl publisher is not valid");
+    return -1;
+  }
+  if (check_identifier(rmw_pub->implementation_identifier, "publisher") < 0) {
+    return -1;
+  }
+  out->rmw_publisher = rmw_pub;
+  return 0;
+}
+
+PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
+{
+  static const char * kwlist[] = {"message", "source_timestamp", "targets", nullptr};
+  PyObject * message;
+  PyObject * ts_arg;
+  PyObject * targets_arg;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "OOO:write_message", const_cast<char **>(kwlist), &message, &ts_arg,
+      &targets_arg))
+  {
+    return nullptr;
+  }
+  int64_t source_timestamp;
+  if (parse_source_timestamp(ts_arg, &source_timestamp) < 0) {
+    return nullptr;
+  }
+  PyObject * targets = PySequence_Fast(targets_arg, "targets must be a sequence");
+  if (targets == nullptr) {
+    return nullptr;
+  }
+  const Py_ssize_t count = PySequence_Fast_GET_SIZE(targets);
+  std::vector<WriteTarget> resolved(static_cast<size_t>(count));
+  for (Py_ssize_t i = 0; i < count; ++i) {
+    if (resolve_target(PySequence_Fast_GET_ITEM(targets, i), &resolved[i]) < 0) {
+      Py_DECREF(targets);
+      return nullptr;
+    }
+  }
+  MessageSupport support;
+  PyObject * msg_class = reinterpret_cast<PyObject *>(Py_TYPE(message));
+  const void * callbacks = nullptr;
+  if (support.load(msg_class) < 0 || (callbacks = support.fastrtps_callbacks()) == nullptr) {
+    Py_DECREF(targets);
+    return nullptr;
+  }
+  OwnedRosMessage ros_message(support);
+  if (ros_message.get() == nullptr) {
+    Py_DECREF(targets);
+    return PyErr_NoMemory();
+  }
+  if (!support.from_py(message, ros_message.get())) {  // one conversion for every target
+    Py_DECREF(targets);
+    return nullptr;
+  }
+  std::string error;
+  Py_ssize_t failed = -1;
+  bool type_mismatch = false;
+  bool destroyed = false;
+  {
+    GilRelease nogil;
+    for (Py_ssize_t i = 0; i < count && failed < 0; ++i) {
+      WriteTarget & target = resolved[i];
+      std::unique_lock<std::mutex> lock;
+      rmw_publisher_t * rmw_pub = target.rmw_publisher;
+      if (target.channel != nullptr) {
+        lock = std::unique_lock<std::mutex>(*target.channel->base.op_mutex);
+        rmw_pub = target.channel->publisher;
+        if (rmw_pub == nullptr) {
+          destroyed = true;
+          failed = i;
+          break;
+        }
+      }
+      if (!write_message_w_timestamp(
+          rmw_pub, ros_message.get(), callbacks, source_timestamp, &type_mismatch, &error))
+      {
+        failed = i;
+      }
+    }
+  }
+  if (failed >= 0) {
+    PyObject * target = PySequence_Fast_GET_ITEM(targets, failed);
+    if (destroyed) {
+      PyErr_Format(DdsError, "write_message: target %zd (%R) was destroyed", failed, target);
+    } else if (type_mismatch) {
+      PyErr_Format(
+        PyExc_TypeError, "write_message: target %zd (%R) does not publish %.200R", failed,
+        target, msg_class);
+    } else {
+      PyErr_Format(DdsError, "write_message: target %zd: %s", failed, error.c_str());
+    }
+    Py_DECREF(targets);
+    return nullptr;
+  }
+  Py_DECREF(targets);
+  Py_RETURN_NONE;
+}
+
+PyMethodDef channel_functions[] = {
+  {"write_message", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(write_message)),
+    METH_VARARGS | METH_KEYWORDS,
+    "write_message(message, source_timestamp, targets) -> None\n\nConvert a ROS message to its "
+    "C struct once (as rclpy's publish does) and write it, with source_timestamp (int, ns since "
+    "the epoch), to every target in order: ChannelPublisher objects and rclpy publishers of the "
+    "message's type. rmw serializes it into each DDS payload; the GIL is released meanwhile. "
+    "Stops at the first failing target."},
+  {nullptr, nullptr, 0, nullptr},
+};
+
 }  // namespace
 
 int add_dds_channel_types(PyObject * module)
@@ -797,8 +981,13 @@ int add_dds_channel_types(PyObject * module)
   if (pub_type == nullptr) {
     return -1;
   }
+  Py_INCREF(pub_type);
+  g_channel_publisher_type = pub_type;
   if (PyModule_AddObject(module, "ChannelPublisher", pub_type) < 0) {
     Py_DECREF(pub_type);
+    return -1;
+  }
+  if (PyModule_AddFunctions(module, channel_functions) < 0) {
     return -1;
   }
   PyObject * sub_type = PyType_FromSpec(&sub_spec);

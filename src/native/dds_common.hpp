@@ -12,7 +12,9 @@
 #include <string>
 #include <vector>
 
+#include "rmw/serialized_message.h"
 #include "rmw/types.h"
+#include "rosidl_runtime_c/message_type_support_struct.h"
 
 namespace rbpy_dds
 {
@@ -99,6 +101,55 @@ int parse_kind(const char * kind, bool * is_publisher);
 
 /// Raise UnsupportedRmwError unless `identifier` is rmw_fastrtps_cpp. Returns 0 or -1.
 int check_identifier(const char * identifier, const char * what);
+
+/// The C side of a generated ROS message class, as rclpy's own publish and take use it: the
+/// type support and the functions rosidl_generator_py attaches to the class (_CREATE_ROS_MESSAGE,
+/// _DESTROY_ROS_MESSAGE, _CONVERT_FROM_PY, _CONVERT_TO_PY). Valid while the class lives.
+struct MessageSupport
+{
+  const rosidl_message_type_support_t * type_support = nullptr;
+  void * (*create)() = nullptr;
+  void (*destroy)(void *) = nullptr;
+  bool (*from_py)(PyObject *, void *) = nullptr;
+  PyObject * (*to_py)(void *) = nullptr;
+
+  /// Read them from `msg_class` (GIL held). Returns 0, or -1 with TypeError.
+  int load(PyObject * msg_class);
+  /// The rosidl_typesupport_fastrtps_c callbacks of the type (what rmw_fastrtps_cpp stores as
+  /// a DataWriter's type_support_impl_), or nullptr with TypeError (GIL held).
+  const void * fastrtps_callbacks() const;
+};
+
+/// A C message owned for the duration of a call (destroyed with it).
+class OwnedRosMessage
+{
+public:
+  explicit OwnedRosMessage(const MessageSupport & support)
+  : support_(support), msg_(support.create()) {}
+  ~OwnedRosMessage() {if (msg_) {support_.destroy(msg_);}}
+  OwnedRosMessage(const OwnedRosMessage &) = delete;
+  OwnedRosMessage & operator=(const OwnedRosMessage &) = delete;
+  void * get() const {return msg_;}
+
+private:
+  const MessageSupport & support_;
+  void * msg_;
+};
+
+/// The result of a take as Python: the message when `serialized` deserializes with the class's
+/// type support, otherwise (descriptor payloads, malformed data) a bytes copy of the CDR for
+/// the Python codec. `deserialized` says which; `ros_message` is where it was deserialized.
+/// Call with the GIL held, after `try_deserialize` (which runs without it).
+PyObject * taken_message_object(
+  const MessageSupport & support, void * ros_message, bool deserialized,
+  const rmw_serialized_message_t & serialized);
+
+/// rmw_deserialize `serialized` into `ros_message` (GIL not needed). False when the bytes do
+/// not deserialize (the rmw error is cleared) or are not XCDR1 (encapsulation 0x0000/0x0001,
+/// the only ones rosidl_buffer_py.codec reads).
+bool try_deserialize(
+  const MessageSupport & support, const rmw_serialized_message_t & serialized,
+  void * ros_message);
 
 // Registration of each part (called from add_dds_api).
 int add_dds_endpoint_functions(PyObject * module);

@@ -4,6 +4,7 @@
 //   get_user_data(endpoint, kind) -> bytes
 //   set_user_data(endpoint, kind, data) -> None
 //   take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None
+//   take_message_with_gid(subscription, msg_class) -> (message | bytes, gid, info) | None
 //   publish_serialized(publisher, data, source_timestamp) -> None
 //   matched_subscription_gids(publisher) -> list[bytes]
 //   set_new_message_wakeup(subscription, guard_condition) -> None
@@ -12,6 +13,7 @@
 // `endpoint` is an rcl_publisher_t* / rcl_subscription_t* (int), an rclpy handle, or an
 // rclpy Publisher/Subscription; `kind` is "publisher" or "subscription" and must match it.
 #include <map>
+#include <memory>
 #include <mutex>
 #include <vector>
 
@@ -205,19 +207,22 @@ PyObject * set_user_data(PyObject *, PyObject * args)
   Py_RETURN_NONE;
 }
 
-PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
+/// take_serialized_with_gid and take_message_with_gid: one serialized take from an rcl
+/// subscription; with `support`, deserialized into a Python message when it can be.
+PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support)
 {
-  PyObject * sub_arg;
-  if (!PyArg_ParseTuple(args, "O:take_serialized_with_gid", &sub_arg)) {
-    return nullptr;
-  }
   PinnedHandle sub;
   if (sub.acquire(sub_arg, "subscription") < 0) {
     return nullptr;
   }
+  std::unique_ptr<OwnedRosMessage> ros_message;
+  if (support != nullptr) {
+    ros_message = std::make_unique<OwnedRosMessage>(*support);
+  }
   rcl_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   rcl_ret_t ret;
+  bool deserialized = false;
   std::string error;
   {
     GilRelease nogil;
@@ -229,6 +234,8 @@ PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
     }
     if (ret != RCL_RET_OK && ret != RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
       error = take_rmw_error();
+    } else if (ret == RCL_RET_OK && support != nullptr) {
+      deserialized = try_deserialize(*support, msg, ros_message->get());
     }
   }
   PyObject * result = nullptr;
@@ -238,8 +245,10 @@ PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
   } else if (ret != RCL_RET_OK) {
     raise_rmw_error("rcl_take_serialized_message failed", error);
   } else {
-    PyObject * data = PyBytes_FromStringAndSize(
-      reinterpret_cast<const char *>(msg.buffer), static_cast<Py_ssize_t>(msg.buffer_length));
+    PyObject * data = support == nullptr ?
+      PyBytes_FromStringAndSize(
+      reinterpret_cast<const char *>(msg.buffer), static_cast<Py_ssize_t>(msg.buffer_length)) :
+      taken_message_object(*support, ros_message->get(), deserialized, msg);
     PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
     PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
     if (info_dict) {
@@ -258,6 +267,28 @@ PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
   return result;
 }
 
+PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
+{
+  PyObject * sub_arg;
+  if (!PyArg_ParseTuple(args, "O:take_serialized_with_gid", &sub_arg)) {
+    return nullptr;
+  }
+  return take_with_gid(sub_arg, nullptr);
+}
+
+PyObject * take_message_with_gid(PyObject *, PyObject * args)
+{
+  PyObject * sub_arg;
+  PyObject * msg_class;
+  if (!PyArg_ParseTuple(args, "OO:take_message_with_gid", &sub_arg, &msg_class)) {
+    return nullptr;
+  }
+  MessageSupport support;
+  if (support.load(msg_class) < 0) {
+    return nullptr;
+  }
+  return take_with_gid(sub_arg, &support);
+}
 
 PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
 {
@@ -490,6 +521,11 @@ PyMethodDef endpoint_methods[] = {
     "set_user_data(endpoint, kind, data: bytes) -> None\n\n"
     "Replace that USER_DATA (keep rmw's 'typehash=...;' prefix!). Remote participants see\n"
     "the change as a 'changed' discovery event."},
+  {"take_message_with_gid", take_message_with_gid, METH_VARARGS,
+    "take_message_with_gid(subscription, msg_class) -> (message | bytes, publisher_gid, info) "
+    "| None\n\nAs take_serialized_with_gid, but the CDR is deserialized into a msg_class "
+    "instance as rclpy's take does; CDR that does not deserialize (a descriptor payload, "
+    "malformed data) comes back as bytes."},
   {"take_serialized_with_gid", take_serialized_with_gid, METH_VARARGS,
     "take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None\n\n"
     "rcl_take_serialized_message on an rcl subscription: the CDR bytes, the 16-byte GID of\n"

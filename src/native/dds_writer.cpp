@@ -93,6 +93,42 @@ bool write_serialized_w_timestamp(
   return true;
 }
 
+bool write_message_w_timestamp(
+  rmw_publisher_t * publisher, const void * ros_message, const void * callbacks,
+  int64_t source_timestamp_ns, bool * type_mismatch, std::string * error)
+{
+  *type_mismatch = false;
+  if (source_timestamp_ns < 0 || source_timestamp_ns > kMaxSourceTimestampNs) {
+    *error = "source timestamp out of range";
+    return false;
+  }
+  auto * info = static_cast<CustomPublisherInfo *>(publisher->data);
+  if (info == nullptr || info->data_writer_ == nullptr) {
+    *error = "the publisher has no DataWriter";
+    return false;
+  }
+  if (info->type_support_impl_ != callbacks) {
+    *type_mismatch = true;
+    *error = "the message's type is not the publisher's";
+    return false;
+  }
+  // What rmw_publish (rmw_fastrtps_shared_cpp, Jazzy) hands the writer.
+  rmw_fastrtps_shared_cpp::SerializedData payload;
+  payload.type = rmw_fastrtps_shared_cpp::FASTRTPS_SERIALIZED_DATA_TYPE_ROS_MESSAGE;
+  payload.data = const_cast<void *>(ros_message);
+  payload.impl = info->type_support_impl_;
+  const eprosima::fastrtps::Time_t stamp(
+    static_cast<int32_t>(source_timestamp_ns / 1000000000LL),
+    static_cast<uint32_t>(source_timestamp_ns % 1000000000LL));
+  const ReturnCode_t rc =
+    info->data_writer_->write_w_timestamp(&payload, eprosima::fastdds::dds::HANDLE_NIL, stamp);
+  if (rc != ReturnCode_t::RETCODE_OK) {
+    *error = "DataWriter::write_w_timestamp failed (return code " + std::to_string(rc()) + ")";
+    return false;
+  }
+  return true;
+}
+
 bool matched_reader_gids(
   rmw_publisher_t * publisher, std::vector<GidArray> * gids, std::string * error)
 {

@@ -38,6 +38,15 @@ bool write_serialized_w_timestamp(
   eprosima::fastdds::dds::DataWriter * writer, const void * data, size_t length,
   int64_t source_timestamp_ns, std::string * error);
 
+/// Write a C ROS message on the DataWriter of an rmw_fastrtps_cpp publisher (identifier already
+/// checked) with `source_timestamp_ns` as the sample's source timestamp: what rmw_publish does,
+/// plus the timestamp. rmw's TypeSupport serializes the message straight into the DDS payload.
+/// `callbacks` are the message's rosidl_typesupport_fastrtps_c callbacks; a writer of another
+/// type is refused (*type_mismatch set). Returns true, or false with a message in *error.
+bool write_message_w_timestamp(
+  rmw_publisher_t * publisher, const void * ros_message, const void * callbacks,
+  int64_t source_timestamp_ns, bool * type_mismatch, std::string * error);
+
 using GidArray = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
 
 /// The rmw GIDs (Fast DDS GUIDs) of the DataReaders matched with the DataWriter of an
