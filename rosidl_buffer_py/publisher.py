@@ -13,7 +13,7 @@ source timestamp, and a subscription delivers each (publisher GID, source timest
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Set, Union
+from typing import Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 from rclpy.logging import get_logger
 from rclpy.qos import QoSProfile
@@ -53,6 +53,14 @@ class _SubscriptionPeer:
     matched_since: Optional[float] = None
 
 
+class _Routes(NamedTuple):
+    """Where a CPU message goes: the peers served on their channels, and the main topic."""
+
+    peers: Tuple[_SubscriptionPeer, ...]
+    main: bool
+    targets: list  #: their channels, then the main-topic publisher when ``main``
+
+
 class Publisher(BufferEndpoint):
     """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
 
@@ -72,6 +80,7 @@ class Publisher(BufferEndpoint):
         self._peers: Dict[bytes, _SubscriptionPeer] = {}
         self._last_timestamp = 0
         self._sent_main = 0
+        self._routes: Optional[_Routes] = None
         self._peers_added = 0
         self._peers_removed = 0
         self._destroyed = False
@@ -192,23 +201,38 @@ class Publisher(BufferEndpoint):
 
         Every target gets the same legacy CPU encoding, so rmw serializes the message itself, as
         rclpy's ``publish`` does: one conversion to C, no Python-level CDR work.
+
+        The message goes first to the routes the previous publish() found, and the routes are
+        checked again right after the write, off the path the subscribers' latency sees: a
+        target that became needed meanwhile (a channel that settled, a new legacy subscriber)
+        gets the message then, with the same source timestamp. A route no longer needed costs at
+        most one extra copy, which buffer-aware subscriptions drop as a duplicate. Any change of
+        peers forgets the routes (their channels may be gone).
         """
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
-            peers = [peer for peer in self._peers.values()
-                     if peer.channel is not None and self._channel_ready(peer)]
-            targets = [peer.channel for peer in peers]
-            main = self._main_topic_needed({peer.info.gid for peer in peers})
-            if main:
-                targets.append(self._publisher)
-            if not targets:
-                return
-            _dds.write_message(msg, self._next_timestamp(), targets)
-            for peer in peers:
+            timestamp = self._next_timestamp()
+            used = self._routes if self._routes is not None else self._current_routes()
+            if used.targets:
+                _dds.write_message(msg, timestamp, used.targets)
+            routes = self._current_routes()
+            missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
+            if missing:
+                _dds.write_message(msg, timestamp, missing)
+            self._routes = routes
+            for peer in routes.peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            self._sent_main += main
+            self._sent_main += used.main or routes.main
+
+    def _current_routes(self) -> '_Routes':
+        """The channels that serve their peers now, and whether the main topic is needed."""
+        peers = tuple(peer for peer in self._peers.values()
+                      if peer.channel is not None and self._channel_ready(peer))
+        main = self._main_topic_needed({peer.info.gid for peer in peers})
+        targets = [peer.channel for peer in peers] + ([self._publisher] if main else [])
+        return _Routes(peers, main, targets)
 
     def _main_topic_needed(self, served: Set[bytes]) -> bool:
         """Whether a matched subscription is not served by one of the ``served`` channels."""
@@ -298,10 +322,12 @@ class Publisher(BufferEndpoint):
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
         record.compatible = compatible
+        self._routes = None
 
     def _forget_peer(self, gid: bytes) -> None:
         if gid in self._peers:
             self._peers_removed += 1
+        self._routes = None
 
     def _release(self) -> None:
         try:

@@ -84,6 +84,7 @@ class Subscription(BufferEndpoint):
         self._seen: Dict[bytes, 'collections.OrderedDict[int, None]'] = {}
         self._counts = collections.Counter()
         self._next_channel = 0
+        self._channels: List[_PublisherPeer] = []  # the peers with a channel, polled in turn
         self._takes = 0
         self._held = collections.deque()
         self._hold_timer = None
@@ -222,7 +223,7 @@ class Subscription(BufferEndpoint):
         ``MAIN_TOPIC_TURN`` takes, so that no source starves.
         """
         while True:
-            taken = self._release_held()
+            taken = self._release_held() if self._held else None
             if taken is not None:
                 raw, publisher_gid, info, peer = taken
                 if self._is_duplicate(peer.info.gid, info['source_timestamp']):
@@ -240,16 +241,7 @@ class Subscription(BufferEndpoint):
                 taken, peer = self._take_main()
                 from_main = taken is not None
             if taken is None:
-                channels = [p for p in self._peers.values() if p.channel is not None]
-                for i in range(len(channels)):
-                    candidate = channels[(self._next_channel + i) % len(channels)]
-                    taken = candidate.channel.take() if candidate.descriptors_possible else \
-                        candidate.channel.take_message(self.msg_type)
-                    if taken is not None:
-                        self._counts['from_channels'] += 1
-                        peer = candidate
-                        self._next_channel = (self._next_channel + i + 1) % len(channels)
-                        break
+                taken, peer = self._take_channels()
             if taken is None and not main_first:
                 taken, peer = self._take_main()
                 from_main = taken is not None
@@ -266,6 +258,21 @@ class Subscription(BufferEndpoint):
             if msg is not None:
                 self._counts['delivered'] += 1
                 return msg, info
+
+    def _take_channels(self):
+        """The next message of any channel (polled in rotating order), and its peer."""
+        channels = self._channels
+        count = len(channels)
+        for i in range(count):
+            peer = channels[(self._next_channel + i) % count]
+            # peers that cannot send us descriptors: deserialized in C, as rclpy's take does
+            taken = peer.channel.take() if peer.descriptors_possible else \
+                peer.channel.take_message(self.msg_type)
+            if taken is not None:
+                self._counts['from_channels'] += 1
+                self._next_channel = (self._next_channel + i + 1) % count
+                return taken, peer
+        return None, None
 
     def _should_hold(self, peer: Optional[_PublisherPeer], taken: tuple) -> bool:
         """Hold a main-topic copy whose channel copy is probably on its way.
@@ -361,9 +368,11 @@ class Subscription(BufferEndpoint):
         # kind is still decoded correctly: this only picks the cheaper take.
         record.descriptors_possible = any(
             name != CPU_BACKEND and name in self._backends for name in record.backends)
+        self._channels = [p for p in self._peers.values() if p.channel is not None]
 
     def _forget_peer(self, gid: bytes) -> None:
         self._seen.pop(gid, None)
+        self._channels = [p for p in self._channels if p.info.gid != gid]
 
     def _release(self) -> None:
         self._node.destroy_guard_condition(self._discovery_guard)
