@@ -20,7 +20,8 @@ UnsupportedRmwError = _native.UnsupportedRmwError
 #: ``.gid``, ``.topic_name``, ``.valid``.
 ChannelPublisher = _native.ChannelPublisher
 #: ``ChannelSubscription(node, type_support, topic_name, ..., guard_condition=None)``:
-#: ``.take() -> Optional[TakenMessage]``, ``.take_message(msg_class) -> Optional[TakenMessage]``
+#: ``.take() -> Optional[TakenMessage]``,
+#: ``.take_message(msg_class, max_size=-1) -> Optional[TakenMessage]``
 #: (the message deserialized in C when it can be, see :func:`take_message_with_gid`),
 #: ``.matched_count() -> int``, ``.destroy()``, ``.gid``, ``.topic_name``, ``.valid``.
 ChannelSubscription = _native.ChannelSubscription
@@ -95,14 +96,16 @@ def take_serialized_with_gid(subscription: Any) -> Optional[TakenMessage]:
     return _native.take_serialized_with_gid(subscription)
 
 
-def take_message_with_gid(subscription: Any, msg_type: Any) -> Optional[TakenMessage]:
+def take_message_with_gid(subscription: Any, msg_type: Any,
+                          max_size: int = -1) -> Optional[TakenMessage]:
     """Take one message from an rclpy subscription, deserialized in C as rclpy's take does.
 
     The first item is a ``msg_type`` instance, or the CDR ``bytes`` when they do not deserialize
     with the type's own type support (a descriptor payload or malformed data: hand them to
-    :func:`rosidl_buffer_py.codec.decode`). No Python-level CDR work for ordinary messages.
+    :func:`rosidl_buffer_py.codec.decode`) or are longer than ``max_size`` (when >= 0). No
+    Python-level CDR work for ordinary messages.
     """
-    return _native.take_message_with_gid(subscription, msg_type)
+    return _native.take_message_with_gid(subscription, msg_type, max_size)
 
 
 def write_message(msg: Any, source_timestamp: int, targets: List[Any]) -> None:

@@ -41,6 +41,10 @@ MAIN_TOPIC_TURN = 16
 HOLD_SECONDS = 0.05
 #: Messages delivered per wake-up before yielding to the executor's other callbacks.
 MAX_BATCH = 64
+#: CPU messages up to this many CDR bytes are deserialized in C (rclpy's own conversion: no
+#: Python-level work); longer ones are decoded by the codec, which splices the payload with one
+#: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
+C_DESERIALIZE_MAX_BYTES = 64 * 1024
 
 
 @dataclass
@@ -267,7 +271,7 @@ class Subscription(BufferEndpoint):
             peer = channels[(self._next_channel + i) % count]
             # peers that cannot send us descriptors: deserialized in C, as rclpy's take does
             taken = peer.channel.take() if peer.descriptors_possible else \
-                peer.channel.take_message(self.msg_type)
+                peer.channel.take_message(self.msg_type, C_DESERIALIZE_MAX_BYTES)
             if taken is not None:
                 self._counts['from_channels'] += 1
                 self._next_channel = (self._next_channel + i + 1) % count
@@ -307,7 +311,7 @@ class Subscription(BufferEndpoint):
 
     def _take_main(self):
         # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
-        taken = _dds.take_message_with_gid(self._sub, self.msg_type)
+        taken = _dds.take_message_with_gid(self._sub, self.msg_type, C_DESERIALIZE_MAX_BYTES)
         if taken is None:
             return None, None
         self._counts['from_main_topic'] += 1

@@ -500,6 +500,17 @@ def test_take_message_hands_back_what_does_not_deserialize(ctx):
         results = [_wait(take)[0] for _ in samples]
         assert results[:3] == samples[:3]
         assert results[3] == _image(12, seed=4)
+    # max_size: longer samples come back as bytes, shorter ones as messages
+    pub.publish(good)
+    chan.publish(good, source_timestamp=2)
+    for take in (lambda size: _dds.take_message_with_gid(sub, Image, size),
+                 lambda size: chan_sub.take_message(Image, max_size=size)):
+        assert _wait(lambda: take(len(good) - 1))[0] == good
+    pub.publish(good)
+    chan.publish(good, source_timestamp=3)
+    for take in (lambda: _dds.take_message_with_gid(sub, Image, len(good)),
+                 lambda: chan_sub.take_message(Image, len(good))):
+        assert _wait(take)[0] == _image(12, seed=4)
     node.destroy_node()
 
 

@@ -13,7 +13,7 @@
 //   ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,
 //                       guard_condition=None)
 //     .take() -> (bytes, publisher_gid, info) | None
-//     .take_message(msg_class) -> (message | bytes, publisher_gid, info) | None
+//     .take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None
 //     .matched_count() -> int   matched publishers
 //     .gid, .topic_name, .valid
 //     .destroy()
@@ -695,7 +695,8 @@ PyObject * sub_destroy(PyObject * op, PyObject *)
 
 /// take() and take_message(): one serialized take; with `support`, the CDR is deserialized
 /// into a Python message when it can be (see taken_message_object).
-PyObject * sub_take_impl(ChannelSubscriptionObject * self, const MessageSupport * support)
+PyObject * sub_take_impl(
+  ChannelSubscriptionObject * self, const MessageSupport * support, Py_ssize_t max_size)
 {
   rmw_ret_t ret = RMW_RET_OK;
   bool valid = true;
@@ -718,7 +719,7 @@ PyObject * sub_take_impl(ChannelSubscriptionObject * self, const MessageSupport 
       self->subscription, self->buffer, &taken, &info, nullptr);
     if (ret != RMW_RET_OK) {
       error = take_rmw_error();
-    } else if (taken && support != nullptr) {
+    } else if (taken && support != nullptr && fits(*self->buffer, max_size)) {
       deserialized = try_deserialize(*support, *self->buffer, ros_message->get());
     }
   }
@@ -760,16 +761,24 @@ PyObject * sub_take_impl(ChannelSubscriptionObject * self, const MessageSupport 
 
 PyObject * sub_take(PyObject * op, PyObject *)
 {
-  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), nullptr);
+  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), nullptr, -1);
 }
 
-PyObject * sub_take_message(PyObject * op, PyObject * msg_class)
+PyObject * sub_take_message(PyObject * op, PyObject * args, PyObject * kwds)
 {
+  static const char * kwlist[] = {"msg_class", "max_size", nullptr};
+  PyObject * msg_class;
+  Py_ssize_t max_size = -1;
+  if (!PyArg_ParseTupleAndKeywords(
+      args, kwds, "O|n:take_message", const_cast<char **>(kwlist), &msg_class, &max_size))
+  {
+    return nullptr;
+  }
   MessageSupport support;
   if (support.load(msg_class) < 0) {
     return nullptr;
   }
-  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), &support);
+  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), &support, max_size);
 }
 
 PyObject * sub_matched_count(PyObject * op, PyObject *)
@@ -790,10 +799,13 @@ PyMethodDef sub_methods[] = {
   {"take", sub_take, METH_NOARGS,
     "take() -> (bytes, publisher_gid, info) | None\n\nTake one serialized message: CDR "
     "bytes, the writer's 16-byte GID and an rclpy-like message info dict."},
-  {"take_message", sub_take_message, METH_O,
-    "take_message(msg_class) -> (message | bytes, publisher_gid, info) | None\n\nTake one "
-    "message and deserialize it into a msg_class instance, as rclpy's take does; CDR that does "
-    "not deserialize (a descriptor payload, malformed data) comes back as bytes instead."},
+  {"take_message",
+    reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(sub_take_message)),
+    METH_VARARGS | METH_KEYWORDS,
+    "take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None\n\n"
+    "Take one message and deserialize it into a msg_class instance, as rclpy's take does; CDR "
+    "that does not deserialize (a descriptor payload, malformed data), or is longer than "
+    "max_size bytes when max_size >= 0, comes back as bytes instead."},
   {"matched_count", sub_matched_count, METH_NOARGS,
     "matched_count() -> int: publishers currently matched."},
   {"destroy", sub_destroy, METH_NOARGS,

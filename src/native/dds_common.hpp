@@ -144,6 +144,12 @@ PyObject * taken_message_object(
   const MessageSupport & support, void * ros_message, bool deserialized,
   const rmw_serialized_message_t & serialized);
 
+/// Whether a sample of this length is to be deserialized (max_size < 0: any length).
+inline bool fits(const rmw_serialized_message_t & serialized, Py_ssize_t max_size)
+{
+  return max_size < 0 || serialized.buffer_length <= static_cast<size_t>(max_size);
+}
+
 /// rmw_deserialize `serialized` into `ros_message` (GIL not needed). False when the bytes do
 /// not deserialize (the rmw error is cleared) or are not XCDR1 (encapsulation 0x0000/0x0001,
 /// the only ones rosidl_buffer_py.codec reads).

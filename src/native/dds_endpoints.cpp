@@ -4,7 +4,7 @@
 //   get_user_data(endpoint, kind) -> bytes
 //   set_user_data(endpoint, kind, data) -> None
 //   take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None
-//   take_message_with_gid(subscription, msg_class) -> (message | bytes, gid, info) | None
+//   take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, gid, info) | None
 //   publish_serialized(publisher, data, source_timestamp) -> None
 //   matched_subscription_gids(publisher) -> list[bytes]
 //   set_new_message_wakeup(subscription, guard_condition) -> None
@@ -209,7 +209,7 @@ PyObject * set_user_data(PyObject *, PyObject * args)
 
 /// take_serialized_with_gid and take_message_with_gid: one serialized take from an rcl
 /// subscription; with `support`, deserialized into a Python message when it can be.
-PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support)
+PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_ssize_t max_size)
 {
   PinnedHandle sub;
   if (sub.acquire(sub_arg, "subscription") < 0) {
@@ -234,7 +234,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support)
     }
     if (ret != RCL_RET_OK && ret != RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
       error = take_rmw_error();
-    } else if (ret == RCL_RET_OK && support != nullptr) {
+    } else if (ret == RCL_RET_OK && support != nullptr && fits(msg, max_size)) {
       deserialized = try_deserialize(*support, msg, ros_message->get());
     }
   }
@@ -273,21 +273,22 @@ PyObject * take_serialized_with_gid(PyObject *, PyObject * args)
   if (!PyArg_ParseTuple(args, "O:take_serialized_with_gid", &sub_arg)) {
     return nullptr;
   }
-  return take_with_gid(sub_arg, nullptr);
+  return take_with_gid(sub_arg, nullptr, -1);
 }
 
 PyObject * take_message_with_gid(PyObject *, PyObject * args)
 {
   PyObject * sub_arg;
   PyObject * msg_class;
-  if (!PyArg_ParseTuple(args, "OO:take_message_with_gid", &sub_arg, &msg_class)) {
+  Py_ssize_t max_size = -1;
+  if (!PyArg_ParseTuple(args, "OO|n:take_message_with_gid", &sub_arg, &msg_class, &max_size)) {
     return nullptr;
   }
   MessageSupport support;
   if (support.load(msg_class) < 0) {
     return nullptr;
   }
-  return take_with_gid(sub_arg, &support);
+  return take_with_gid(sub_arg, &support, max_size);
 }
 
 PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
@@ -522,10 +523,11 @@ PyMethodDef endpoint_methods[] = {
     "Replace that USER_DATA (keep rmw's 'typehash=...;' prefix!). Remote participants see\n"
     "the change as a 'changed' discovery event."},
   {"take_message_with_gid", take_message_with_gid, METH_VARARGS,
-    "take_message_with_gid(subscription, msg_class) -> (message | bytes, publisher_gid, info) "
-    "| None\n\nAs take_serialized_with_gid, but the CDR is deserialized into a msg_class "
-    "instance as rclpy's take does; CDR that does not deserialize (a descriptor payload, "
-    "malformed data) comes back as bytes."},
+    "take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, "
+    "publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is deserialized "
+    "into a msg_class instance as rclpy's take does; CDR that does not deserialize (a "
+    "descriptor payload, malformed data), or is longer than max_size bytes when max_size >= 0, "
+    "comes back as bytes."},
   {"take_serialized_with_gid", take_serialized_with_gid, METH_VARARGS,
     "take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None\n\n"
     "rcl_take_serialized_message on an rcl subscription: the CDR bytes, the 16-byte GID of\n"
