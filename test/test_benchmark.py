@@ -1,7 +1,7 @@
 """The benchmark suite runs end to end and writes its table and plot (no timing asserts).
 
-Runs ``python -m launch_free_demos.benchmark --smoke`` (the smallest mode that still fills every
-table row) in a subprocess, inside this test session's ROS domain (see conftest.py).
+Runs README's quick mode, ``./dev benchmark --quick``, in a subprocess, inside this test
+session's ROS domain (see conftest.py), as CI does.
 """
 import os
 import subprocess

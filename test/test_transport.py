@@ -173,6 +173,41 @@ def test_in_process(context, publishers, subscriptions, backend, accept, expecte
     sub_node.destroy_node()
 
 
+def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
+    """publish() writes to the routes its last call found and re-checks them after the write:
+    a legacy subscriber that matched meanwhile still gets every later message, exactly once."""
+    node = rclpy.create_node('routes', context=context)
+    got, legacy_got = [], []
+    sub = rosidl_buffer_py.create_subscription(
+        node, Image, '/routes_image', lambda m: got.append(check_frame(m).counter), RELIABLE)
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/routes_image', RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    for counter in range(5):
+        pub.publish(_frame(counter, 'cpu'))
+    assert _spin_until(executor, lambda: len(got) == 5)
+    assert pub.statistics()['sent_on_main_topic'] == 0  # the channel serves the only subscriber
+    legacy = node.create_subscription(
+        Image, '/routes_image', lambda m: legacy_got.append(check_frame(m).counter), RELIABLE)
+    assert _spin_until(executor, lambda: pub.get_subscription_count() == 2)
+    for counter in range(5, 10):  # the first one goes to the stale routes, then the re-check
+        pub.publish(_frame(counter, 'cpu'))
+    assert _spin_until(executor, lambda: len(got) >= 10 and len(legacy_got) >= 5)
+    node.destroy_subscription(legacy)
+    assert _spin_until(executor, lambda: pub.get_subscription_count() == 1)
+    for counter in range(10, 15):
+        pub.publish(_frame(counter, 'cpu'))
+    assert _spin_until(executor, lambda: len(got) >= 15)
+    executor.spin_once(timeout_sec=0.2)
+    assert legacy_got == list(range(5, 10))
+    assert sorted(got) == list(range(15)), got  # exactly once, main-topic twins dropped
+    stats = sub.statistics()
+    assert stats['rejected'] == 0 and stats['from_channels'] == 15, stats
+    assert pub.statistics()['sent_on_main_topic'] in (5, 6), pub.statistics()  # 6: one stale
+    node.destroy_node()
+
+
 def test_destroy_node_removes_channels_and_destroy_is_idempotent(context):
     node = rclpy.create_node('destroy_me', context=context)
     observer = rclpy.create_node('observer2', context=context)
