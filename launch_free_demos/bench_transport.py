@@ -3,10 +3,14 @@
 For each payload, a publisher process sends ``--frames`` frames at ``--rate`` Hz to a subscriber
 process; the subscriber measures publish -> callback latency (wall clock, same machine) and
 verifies every frame's checksum. Prints a markdown table of medians and p90s and the ratios the
-project targets. A benchmark: it prints, it asserts nothing. ``./dev bench-transport``.
+project targets. With ``--rounds N`` every payload is measured N times, the transports
+interleaved round by round, and each cell is the median over the rounds (run-to-run noise on a
+shared machine is larger than the differences at small payloads). A benchmark: it prints, it
+asserts nothing. ``./dev bench-transport``.
 """
 import argparse
 import os
+import statistics
 import sys
 
 from launch_free_demos.runner import Run
@@ -52,22 +56,34 @@ def main(argv=None) -> int:
     parser.add_argument('--rate', type=float, default=10.0)
     parser.add_argument('--payloads', nargs='*', default=[p[0] for p in PAYLOADS],
                         help='labels from: ' + ', '.join(p[0] for p in PAYLOADS))
+    parser.add_argument('--rounds', type=int, default=1,
+                        help='measure each payload this many times, transports interleaved; '
+                             'cells are medians over the rounds')
     args = parser.parse_args(argv)
+    if args.rounds < 1:
+        parser.error(f'--rounds must be at least 1, got {args.rounds}')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    results = {}
+    rounds = {}
     for label, width, height, encoding in PAYLOADS:
         if label not in args.payloads:
             continue
-        for transport in TRANSPORTS:
-            report = measure(transport, width, height, encoding, args.frames, args.rate)
-            results[(label, transport)] = report
-            lat = report['latency_ms']
-            print(f'{label:>16} {transport:<22} p50 {lat["p50"]:9.3f} ms  p90 {lat["p90"]:9.3f} '
-                  f'ms  backends {report["backends"]}', file=sys.stderr, flush=True)
+        for index in range(args.rounds):
+            for transport in TRANSPORTS:
+                report = measure(transport, width, height, encoding, args.frames, args.rate)
+                rounds.setdefault((label, transport), []).append(report['latency_ms'])
+                lat = report['latency_ms']
+                print(f'{label:>16} {transport:<22} round {index + 1}/{args.rounds} p50 '
+                      f'{lat["p50"]:9.3f} ms  p90 {lat["p90"]:9.3f} ms  backends '
+                      f'{report["backends"]}', file=sys.stderr, flush=True)
+    results = {key: {'latency_ms': {q: statistics.median(r[q] for r in runs)
+                                    for q in ('p50', 'p90')}}
+               for key, runs in rounds.items()}
+    over = f', medians over {args.rounds} interleaved rounds' if args.rounds > 1 else ''
     print(f'\nLatency publish -> callback in ms, median / p90 of {args.frames} frames at '
-          f'{args.rate:g} Hz, publisher and subscriber in separate processes.\n')
+          f'{args.rate:g} Hz{over}, publisher and subscriber in separate processes.\n')
     print('| payload | ' + ' | '.join(TRANSPORTS) + ' | cpu / stock | stock / demo |')
     print('|---' * (len(TRANSPORTS) + 3) + '|')
+    per_round = []
     for label, *_ in PAYLOADS:
         if (label, 'stock rclpy') not in results:
             continue
@@ -77,6 +93,14 @@ def main(argv=None) -> int:
         cpu = results[(label, 'rosidl_buffer_py cpu')]['latency_ms']['p50']
         demo = results[(label, 'rosidl_buffer_py demo')]['latency_ms']['p50']
         print(f'| {label} | ' + ' | '.join(cells) + f' | {cpu / stock:.2f} | {stock / demo:.1f} |')
+        if args.rounds > 1:
+            ratios = [c['p50'] / s['p50'] for c, s in zip(
+                rounds[(label, 'rosidl_buffer_py cpu')], rounds[(label, 'stock rclpy')])]
+            per_round.append(f'{label}: CPU path / stock p50 per round: '
+                             + ', '.join(f'{r:.2f}' for r in ratios)
+                             + f' (median {statistics.median(ratios):.2f})')
+    if per_round:
+        print('\n' + '\n'.join(per_round))
     small, big = ('1 KiB', 'rosidl_buffer_py demo'), ('3840x2160 rgb8', 'rosidl_buffer_py demo')
     if small in results and big in results:
         print(f"\ndemo 3840x2160 / demo 1 KiB latency: "
