@@ -22,6 +22,9 @@ def main(argv=None) -> int:
     parser.add_argument('--backend', default='demo', help='payload backend: demo or cpu')
     parser.add_argument('--accept', default='demo',
                         help="subscriber's acceptable_buffer_backends (default: demo)")
+    parser.add_argument('--depth', type=int, default=30,
+                        help='KEEP_LAST depth of both endpoints (default 30: one second at 30 Hz, '
+                             'so that a subscriber stalled by a busy machine loses nothing)')
     args = parser.parse_args(argv)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     count = max(1, int(args.rate * args.seconds))
@@ -32,10 +35,11 @@ def main(argv=None) -> int:
     with Run(echo=True) as run:
         run.start('demo_subscriber', 'image_subscriber', topic='/demo/image',
                   acceptable_buffer_backends=args.accept, expected_count=count,
-                  timeout_sec=args.seconds + 60.0, report_period_sec=1.0)
+                  timeout_sec=args.seconds + 60.0, report_period_sec=1.0, depth=args.depth)
         run.start('demo_publisher', 'image_publisher', topic='/demo/image',
                   backend=args.backend, rate_hz=args.rate, count=count,
-                  wait_for_subscribers=1, wait_for_buffer_peers=1, linger_sec=10.0, **frame)
+                  wait_for_subscribers=1, wait_for_buffer_peers=1, linger_sec=10.0,
+                  depth=args.depth, **frame)
         finished = run.wait(timeout=args.seconds + 90.0)
         run.stop_all()
         sub = run.nodes['demo_subscriber'].report
