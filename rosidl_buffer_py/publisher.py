@@ -221,7 +221,7 @@ class Publisher(BufferEndpoint):
             if missing:
                 _dds.write_message(msg, timestamp, missing)
             self._routes = routes
-            for peer in routes.peers:
+            for peer in {id(p): p for p in used.peers + routes.peers}.values():
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
             self._sent_main += used.main or routes.main
