@@ -694,7 +694,7 @@ PyObject * sub_destroy(PyObject * op, PyObject *)
 }
 
 /// take() and take_message(): one serialized take; with `support`, the CDR is deserialized
-/// into a Python message when it can be (see taken_message_object).
+/// into a Python message when it can be (see try_deserialize).
 PyObject * sub_take_impl(
   ChannelSubscriptionObject * self, const MessageSupport * support, Py_ssize_t max_size)
 {
@@ -704,10 +704,7 @@ PyObject * sub_take_impl(
   bool deserialized = false;
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   std::string error;
-  std::unique_ptr<OwnedRosMessage> ros_message;
-  if (support != nullptr) {
-    ros_message = std::make_unique<OwnedRosMessage>(*support);
-  }
+  OwnedRosMessage ros_message(support);  // created only for a sample to deserialize
   PyThreadState * ts = PyEval_SaveThread();
   // Held until the bytes are copied out of the reused buffer (taken with the GIL released,
   // so no thread ever holds the GIL while waiting for it).
@@ -720,7 +717,7 @@ PyObject * sub_take_impl(
     if (ret != RMW_RET_OK) {
       error = take_rmw_error();
     } else if (taken && support != nullptr && fits(*self->buffer, max_size)) {
-      deserialized = try_deserialize(*support, *self->buffer, ros_message->get());
+      deserialized = try_deserialize(*support, *self->buffer, &ros_message);
     }
   }
   PyEval_RestoreThread(ts);
@@ -733,16 +730,12 @@ PyObject * sub_take_impl(
     Py_INCREF(Py_None);
     result = Py_None;
   } else {
-    PyObject * data = nullptr;
-    if (support == nullptr) {
-      data = PyBytes_FromStringAndSize(
-        reinterpret_cast<const char *>(self->buffer->buffer),
-        static_cast<Py_ssize_t>(self->buffer->buffer_length));
-    } else if (!deserialized) {
-      data = taken_message_object(*support, nullptr, false, *self->buffer);
-    } else {
+    PyObject * data;
+    if (deserialized) {
       lock.unlock();  // the C message is ours: convert it without holding the channel
-      data = taken_message_object(*support, ros_message->get(), true, *self->buffer);
+      data = support->to_py(ros_message.get());
+    } else {
+      data = serialized_bytes(*self->buffer);
     }
     PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
     PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
@@ -921,8 +914,8 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
     Py_DECREF(targets);
     return nullptr;
   }
-  OwnedRosMessage ros_message(support);
-  if (ros_message.get() == nullptr) {
+  OwnedRosMessage ros_message(&support);
+  if (ros_message.create() == nullptr) {
     Py_DECREF(targets);
     return PyErr_NoMemory();
   }

@@ -120,29 +120,27 @@ struct MessageSupport
   const void * fastrtps_callbacks() const;
 };
 
-/// A C message owned for the duration of a call (destroyed with it).
+/// A C message owned for the duration of a call: created on demand by create() (plain C,
+/// no GIL needed), destroyed with this object. `support` may be null when none is needed.
 class OwnedRosMessage
 {
 public:
-  explicit OwnedRosMessage(const MessageSupport & support)
-  : support_(support), msg_(support.create()) {}
-  ~OwnedRosMessage() {if (msg_) {support_.destroy(msg_);}}
+  explicit OwnedRosMessage(const MessageSupport * support)
+  : support_(support) {}
+  ~OwnedRosMessage() {if (msg_) {support_->destroy(msg_);}}
   OwnedRosMessage(const OwnedRosMessage &) = delete;
   OwnedRosMessage & operator=(const OwnedRosMessage &) = delete;
+  /// The message, created on first call; nullptr when out of memory.
+  void * create() {return msg_ ? msg_ : (msg_ = support_->create());}
   void * get() const {return msg_;}
 
 private:
-  const MessageSupport & support_;
-  void * msg_;
+  const MessageSupport * support_;
+  void * msg_ = nullptr;
 };
 
-/// The result of a take as Python: the message when `serialized` deserializes with the class's
-/// type support, otherwise (descriptor payloads, malformed data) a bytes copy of the CDR for
-/// the Python codec. `deserialized` says which; `ros_message` is where it was deserialized.
-/// Call with the GIL held, after `try_deserialize` (which runs without it).
-PyObject * taken_message_object(
-  const MessageSupport & support, void * ros_message, bool deserialized,
-  const rmw_serialized_message_t & serialized);
+/// A bytes copy of serialized CDR (GIL held).
+PyObject * serialized_bytes(const rmw_serialized_message_t & serialized);
 
 /// Whether a sample of this length is to be deserialized (max_size < 0: any length).
 inline bool fits(const rmw_serialized_message_t & serialized, Py_ssize_t max_size)
@@ -150,12 +148,13 @@ inline bool fits(const rmw_serialized_message_t & serialized, Py_ssize_t max_siz
   return max_size < 0 || serialized.buffer_length <= static_cast<size_t>(max_size);
 }
 
-/// rmw_deserialize `serialized` into `ros_message` (GIL not needed). False when the bytes do
-/// not deserialize (the rmw error is cleared) or are not XCDR1 (encapsulation 0x0000/0x0001,
-/// the only ones rosidl_buffer_py.codec reads).
+/// rmw_deserialize `serialized` into `ros_message`, creating it (GIL not needed). False when
+/// the bytes do not deserialize (the rmw error is cleared) or are not XCDR1 (encapsulation
+/// 0x0000/0x0001, the only ones rosidl_buffer_py.codec reads): hand serialized_bytes() to the
+/// codec then. On success, convert with `support.to_py(ros_message.get())` (GIL held).
 bool try_deserialize(
   const MessageSupport & support, const rmw_serialized_message_t & serialized,
-  void * ros_message);
+  OwnedRosMessage * ros_message);
 
 // Registration of each part (called from add_dds_api).
 int add_dds_endpoint_functions(PyObject * module);

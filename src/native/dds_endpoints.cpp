@@ -13,7 +13,6 @@
 // `endpoint` is an rcl_publisher_t* / rcl_subscription_t* (int), an rclpy handle, or an
 // rclpy Publisher/Subscription; `kind` is "publisher" or "subscription" and must match it.
 #include <map>
-#include <memory>
 #include <mutex>
 #include <vector>
 
@@ -215,10 +214,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
   if (sub.acquire(sub_arg, "subscription") < 0) {
     return nullptr;
   }
-  std::unique_ptr<OwnedRosMessage> ros_message;
-  if (support != nullptr) {
-    ros_message = std::make_unique<OwnedRosMessage>(*support);
-  }
+  OwnedRosMessage ros_message(support);  // created only for a sample to deserialize
   rcl_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   rcl_ret_t ret;
@@ -235,7 +231,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
     if (ret != RCL_RET_OK && ret != RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
       error = take_rmw_error();
     } else if (ret == RCL_RET_OK && support != nullptr && fits(msg, max_size)) {
-      deserialized = try_deserialize(*support, msg, ros_message->get());
+      deserialized = try_deserialize(*support, msg, &ros_message);
     }
   }
   PyObject * result = nullptr;
@@ -245,10 +241,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
   } else if (ret != RCL_RET_OK) {
     raise_rmw_error("rcl_take_serialized_message failed", error);
   } else {
-    PyObject * data = support == nullptr ?
-      PyBytes_FromStringAndSize(
-      reinterpret_cast<const char *>(msg.buffer), static_cast<Py_ssize_t>(msg.buffer_length)) :
-      taken_message_object(*support, ros_message->get(), deserialized, msg);
+    PyObject * data = deserialized ? support->to_py(ros_message.get()) : serialized_bytes(msg);
     PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
     PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
     if (info_dict) {

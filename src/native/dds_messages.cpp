@@ -77,30 +77,26 @@ const void * MessageSupport::fastrtps_callbacks() const
 
 bool try_deserialize(
   const MessageSupport & support, const rmw_serialized_message_t & serialized,
-  void * ros_message)
+  OwnedRosMessage * ros_message)
 {
-  if (ros_message == nullptr) {
-    return false;
-  }
   // Only XCDR1 (what ROS 2 writes): other encapsulations go to the codec, which names them.
   const uint8_t * cdr = serialized.buffer;
   if (serialized.buffer_length < 4 || cdr[0] != 0 || cdr[1] > 1) {
     return false;
   }
-  if (rmw_deserialize(&serialized, support.type_support, ros_message) != RMW_RET_OK) {
+  void * msg = ros_message->create();
+  if (msg == nullptr) {
+    return false;
+  }
+  if (rmw_deserialize(&serialized, support.type_support, msg) != RMW_RET_OK) {
     rcutils_reset_error();
     return false;
   }
   return true;
 }
 
-PyObject * taken_message_object(
-  const MessageSupport & support, void * ros_message, bool deserialized,
-  const rmw_serialized_message_t & serialized)
+PyObject * serialized_bytes(const rmw_serialized_message_t & serialized)
 {
-  if (deserialized) {
-    return support.to_py(ros_message);
-  }
   return PyBytes_FromStringAndSize(
     reinterpret_cast<const char *>(serialized.buffer),
     static_cast<Py_ssize_t>(serialized.buffer_length));
