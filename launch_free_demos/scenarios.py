@@ -49,6 +49,11 @@ class Scenario:
     #: how long publishers may take to leave once their subscribers are done (a SIGKILLed
     #: subscriber stays matched until its DDS lease expires, about 20 s by default)
     publisher_exit_timeout: float = 15.0
+    #: KEEP_LAST depth of every endpoint; None: every frame of the run. The scenarios check
+    #: that each frame arrives, which RELIABLE delivery promises only while the history holds
+    #: what a stalled subscriber has not acknowledged yet: depth 10 at 50 Hz is 0.2 s, and a
+    #: loaded CI machine stops processes for longer than that.
+    depth: Optional[int] = None
 
     @property
     def topic(self) -> str:
@@ -59,11 +64,12 @@ class Scenario:
         result = Result(self)
         total = self.count * len(self.publishers)
         buffer_subs = sum(1 for s in self.subscribers if not s.legacy)
+        depth = self.depth or total
         with Run(echo=echo) as run:
             def start_subscribers():
                 for sub in self.subscribers:
                     params = dict(topic=self.topic, expected_count=total,
-                                  timeout_sec=timeout)
+                                  timeout_sec=timeout, depth=depth)
                     if sub.expect_backend:
                         params['expected_backend'] = sub.expect_backend
                     if sub.legacy:
@@ -78,7 +84,7 @@ class Scenario:
                     params = dict(topic=self.topic, backend=pub.backend,
                                   count=self.count, first_frame=index * self.count,
                                   rate_hz=self.rate_hz,
-                                  wait_for_subscribers=len(self.subscribers),
+                                  wait_for_subscribers=len(self.subscribers), depth=depth,
                                   wait_timeout_sec=timeout,
                                   linger_sec=self.publisher_exit_timeout, **SMALL)
                     if not pub.legacy:
@@ -145,6 +151,7 @@ class Result:
                     self.failures.append(f'{sub.label}: {key} = {report[key]}, expected '
                                          f'{expected} (backends {report["backends"]}, '
                                          f'counters {counters}, '
+                                         f'missing {report.get("missing")}, '
                                          f'problems {report["problems"][:3]})')
             if sub.expect_backend and report['backends'] != {sub.expect_backend: total}:
                 self.failures.append(f"{sub.label}: backends {report['backends']}, expected "

@@ -176,6 +176,8 @@ def plain_sub(topic: str) -> int:
 def pub_on_demand(topic: str) -> int:
     node = rclpy.create_node('native_dds_pub_on_demand')
     pub = node.create_publisher(Image, topic, 10)
+    while pub.get_subscription_count() < 1:  # volatile: a sample before the match is lost
+        time.sleep(0.01)
     say('READY ' + json.dumps({'gid': _dds.endpoint_gid(pub).hex()}))
     sent = 0
     for line in sys.stdin:

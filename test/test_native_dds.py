@@ -617,8 +617,9 @@ def test_new_message_wakeup_cross_process(ctx):
     peer = Peer('pub_on_demand', topic)
     try:
         peer_gid = bytes.fromhex(peer.expect('READY ')['gid'])
-        assert _wait(lambda: node.count_publishers(topic) == 1, timeout=15)
-        time.sleep(0.3)  # let the peer's writer match our reader too (volatile)
+        # both ends matched (the peer says READY once its writer matched our reader), so the
+        # volatile samples below cannot be lost, however slow the machine
+        assert _wait(lambda: sub.get_publisher_count() == 1, timeout=15)
         peer.send('pub 1')
         assert spin_until(lambda: woken)
         assert [t[1] for t in _wait(lambda: _drain(sub))] == [peer_gid]

@@ -6,8 +6,8 @@ wrong), expected_count (exit once that many distinct frames arrived; 0 = until s
 timeout_sec (give up after this long; 0 = never), reliability, depth, legacy (a plain rclpy
 subscription), raw (legacy only: take serialized bytes and check they are canonical CDR),
 report_period_sec (log a summary this often, default 5 s; 0 = never).
-The report (a JSON line at exit): received, distinct, duplicates, gaps, checksum failures,
-backends seen, wrong-backend frames and latency percentiles.
+The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
+frames), checksum failures, backends seen, wrong-backend frames and latency percentiles.
 """
 import collections
 import time
@@ -99,14 +99,15 @@ class ImageSubscriber(Node):
     def report(self) -> dict:
         p = self.params
         lat = numpy.array(self.latencies) if self.latencies else numpy.zeros(1)
-        gaps = 0
+        missing = []
         if self.seen:
             span = p['expected_count'] or (max(self.seen) + 1)
-            gaps = len(set(range(span)) - self.seen)
+            missing = sorted(set(range(span)) - self.seen)
         report = {
             'role': 'subscriber', 'node': self.get_name(), 'params': p,
             'received': self.counters['received'], 'distinct': len(self.seen),
-            'duplicates': self.counters['duplicates'], 'gaps': gaps,
+            'duplicates': self.counters['duplicates'], 'gaps': len(missing),
+            'missing': missing[:20],
             'checksum_failures': self.counters['checksum_failures'],
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
