@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from launch_free_demos.benchmark import ALL_ROWS, FANOUT_TRANSPORTS, MODES
+from launch_free_demos.benchmark import (
+    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MODES, STOCK, Result, median_run, paired_ratios)
 
 ROOT = Path(__file__).resolve().parent.parent
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
@@ -64,3 +65,27 @@ def test_modes_cover_every_transport_and_the_quick_mode_stays_small():
     for mode in MODES.values():
         assert mode.payloads and mode.rate_payloads and mode.fanout_payloads
         assert 1 in mode.fanout_subscribers and len(mode.fanout_subscribers) >= 2
+
+
+def _run(p50, complete=True, pub_cpu_ms=None):
+    return Result(STOCK, '1 KiB', 1, 30, 5.0, complete=complete,
+                  latency={} if p50 is None else {'p50': p50}, pub_cpu_ms=pub_cpu_ms)
+
+
+def test_median_run_takes_the_middle_latency_of_the_complete_runs():
+    runs = [_run(3.0), _run(1.0), _run(2.0)]
+    assert median_run(runs) is runs[2]
+    runs.append(_run(0.5, complete=False))  # lost frames: never the row shown
+    assert median_run(runs) is runs[2]
+    assert median_run([_run(4.0), _run(1.0), _run(3.0), _run(2.0)]).latency['p50'] == 2.0
+    only_failed = [_run(None, complete=False)]
+    assert median_run(only_failed) is only_failed[0]
+
+
+def test_paired_ratios_compare_cpu_path_and_stock_round_by_round():
+    rounds = {(CPU, '1 KiB'): [_run(1.1, pub_cpu_ms=2.0), _run(3.0), _run(1.0)],
+              (STOCK, '1 KiB'): [_run(1.0, pub_cpu_ms=4.0), _run(2.0)]}
+    assert paired_ratios(rounds, '1 KiB', lambda r: r.latency.get('p50')) == \
+        pytest.approx([1.1, 1.5])  # the unpaired third CPU-path round is left out
+    assert paired_ratios(rounds, '1 KiB', lambda r: r.pub_cpu_ms) == [0.5]  # None skipped
+    assert paired_ratios(rounds, '1 MiB', lambda r: r.pub_cpu_ms) == []
