@@ -35,6 +35,8 @@ CHANNEL_SETTLE_SECONDS = 0.2
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
+#: Cached routes are recomputed at least this often, whatever else says they are current.
+ROUTES_RECHECK_SECONDS = 0.5
 
 
 @dataclass
@@ -54,11 +56,20 @@ class _SubscriptionPeer:
 
 
 class _Routes(NamedTuple):
-    """Where a CPU message goes: the peers served on their channels, and the main topic."""
+    """Where a message goes: the peers served on their channels, and the main topic.
+
+    Computing them asks the middleware for the main topic's matched subscriptions (tens of
+    microseconds), so they are cached. They stay valid while ``signature`` (matched counts of
+    the main topic and of every channel) is unchanged, until ``recheck_at`` (a channel
+    finishing its settle time, or ``ROUTES_RECHECK_SECONDS``), and until a discovery event
+    about our topic (see ``Publisher._on_peer``) drops them.
+    """
 
     peers: Tuple[_SubscriptionPeer, ...]
     main: bool
     targets: list  #: their channels, then the main-topic publisher when ``main``
+    signature: tuple
+    recheck_at: float
 
 
 class Publisher(BufferEndpoint):
@@ -170,11 +181,9 @@ class Publisher(BufferEndpoint):
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
             timestamp = self._next_timestamp()
-            served = set()
-            for peer in self._peers.values():
+            routes = self._valid_routes()
+            for peer in routes.peers:  # the others get the message on the main topic
                 channel = peer.channel
-                if channel is None or not self._channel_ready(peer):
-                    continue  # not (long enough) matched: the main topic carries the message
                 data = None
                 if vendor is not None and vendor in peer.compatible:
                     descriptor = self._describe(vendor, payload, peer)
@@ -189,8 +198,7 @@ class Publisher(BufferEndpoint):
                     peer.sent_cpu += 1
                     peer.backend_in_use = CPU_BACKEND
                 channel.publish(data, timestamp)
-                served.add(peer.info.gid)
-            if self._main_topic_needed(served):
+            if routes.main:
                 if cpu_bytes is None:
                     cpu_bytes = codec.encode(msg)
                 _dds.publish_serialized(self._publisher, cpu_bytes, timestamp)
@@ -202,37 +210,65 @@ class Publisher(BufferEndpoint):
         Every target gets the same legacy CPU encoding, so rmw serializes the message itself, as
         rclpy's ``publish`` does: one conversion to C, no Python-level CDR work.
 
-        The message goes first to the routes the previous publish() found, and the routes are
-        checked again right after the write, off the path the subscribers' latency sees: a
-        target that became needed meanwhile (a channel that settled, a new legacy subscriber)
-        gets the message then, with the same source timestamp. A route no longer needed costs at
-        most one extra copy, which buffer-aware subscriptions drop as a duplicate. Any change of
-        peers forgets the routes (their channels may be gone).
+        The message goes first to the cached routes (see :class:`_Routes`), which are checked
+        right after the write, off the path the subscribers' latency sees: a target that became
+        needed meanwhile (a channel that settled, a new legacy subscriber) gets the message
+        then, with the same source timestamp. A route no longer needed costs at most one extra
+        copy, which buffer-aware subscriptions drop as a duplicate.
         """
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
             timestamp = self._next_timestamp()
-            used = self._routes if self._routes is not None else self._current_routes()
+            used = self._routes
+            if used is None:
+                used = self._routes = self._current_routes()
             if used.targets:
                 _dds.write_message(msg, timestamp, used.targets)
-            routes = self._current_routes()
-            missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
-            if missing:
-                _dds.write_message(msg, timestamp, missing)
-            self._routes = routes
-            for peer in {id(p): p for p in used.peers + routes.peers}.values():
+            routes = self._valid_routes()
+            if routes is not used:
+                missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
+                if missing:
+                    _dds.write_message(msg, timestamp, missing)
+            for peer in used.peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
+            for peer in routes.peers if routes is not used else ():
+                if not any(peer is p for p in used.peers):
+                    peer.sent_cpu += 1
+                    peer.backend_in_use = CPU_BACKEND
             self._sent_main += used.main or routes.main
+
+    def _valid_routes(self) -> '_Routes':
+        """The cached routes if they are still current, else freshly computed (and cached)."""
+        routes = self._routes
+        if (routes is None or time.monotonic() >= routes.recheck_at or
+                self._route_signature() != routes.signature):
+            routes = self._routes = self._current_routes()
+        return routes
+
+    def _route_signature(self) -> tuple:
+        """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
+        return (self._publisher.get_subscription_count(),
+                tuple(-1 if peer.channel is None else peer.channel.matched_count()
+                      for peer in self._peers.values()))
 
     def _current_routes(self) -> '_Routes':
         """The channels that serve their peers now, and whether the main topic is needed."""
-        peers = tuple(peer for peer in self._peers.values()
-                      if peer.channel is not None and self._channel_ready(peer))
+        signature = self._route_signature()
+        now = time.monotonic()
+        recheck_at = now + ROUTES_RECHECK_SECONDS
+        peers = []
+        for peer in self._peers.values():
+            if peer.channel is None:
+                continue
+            if self._channel_ready(peer):
+                peers.append(peer)
+            elif peer.matched_since is not None:  # settling: ready at the end of it
+                recheck_at = min(recheck_at, peer.matched_since + CHANNEL_SETTLE_SECONDS)
         main = self._main_topic_needed({peer.info.gid for peer in peers})
         targets = [peer.channel for peer in peers] + ([self._publisher] if main else [])
-        return _Routes(peers, main, targets)
+        return _Routes(tuple(peers), main, targets, signature, recheck_at)
 
     def _main_topic_needed(self, served: Set[bytes]) -> bool:
         """Whether a matched subscription is not served by one of the ``served`` channels."""
@@ -319,6 +355,18 @@ class Publisher(BufferEndpoint):
             self._node, self.msg_type, record.channel_topic, self.qos_profile)
         self._peers_added += 1
         return record
+
+    def _on_peer(self, peer) -> None:
+        # any subscription of our topic coming or changing, legacy ones too, may change routes
+        if peer.kind is self._peer_kind:
+            with self._lock:
+                self._routes = None
+        super()._on_peer(peer)
+
+    def _on_peer_gone(self, gid: bytes) -> None:
+        with self._lock:
+            self._routes = None
+        super()._on_peer_gone(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
         record.compatible = compatible
