@@ -197,3 +197,38 @@ def test_signal_mid_stream_ends_every_node_cleanly(signum):
     assert by_label['pub']['published'] > 0 and by_label['lpub']['published'] > 0
     assert by_label['sub']['backends'].get('demo', 0) > 0, by_label['sub']
     assert by_label['sub']['checksum_failures'] == by_label['lsub']['checksum_failures'] == 0
+
+
+_HUNG_TEARDOWN = '''
+import time
+import rclpy
+from rclpy.node import Node
+from rosidl_buffer_py.nodes import common
+
+common.TEARDOWN_TIMEOUT_SEC = 1.0
+
+
+class Stuck(Node):
+    def finish(self):
+        common.print_report({'role': 'stuck'})
+
+    def destroy_node(self):  # as rmw's participant teardown spinning with the GIL held
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            pass
+
+
+common.run_node(lambda: Stuck('stuck'), lambda node: None)
+'''
+
+
+def test_a_node_stuck_in_teardown_is_ended_after_its_report():
+    """A teardown that never returns (and holds the GIL) ends the process after
+    TEARDOWN_TIMEOUT_SEC: status 1, its report printed, every thread's stack on stderr."""
+    started = time.monotonic()
+    completed = subprocess.run([sys.executable, '-c', _HUNG_TEARDOWN], capture_output=True,
+                               text=True, timeout=50)
+    assert completed.returncode == 1, completed.stderr[-2000:]
+    assert time.monotonic() - started < 30
+    assert _report(completed.stdout) == {'role': 'stuck'}
+    assert 'Timeout' in completed.stderr and 'destroy_node' in completed.stderr

@@ -30,6 +30,10 @@ def print_report(report: dict) -> None:
     print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
 
 
+#: How long a node may take to tear down after its report before it is ended (see run_node).
+TEARDOWN_TIMEOUT_SEC = 20.0
+
+
 def run_node(make_node: Callable, run: Callable) -> int:
     """Init rclpy, build the node, run it; SIGINT and SIGTERM end it cleanly with its report."""
     # SIGUSR1 prints every thread's Python stack to stderr: the process runner sends it to a
@@ -51,6 +55,15 @@ def run_node(make_node: Callable, run: Callable) -> int:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if node is not None:
             node.finish()
+            # rmw's participant teardown can spin for minutes in Fast DDS 2.14's
+            # DomainParticipant::set_listener(nullptr) while a discovery callback of a peer
+            # leaving at the same moment waits for the mutex the spinning thread keeps taking
+            # (caught here twice in a day of runs, once under gdb; the busy wait is reported as
+            # eProsima/Fast-DDS#6513). That thread holds the GIL, so only faulthandler's C
+            # thread can act: after TEARDOWN_TIMEOUT_SEC it prints every thread's stack and
+            # exits with status 1. The report is already out.
+            faulthandler.dump_traceback_later(TEARDOWN_TIMEOUT_SEC, exit=True)
             node.destroy_node()
         rclpy.try_shutdown()
+        faulthandler.cancel_dump_traceback_later()
     return 0
