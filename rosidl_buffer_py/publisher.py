@@ -226,17 +226,15 @@ class Publisher(BufferEndpoint):
             if used.targets:
                 _dds.write_message(msg, timestamp, used.targets)
             routes = self._valid_routes()
+            served = used.peers
             if routes is not used:
                 missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
                 if missing:
                     _dds.write_message(msg, timestamp, missing)
-            for peer in used.peers:
+                served += tuple(p for p in routes.peers if not any(p is u for u in used.peers))
+            for peer in served:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            for peer in routes.peers if routes is not used else ():
-                if not any(peer is p for p in used.peers):
-                    peer.sent_cpu += 1
-                    peer.backend_in_use = CPU_BACKEND
             self._sent_main += used.main or routes.main
 
     def _valid_routes(self) -> '_Routes':
@@ -369,13 +367,11 @@ class Publisher(BufferEndpoint):
         super()._on_peer_gone(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
-        record.compatible = compatible
-        self._routes = None
+        record.compatible = compatible  # (_on_peer already dropped the routes)
 
     def _forget_peer(self, gid: bytes) -> None:
         if gid in self._peers:
             self._peers_removed += 1
-        self._routes = None
 
     def _release(self) -> None:
         try:
