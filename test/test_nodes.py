@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import signal
+import statistics
 import subprocess
 import sys
 import threading
@@ -232,3 +233,45 @@ def test_a_node_stuck_in_teardown_is_ended_after_its_report():
     assert time.monotonic() - started < 30
     assert _report(completed.stdout) == {'role': 'stuck'}
     assert 'Timeout' in completed.stderr and 'destroy_node' in completed.stderr
+
+
+def test_phase_sec_sends_frames_on_a_wall_clock_grid():
+    """``phase_sec``: frames at wall-clock times t with t mod (1 / rate_hz) == phase_sec (the
+    benchmark runs two transports at once this way, their frames half a period apart)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import Image
+
+    rate, phase, count = 10.0, 0.03, 8
+    topic = f'/phase_grid_{os.getpid()}'
+    stamps = []
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node('phase_grid_listener', context=context)
+        node.create_subscription(Image, topic, lambda m: stamps.append(
+            m.header.stamp.sec + m.header.stamp.nanosec * 1e-9), count)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        process = subprocess.Popen(
+            [str(DEV_LIB / 'legacy_image_publisher')] + _short_publisher_args(
+                topic=topic, count=count, rate_hz=rate, phase_sec=phase, wait_for_subscribers=1),
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            deadline = time.monotonic() + 30
+            while len(stamps) < count and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+            out, err = process.communicate(timeout=30)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+        executor.shutdown()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert process.returncode == 0, err
+    assert len(stamps) == count, (stamps, err)
+    period = 1.0 / rate
+    # signed distance of each stamp from its grid point, in (-period/2, period/2]
+    offsets = [(t - phase + period / 2) % period - period / 2 for t in stamps]
+    assert abs(statistics.median(offsets)) < 0.02, offsets  # grid: not just any 0.1 s apart
