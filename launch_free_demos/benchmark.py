@@ -17,9 +17,12 @@ with depth 10. Transports:
 Measured, from outside the nodes (nothing in the nodes is changed):
 
 - latency publish -> callback: the subscriber's report (p50 / p90 / p99), frames at a low rate.
-  In the full mode stock rclpy and the CPU path are measured in several interleaved rounds (a
-  shared machine drifts by more than their difference at small payloads): the table shows each
-  one's median run, and the CPU path / stock checks take the median of the per-round ratios;
+  Stock rclpy and the CPU path run at the same time (two publishers, two subscribers, two
+  topics), their publishers sending on one wall-clock grid half a frame period apart: both
+  meet the same machine, whose load (CPU steal on a shared VM) drifts by more than their
+  difference at small payloads. The full mode repeats this in several rounds: the table shows
+  each one's median run, and the CPU path / stock checks take the median of the per-round
+  ratios. The CPU steal of every run is logged, and the run's total is in the report header;
 - maximum sustained rate: rates are tried in ascending order, ``rate x seconds`` frames each; a
   rate is sustained when every frame arrives exactly once (distinct == count, gaps == 0, no
   checksum failure) and the subscriber's receive rate is at least 90 % of it. The search stops
@@ -28,7 +31,7 @@ Measured, from outside the nodes (nothing in the nodes is changed):
   all threads, nanoseconds) is sampled every 10 ms; the window runs from the first to the last
   progress line the subscribers log (``report_period_sec``), and its CPU time is divided by the
   frames received in it. It includes the nodes' own work on every frame (the publisher writes
-  and CRC32s each frame, the subscriber verifies the CRC32), their idle spinning and the
+  and CRC32s each frame, the subscriber verifies the CRC32), their idle time (timers) and the
   subscriber's progress log: the same for every transport, and visible as the 1 KiB floor;
 - peak resident memory of every process: VmHWM from ``/proc/<pid>/status``, read every 10 ms
   until the process exits (shared-memory pages the process touched count too); processes are
@@ -93,7 +96,8 @@ TRANSPORTS = [
 ]
 TRANSPORT = {t.label: t for t in TRANSPORTS}
 ALL_ROWS = [t.label for t in TRANSPORTS] + [MEMCPY, MEMCPY_IDLE]
-#: Measured in ``Mode.latency_rounds`` interleaved rounds (their ratio is a target near 1).
+#: Measured together, frames interleaved, in ``Mode.latency_rounds`` rounds (their ratio is a
+#: target near 1).
 PAIRED = (STOCK, CPU)
 FANOUT_TRANSPORTS = [STOCK, DEMO_ALLOCATE]
 BIG, SMALL = '3840x2160 rgb8', '1 KiB'
@@ -312,67 +316,136 @@ def measure(transport_label: str, payload: str, subscribers: int, count: int, ra
     delivered, the run is repeated on a new topic, up to SETUP_ATTEMPTS times; the retries are
     counted in the result.
     """
+    return _measure_with_retries([Leg(transport_label)], payload, subscribers, count, rate,
+                                 log_period, linger)[0]
+
+
+def measure_paired(payload: str, count: int, rate: float, round_index: int) -> Dict[str, Result]:
+    """Latency runs of the PAIRED transports at the same time, their frames interleaved.
+
+    Each transport has its own publisher, subscriber and topic; the publishers send on one
+    wall-clock grid, half a period apart (which one goes first alternates by round), so at
+    every moment at most one frame is in flight and both meet the same machine: a shared
+    machine's load (CPU steal) changes within seconds, by more than the difference measured.
+    """
+    half = 0.5 / rate
+    phases = (0.0, half) if round_index % 2 == 0 else (half, 0.0)
+    legs = [Leg(label, phase) for label, phase in zip(PAIRED, phases)]
+    results = _measure_with_retries(legs, payload, 1, count, rate, LOG_PERIOD, 20.0)
+    return {leg.transport: result for leg, result in zip(legs, results)}
+
+
+@dataclass(frozen=True)
+class Leg:
+    """One transport's publisher and subscribers within a run."""
+
+    transport: str
+    phase: Optional[float] = None  # the publisher's phase_sec (None: first frame at once)
+
+
+def _measure_with_retries(legs: List[Leg], payload: str, subscribers: int, count: int,
+                          rate: float, log_period: float, linger: float) -> List[Result]:
     for attempt in range(SETUP_ATTEMPTS):
-        result = _measure_once(transport_label, payload, subscribers, count, rate, log_period,
-                               linger)
-        result.setup_retries = attempt
-        if not (result.problem and max(result.distinct, default=0) == 0):
+        results = _measure_once(legs, payload, subscribers, count, rate, log_period, linger)
+        failed = [r for r in results if r.problem and max(r.distinct, default=0) == 0]
+        for result in results:
+            result.setup_retries = attempt
+        if not failed:
             break
-        SETUP_FAILURES.append(f'{transport_label}, {payload}, {subscribers} subscriber(s), '
-                              f'{rate:g} Hz: {result.problem}')
+        for result in failed:
+            SETUP_FAILURES.append(f'{result.transport}, {payload}, {subscribers} '
+                                  f'subscriber(s), {rate:g} Hz: {result.problem}')
         print(f'    setup failed, attempt {attempt + 1} of {SETUP_ATTEMPTS}', file=sys.stderr)
-    return result
+    return results
 
 
-def _measure_once(transport_label: str, payload: str, subscribers: int, count: int,
-                  rate: float, log_period: float, linger: float) -> Result:
-    t = TRANSPORT[transport_label]
+@dataclass
+class _LegRun:
+    leg: Leg
+    subs: List[MeasuredNode]
+    pub: MeasuredNode
+    result: Result
+    samples: List['Sample'] = field(default_factory=list)  # taken while all its nodes live
+    pub_exited: Optional[float] = None
+
+
+def _measure_once(legs: List[Leg], payload: str, subscribers: int, count: int, rate: float,
+                  log_period: float, linger: float) -> List[Result]:
     _, width, height, encoding = PAYLOAD[payload]
-    topic = next_topic(f'{transport_label.split()[0]}_{width}x{height}_{subscribers}s')
     expected_sec = count / rate
-    sub_params = dict(topic=topic, expected_count=count, timeout_sec=expected_sec + 120.0,
-                      report_period_sec=log_period)
-    pub_params = dict(topic=topic, count=count, rate_hz=rate, wait_for_subscribers=subscribers,
-                      wait_timeout_sec=20.0 + 5.0 * subscribers, linger_sec=linger,
-                      width=width, height=height, encoding=encoding)
-    if t.backend is not None:
-        sub_params['acceptable_buffer_backends'] = t.accept
-        pub_params.update(backend=t.backend, fill=t.fill, wait_for_buffer_peers=subscribers)
-    result = Result(transport_label, payload, subscribers, count, rate)
-    samples: List[Sample] = []  # taken while every process is alive
+    runs: List[_LegRun] = []
     with MeasuredRun() as run:
-        subs = [run.start(f'bench_sub{i}', t.subscriber, **sub_params)
-                for i in range(subscribers)]
-        pub = run.start('bench_pub', t.publisher, **pub_params)
-        nodes = subs + [pub]
+        started = []
+        for n, leg in enumerate(legs):
+            t = TRANSPORT[leg.transport]
+            topic = next_topic(f'{leg.transport.split()[0]}_{width}x{height}_{subscribers}s')
+            sub_params = dict(topic=topic, expected_count=count,
+                              timeout_sec=expected_sec + 120.0, report_period_sec=log_period)
+            pub_params = dict(topic=topic, count=count, rate_hz=rate,
+                              wait_for_subscribers=subscribers,
+                              wait_timeout_sec=20.0 + 5.0 * subscribers, linger_sec=linger,
+                              width=width, height=height, encoding=encoding)
+            if leg.phase is not None:
+                pub_params['phase_sec'] = leg.phase
+            if t.backend is not None:
+                sub_params['acceptable_buffer_backends'] = t.accept
+                pub_params.update(backend=t.backend, fill=t.fill,
+                                  wait_for_buffer_peers=subscribers)
+            subs = [run.start(f'bench{n}_sub{i}', t.subscriber, **sub_params)
+                    for i in range(subscribers)]
+            started.append((leg, subs, t.publisher, pub_params))
+        for n, (leg, subs, publisher, pub_params) in enumerate(started):
+            pub = run.start(f'bench{n}_pub', publisher, **pub_params)
+            runs.append(_LegRun(leg, subs, pub, Result(leg.transport, payload, subscribers,
+                                                       count, rate)))
         deadline = time.monotonic() + expected_sec + 180.0
-        pub_exited = None
         while True:
-            for sub in subs:
-                sub.read_log()
-            cpus = [node.cpu() for node in nodes]
-            for node in nodes:
-                node.read_peak_rss()
-            if None not in cpus:
-                samples.append(Sample(time.time(), cpus[-1], cpus[:-1],
-                                      [sub.marks[-1] if sub.marks else (0.0, 0) for sub in subs]))
-            reaped = [node.try_reap() for node in nodes]
             now = time.monotonic()
-            if all(reaped):
-                break
-            if pub.reaped and pub_exited is None:
-                pub_exited = now
-            if (pub_exited is not None and now - pub_exited > DRAIN_SEC) or now > deadline:
-                result.problem = 'timed out' if now > deadline else (
-                    f'publisher exited ({pub.process.returncode}) before every frame arrived')
+            for leg_run in runs:
+                _sample_leg(leg_run, now, deadline)
+            if all(leg_run.result.problem or all(node.reaped for node in
+                                                 leg_run.subs + [leg_run.pub])
+                   for leg_run in runs):
                 break
             time.sleep(SAMPLE_PERIOD)
         run.stop_all()  # SIGINT (the nodes print their report), then SIGKILL; reaps all
-        for sub in subs:
-            sub.read_log()
-        reports = [sub.report for sub in subs]
+        for leg_run in runs:
+            for sub in leg_run.subs:
+                sub.read_log()
         diagnostics = run.diagnostics()
+    return [_leg_result(leg_run, count, diagnostics) for leg_run in runs]
 
+
+def _sample_leg(leg_run: _LegRun, now: float, deadline: float) -> None:
+    """One sampling pass over a leg's nodes: logs, CPU clocks, peak RSS, exits."""
+    if leg_run.result.problem:
+        return
+    subs, pub = leg_run.subs, leg_run.pub
+    nodes = subs + [pub]
+    for sub in subs:
+        sub.read_log()
+    cpus = [node.cpu() for node in nodes]
+    for node in nodes:
+        node.read_peak_rss()
+    if None not in cpus:
+        leg_run.samples.append(Sample(time.time(), cpus[-1], cpus[:-1],
+                                      [sub.marks[-1] if sub.marks else (0.0, 0)
+                                       for sub in subs]))
+    if all([node.try_reap() for node in nodes]):
+        return
+    if pub.reaped and leg_run.pub_exited is None:
+        leg_run.pub_exited = now
+    if (leg_run.pub_exited is not None and now - leg_run.pub_exited > DRAIN_SEC) or \
+            now > deadline:
+        leg_run.result.problem = 'timed out' if now > deadline else (
+            f'publisher exited ({pub.process.returncode}) before every frame arrived')
+
+
+def _leg_result(leg_run: _LegRun, count: int, diagnostics: str) -> Result:
+    result, subs, pub, samples = leg_run.result, leg_run.subs, leg_run.pub, leg_run.samples
+    transport_label, payload, subscribers, rate = (result.transport, result.payload,
+                                                   result.subscribers, result.rate)
+    reports = [sub.report for sub in subs]
     if any(r is None for r in reports):
         result.problem = result.problem or 'no report'
         print(f'    {transport_label} {payload} x{subscribers}: missing report\n{diagnostics}',
@@ -491,6 +564,37 @@ def measure_memcpy(payload: str, repeat: int, idle: float) -> Dict[str, Dict[str
             'crc32': timed(lambda: zlib.crc32(source), repeat)}
 
 
+# --- CPU steal: time a hypervisor gave this machine's CPUs to other guests ----------------
+
+def _cpu_times() -> Optional[Tuple[int, int]]:
+    """(steal, total) jiffies of all CPUs from /proc/stat, or None where unavailable."""
+    try:
+        with open('/proc/stat') as f:
+            fields = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 8:
+        return None
+    return fields[7], sum(fields[:8])  # user nice system idle iowait irq softirq steal
+
+
+class StealMeter:
+    """The share of CPU time stolen by the hypervisor since the meter was made."""
+
+    def __init__(self) -> None:
+        self._start = _cpu_times()
+
+    def fraction(self) -> Optional[float]:
+        end = _cpu_times()
+        if self._start is None or end is None or end[1] <= self._start[1]:
+            return None
+        return (end[0] - self._start[0]) / (end[1] - self._start[1])
+
+
+def _pct(fraction: Optional[float]) -> str:
+    return '—' if fraction is None else f'{100 * fraction:.0f} %'
+
+
 # --- domain isolation (as test/conftest.py does) --------------------------------------------
 
 _domain_lock = None
@@ -586,7 +690,7 @@ def target_checks(mode: Mode, lat: Dict, rates: Dict, fanout: Dict, memcpy: Dict
         for payload in mode.payloads:
             ratios = paired_ratios(rounds, payload, value)
             shown = statistics.median(ratios) if ratios else None
-            how = (f' (median of {len(ratios)} interleaved rounds: '
+            how = (f' (median of {len(ratios)} paired rounds: '
                    f'{", ".join(f"{r:.2f}" for r in ratios)})' if len(ratios) > 1 else '')
             checks.append((f'{label} CPU path / stock at {payload}{how}', shown, '<= 1.1',
                            None if shown is None else shown <= 1.1))
@@ -623,14 +727,16 @@ def markdown(mode: Mode, lat: Dict, memcpy: Dict, rates: Dict, fanout: Dict,
                f'delivered once ({mode.rate_seconds:g} s of frames each, RELIABLE depth 10); '
                f'"—" where not searched in this mode. CPU: ms of process CPU time (all threads) '
                f'per message in the latency run, from the second frame on; it includes the '
-               f'nodes\' idle spinning between frames, which at {mode.rate:g} Hz is most of it '
-               f'for small payloads (the 1 KiB rows show that floor). Peak RSS: MiB '
+               f'nodes\' idle time between frames (the subscriber\'s progress log every '
+               f'{LOG_PERIOD * 1e3:g} ms, timers), the floor the 1 KiB rows show. Peak RSS: MiB '
                f'(VmHWM, last read before exit). Frames: distinct frames received '
                f'of those sent. The memcpy rows are one numpy.copyto of the payload in one '
                f'process (the latency column is the copy time), back to back and after '
-               f'{1 / mode.rate:g} s of sleep (the latency runs\' frame period).'
-               + (f' {" and ".join(PAIRED)}: the median of {mode.latency_rounds} interleaved '
-                  f'rounds (by latency p50).' if mode.latency_rounds > 1 else '') + '\n')
+               f'{1 / mode.rate:g} s of sleep (the latency runs\' frame period). '
+               f'{" and ".join(PAIRED)} run at the same time, each with its own publisher, '
+               f'subscriber and topic, their frames interleaved half a period apart'
+               + (f'; each row is the median of {mode.latency_rounds} such rounds (by latency '
+                  f'p50).' if mode.latency_rounds > 1 else '.') + '\n')
     out.append('| payload | transport | latency p50 / p90 / p99 ms | max rate Hz | '
                'pub CPU ms/msg | sub CPU ms/msg | pub peak RSS MiB | sub peak RSS MiB | frames |')
     out.append('|---|---|---|---|---|---|---|---|---|')
@@ -743,7 +849,7 @@ def main(argv=None) -> int:
     group.add_argument('--smoke', action='store_true',
                        help='the smallest run that still fills every table row (for tests)')
     parser.add_argument('--rounds', type=int, default=None,
-                        help='interleaved rounds of the stock and CPU-path latency runs '
+                        help='rounds of the paired stock and CPU-path latency runs '
                              '(default: 5 in the full mode, 1 otherwise)')
     parser.add_argument('--out', default='benchmark_out',
                         help='directory for benchmark.md and benchmark.png (default: %(default)s)')
@@ -757,7 +863,7 @@ def main(argv=None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     claim_domain_id()
-    began, load_before = time.monotonic(), os.getloadavg()
+    began, load_before, steal = time.monotonic(), os.getloadavg(), StealMeter()
 
     def progress(text: str) -> None:
         print(f'[{time.monotonic() - began:6.1f} s] {text}', file=sys.stderr, flush=True)
@@ -767,14 +873,22 @@ def main(argv=None) -> int:
     rounds: Dict[Tuple[str, str], List[Result]] = {}
     for payload in mode.payloads:
         for index in range(mode.latency_rounds):
-            for t in TRANSPORTS:
-                if index and t.label not in PAIRED:
-                    continue
-                r = measure(t.label, payload, 1, mode.frames, mode.rate)
-                rounds.setdefault((t.label, payload), []).append(r)
-                progress(f'latency {t.label:<22} {payload:>15} round {index + 1}: p50 '
+            steal = StealMeter()
+            paired = measure_paired(payload, mode.frames, mode.rate, index)
+            for label, r in paired.items():
+                rounds.setdefault((label, payload), []).append(r)
+                progress(f'latency {label:<22} {payload:>15} round {index + 1}: p50 '
                          f'{_fmt(r.latency.get("p50"))} ms, pub CPU {_fmt(r.pub_cpu_ms)} ms/msg,'
-                         f' backends {r.backends}')
+                         f' backends {r.backends}, CPU steal {_pct(steal.fraction())}')
+        for t in TRANSPORTS:
+            if t.label in PAIRED:
+                continue
+            steal = StealMeter()
+            r = measure(t.label, payload, 1, mode.frames, mode.rate)
+            rounds[(t.label, payload)] = [r]
+            progress(f'latency {t.label:<22} {payload:>15}: p50 {_fmt(r.latency.get("p50"))} ms,'
+                     f' pub CPU {_fmt(r.pub_cpu_ms)} ms/msg, backends {r.backends}, CPU steal '
+                     f'{_pct(steal.fraction())}')
         for t in TRANSPORTS:
             lat[(t.label, payload)] = median_run(rounds[(t.label, payload)])
     rates: Dict[Tuple[str, str], Tuple[Optional[float], str]] = {}
@@ -798,7 +912,8 @@ def main(argv=None) -> int:
     header = (f'# rosidl_buffer_py benchmark: zero-copy images against stock rclpy\n\n'
               f'{mode.name} mode, {datetime.datetime.now().isoformat(timespec="seconds")}, '
               f'{platform.node()}, {os.cpu_count()} cores, load average '
-              f'{load_before[0]:.2f} before / {load_after[0]:.2f} after, '
+              f'{load_before[0]:.2f} before / {load_after[0]:.2f} after, CPU steal '
+              f'{_pct(steal.fraction())} of the run, '
               f'{os.environ["RMW_IMPLEMENTATION"]}, ROS_DOMAIN_ID {os.environ["ROS_DOMAIN_ID"]}'
               f', {time.monotonic() - began:.0f} s. Publisher and subscribers in separate '
               f'processes on this machine; a shared machine makes every number noisy.')

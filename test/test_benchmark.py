@@ -5,12 +5,14 @@ session's ROS domain (see conftest.py), as CI does.
 """
 import os
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
 from launch_free_demos.benchmark import (
-    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MODES, STOCK, Result, median_run, paired_ratios)
+    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MODES, STOCK, Result, StealMeter, median_run,
+    paired_ratios)
 
 ROOT = Path(__file__).resolve().parent.parent
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
@@ -89,3 +91,15 @@ def test_paired_ratios_compare_cpu_path_and_stock_round_by_round():
         pytest.approx([1.1, 1.5])  # the unpaired third CPU-path round is left out
     assert paired_ratios(rounds, '1 KiB', lambda r: r.pub_cpu_ms) == [0.5]  # None skipped
     assert paired_ratios(rounds, '1 MiB', lambda r: r.pub_cpu_ms) == []
+
+
+def test_steal_meter_reads_a_share_of_this_machines_cpu_time():
+    meter = StealMeter()
+    deadline = time.monotonic() + 0.3
+    while time.monotonic() < deadline:  # let the kernel's jiffies move
+        pass
+    fraction = meter.fraction()
+    if not Path('/proc/stat').exists():
+        assert fraction is None
+    else:
+        assert fraction is not None and 0.0 <= fraction <= 1.0, fraction
