@@ -61,11 +61,12 @@ def test_publisher_restarted():
         run.start('pub1', 'image_publisher', **_pub_params(
             topic, 20, backend='demo', wait_for_buffer_peers=1, linger_sec=0.0))
         assert run.wait(['pub1'], 60), run.diagnostics()
+        assert run.nodes['pub1'].process.returncode == 0, run.diagnostics()  # it sent all
         run.start('pub2', 'image_publisher', **_pub_params(
             topic, 20, backend='demo', first_frame=20, wait_for_buffer_peers=1))
         assert run.wait(['sub'], 60), run.diagnostics()
         report = run.nodes['sub'].report
-    assert report['distinct'] == 40 and report['received'] == 40, report
+    assert report['distinct'] == 40 and report['received'] == 40, (report, run.diagnostics())
     assert report['duplicates'] == report['checksum_failures'] == report['gaps'] == 0, report
     assert report['backends'] == {'demo': 40}, report
 
