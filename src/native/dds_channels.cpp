@@ -909,8 +909,7 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
   }
   MessageSupport support;
   PyObject * msg_class = reinterpret_cast<PyObject *>(Py_TYPE(message));
-  const void * callbacks = nullptr;
-  if (support.load(msg_class) < 0 || (callbacks = support.fastrtps_callbacks()) == nullptr) {
+  if (support.load(msg_class) < 0) {
     Py_DECREF(targets);
     return nullptr;
   }
@@ -943,7 +942,8 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
         }
       }
       if (!write_message_w_timestamp(
-          rmw_pub, ros_message.get(), callbacks, source_timestamp, &type_mismatch, &error))
+          rmw_pub, ros_message.get(), support.callbacks, source_timestamp, &type_mismatch,
+          &error))
       {
         failed = i;
       }

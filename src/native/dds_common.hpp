@@ -15,6 +15,7 @@
 #include "rmw/serialized_message.h"
 #include "rmw/types.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
+#include "rosidl_typesupport_fastrtps_cpp/message_type_support.h"
 
 namespace rbpy_dds
 {
@@ -112,12 +113,12 @@ struct MessageSupport
   void (*destroy)(void *) = nullptr;
   bool (*from_py)(PyObject *, void *) = nullptr;
   PyObject * (*to_py)(void *) = nullptr;
+  /// The rosidl_typesupport_fastrtps_c callbacks of the type (what rmw_fastrtps_cpp stores as
+  /// a DataWriter's type_support_impl_).
+  const message_type_support_callbacks_t * callbacks = nullptr;
 
   /// Read them from `msg_class` (GIL held). Returns 0, or -1 with TypeError.
   int load(PyObject * msg_class);
-  /// The rosidl_typesupport_fastrtps_c callbacks of the type (what rmw_fastrtps_cpp stores as
-  /// a DataWriter's type_support_impl_), or nullptr with TypeError (GIL held).
-  const void * fastrtps_callbacks() const;
 };
 
 /// A C message owned for the duration of a call: created on demand by create() (plain C,
@@ -148,8 +149,8 @@ inline bool fits(const rmw_serialized_message_t & serialized, Py_ssize_t max_siz
   return max_size < 0 || serialized.buffer_length <= static_cast<size_t>(max_size);
 }
 
-/// rmw_deserialize `serialized` into `ros_message`, creating it (GIL not needed). False when
-/// the bytes do not deserialize (the rmw error is cleared) or are not XCDR1 (encapsulation
+/// Deserialize `serialized` into `ros_message`, creating it (GIL not needed), as rmw_deserialize
+/// does. False when the bytes do not deserialize or are not XCDR1 (encapsulation
 /// 0x0000/0x0001, the only ones rosidl_buffer_py.codec reads): hand serialized_bytes() to the
 /// codec then. On success, convert with `support.to_py(ros_message.get())` (GIL held).
 bool try_deserialize(

@@ -2,6 +2,10 @@
 // own publish and take do, so that CPU data crosses channels without Python-level CDR work.
 #include "dds_common.hpp"
 
+#include <exception>
+
+#include "fastcdr/Cdr.h"
+#include "fastcdr/FastBuffer.h"
 #include "rcutils/error_handling.h"
 #include "rmw/rmw.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
@@ -60,19 +64,16 @@ int MessageSupport::load(PyObject * msg_class)
       msg_class);
     return -1;
   }
-  return 0;
-}
-
-const void * MessageSupport::fastrtps_callbacks() const
-{
   const rosidl_message_type_support_t * handle =
     get_message_typesupport_handle(type_support, "rosidl_typesupport_fastrtps_c");
   if (handle == nullptr) {
     rcutils_reset_error();
-    PyErr_SetString(PyExc_TypeError, "the message type has no rosidl_typesupport_fastrtps_c");
-    return nullptr;
+    PyErr_Format(
+      PyExc_TypeError, "%.200R has no rosidl_typesupport_fastrtps_c type support", msg_class);
+    return -1;
   }
-  return handle->data;
+  callbacks = static_cast<const message_type_support_callbacks_t *>(handle->data);
+  return 0;
 }
 
 bool try_deserialize(
@@ -88,11 +89,18 @@ bool try_deserialize(
   if (msg == nullptr) {
     return false;
   }
-  if (rmw_deserialize(&serialized, support.type_support, msg) != RMW_RET_OK) {
-    rcutils_reset_error();
+  // What rmw_deserialize does, minus the rmw TypeSupport object it builds (and frees) on every
+  // call: the generated callbacks read the CDR straight into the C message.
+  eprosima::fastcdr::FastBuffer buffer(
+    reinterpret_cast<char *>(serialized.buffer), serialized.buffer_length);
+  eprosima::fastcdr::Cdr deser(
+    buffer, eprosima::fastcdr::Cdr::DEFAULT_ENDIAN, eprosima::fastcdr::CdrVersion::XCDRv1);
+  try {
+    deser.read_encapsulation();
+    return support.callbacks->cdr_deserialize(deser, msg);
+  } catch (const std::exception &) {  // fastcdr's NotEnoughMemoryException, bad_alloc, ...
     return false;
   }
-  return true;
 }
 
 PyObject * serialized_bytes(const rmw_serialized_message_t & serialized)
