@@ -209,6 +209,34 @@ def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
     node.destroy_node()
 
 
+def test_reannounce_timer_retires_while_every_channel_is_matched(context):
+    """The once-a-second check for unmatched channels stops once all are matched (an idle
+    executor wake-up costs CPU) and a new peer re-arms it; delivery goes on meanwhile."""
+    node = rclpy.create_node('retire', context=context)
+    got = []
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/retire_image', RELIABLE)
+    sub = rosidl_buffer_py.create_subscription(
+        node, Image, '/retire_image', lambda m: got.append(check_frame(m).counter), RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    for endpoint in (pub, sub):  # the first tick after the match retires each one's timer
+        assert _spin_until(executor, lambda: endpoint._reannounce_timer.is_canceled())
+        assert endpoint._spinning(time.monotonic())  # no publish-time discovery polling
+    got_second = []
+    rosidl_buffer_py.create_subscription(
+        node, Image, '/retire_image', lambda m: got_second.append(check_frame(m).counter),
+        RELIABLE)
+    assert _spin_until(executor, lambda: len(pub.buffer_peers()) == 2)
+    assert not pub._reannounce_timer.is_canceled()  # re-armed for the new channel
+    assert _spin_until(executor, lambda: pub._reannounce_timer.is_canceled())
+    assert all(p['channel_matched'] for p in pub.buffer_peers())
+    for counter in range(3):
+        pub.publish(_frame(counter, 'cpu'))
+    assert _spin_until(executor, lambda: len(got) == len(got_second) == 3), (got, got_second)
+    node.destroy_node()
+
+
 def test_destroy_node_removes_channels_and_destroy_is_idempotent(context):
     node = rclpy.create_node('destroy_me', context=context)
     observer = rclpy.create_node('observer2', context=context)
