@@ -4,8 +4,10 @@ The one process runner of the project: the demos, the scenarios and the integrat
 use it. Every process it starts is reaped: on timeout it gets SIGINT, then SIGKILL (after a
 SIGUSR1, on which the nodes print their threads' Python stacks to stderr).
 """
+import fcntl
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -34,6 +36,65 @@ def format_parameter(value) -> str:
     if isinstance(value, int):
         return str(value)
     return json.dumps(str(value))  # a YAML double-quoted string: '' and '1' stay strings
+
+
+#: Fast DDS shared-memory transport files: segments ``fastrtps_<16 hex>`` and ports
+#: ``fastrtps_port<N>``, each with a lock file ``..._el`` (or ``_sl``) that its owner holds
+#: (flock) while it lives; a port also has a ``sem.fastrtps_port<N>_mutex``.
+_FASTDDS_LOCK = re.compile(r'^(fastrtps_(?:port\d+|[0-9a-f]{16}))_(?:el|sl)$')
+_FASTDDS_PORT = re.compile(r'^fastrtps_port(\d+)$')
+
+
+def _lock_free(path: str) -> bool:
+    """True when nobody holds the flock on ``path`` (its owner process is gone)."""
+    try:
+        with open(path, 'ab') as f:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError:
+        return False
+
+
+def fastdds_leftovers(since: float, domain_id: int):
+    """Fast DDS files in /dev/shm that processes of this run left behind (created at or after
+    ``since``): those whose lock file no living process holds (the rule of Fast DDS's own
+    ``fastdds shm clean``), and lock-less port files of our domain's ports (7400 + 250 x domain
+    onwards: the caller vouches that this domain is its alone). SIGKILLed participants leave them; a
+    participant that exits normally removes its own."""
+    names = set(os.listdir('/dev/shm'))
+
+    def recent(name):
+        try:
+            return os.stat(os.path.join('/dev/shm', name)).st_mtime >= since
+        except FileNotFoundError:
+            return False
+
+    dead = []
+    for name in sorted(names):
+        match = _FASTDDS_LOCK.match(name)
+        if match and recent(name) and _lock_free(os.path.join('/dev/shm', name)):
+            base = match.group(1)
+            dead += [name, base] + ([f'sem.{base}_mutex'] if base.startswith('fastrtps_port')
+                                    else [])
+    first = 7400 + 250 * domain_id
+    for name in sorted(names):
+        match = _FASTDDS_PORT.match(name)
+        if (match and first <= int(match.group(1)) < first + 250 and recent(name) and
+                not any(f'{name}_{kind}' in names for kind in ('el', 'sl'))):
+            dead += [name, f'sem.{name}_mutex']
+    return [name for name in dict.fromkeys(dead) if name in names]
+
+
+def remove_fastdds_leftovers(since: float, domain_id: int) -> List[str]:
+    """Remove what :func:`fastdds_leftovers` finds; return the names removed."""
+    removed = []
+    for name in fastdds_leftovers(since, domain_id):
+        try:
+            os.remove(os.path.join('/dev/shm', name))
+            removed.append(name)
+        except FileNotFoundError:
+            pass
+    return removed
 
 
 #: How long a node that ignored SIGINT gets to print its stacks (SIGUSR1) before SIGKILL.

@@ -6,7 +6,6 @@ domain id), so parallel runs never see each other's traffic. Child processes inh
 import fcntl
 import os
 import random
-import re
 import sys
 import time
 from pathlib import Path
@@ -82,61 +81,11 @@ def no_shm_leftovers():
     assert not left, f'tests left files in /dev/shm: {sorted(left)}'
 
 
-#: Fast DDS shared-memory transport files: segments ``fastrtps_<16 hex>`` and ports
-#: ``fastrtps_port<N>``, each with a lock file ``..._el`` (or ``_sl``) that its owner holds
-#: (flock) while it lives; a port also has a ``sem.fastrtps_port<N>_mutex``.
-_FASTDDS_LOCK = re.compile(r'^(fastrtps_(?:port\d+|[0-9a-f]{16}))_(?:el|sl)$')
-_FASTDDS_PORT = re.compile(r'^fastrtps_port(\d+)$')
-
-
-def _lock_free(path: str) -> bool:
-    """True when nobody holds the flock on ``path`` (its owner process is gone)."""
-    try:
-        with open(path, 'ab') as f:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return True
-    except OSError:
-        return False
-
-
-def fastdds_leftovers(since: float, domain_id: int):
-    """Fast DDS files in /dev/shm that processes of this run left behind (created at or after
-    ``since``): those whose lock file no living process holds (the rule of Fast DDS's own
-    ``fastdds shm clean``), and lock-less port files of our domain's ports (7400 + 250 x domain
-    onwards: this domain is ours alone, see above). SIGKILLed participants leave them; a
-    participant that exits normally removes its own."""
-    names = set(os.listdir('/dev/shm'))
-
-    def recent(name):
-        try:
-            return os.stat(os.path.join('/dev/shm', name)).st_mtime >= since
-        except FileNotFoundError:
-            return False
-
-    dead = []
-    for name in sorted(names):
-        match = _FASTDDS_LOCK.match(name)
-        if match and recent(name) and _lock_free(os.path.join('/dev/shm', name)):
-            base = match.group(1)
-            dead += [name, base] + ([f'sem.{base}_mutex'] if base.startswith('fastrtps_port')
-                                    else [])
-    first = 7400 + 250 * domain_id
-    for name in sorted(names):
-        match = _FASTDDS_PORT.match(name)
-        if (match and first <= int(match.group(1)) < first + 250 and recent(name) and
-                not any(f'{name}_{kind}' in names for kind in ('el', 'sl'))):
-            dead += [name, f'sem.{name}_mutex']
-    return [name for name in dict.fromkeys(dead) if name in names]
-
-
 @pytest.fixture(scope='session', autouse=True)
 def no_fastdds_leftovers():
     """Remove the Fast DDS files of the participants our tests SIGKILLed (deliberately, or when
     a node did not stop), so that a test run leaves nothing in /dev/shm."""
     since = time.time() - 1.0  # mtimes have coarse clocks on some filesystems
     yield
-    for name in fastdds_leftovers(since, int(os.environ['ROS_DOMAIN_ID'])):
-        try:
-            os.remove(os.path.join('/dev/shm', name))
-        except FileNotFoundError:
-            pass
+    from launch_free_demos.runner import remove_fastdds_leftovers
+    remove_fastdds_leftovers(since, int(os.environ['ROS_DOMAIN_ID']))
