@@ -62,7 +62,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy
 
-from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers
+from launch_free_demos.runner import (
+    STACK_DUMP_SECONDS, NodeProcess, Run, remove_fastdds_leftovers)
 
 # label, width, height, encoding
 PAYLOADS = [
@@ -241,19 +242,26 @@ class MeasuredNode(NodeProcess):
             os.kill(self.process.pid, sig)
 
     def stop(self, grace: float = 5.0) -> None:
-        """SIGINT, then SIGKILL after ``grace`` seconds; always reaps."""
+        """SIGINT, then (as NodeProcess.stop) SIGUSR1 for a stack dump and SIGKILL after
+        ``grace`` seconds; always reaps."""
         if self.process is None:
             return
         if not self.try_reap():
             self._signal(signal.SIGINT)
-            deadline = time.monotonic() + grace
-            while not self.try_reap() and time.monotonic() < deadline:
-                time.sleep(0.02)
-            if not self.reaped:
-                self._signal(signal.SIGKILL)
-                self.try_reap(block=True)
+            if not self._reaped_within(grace):
+                self.stuck = True
+                self._signal(signal.SIGUSR1)  # the nodes print every thread's stack
+                if not self._reaped_within(STACK_DUMP_SECONDS):
+                    self._signal(signal.SIGKILL)
+                    self.try_reap(block=True)
         for thread in self._threads:
             thread.join(5)
+
+    def _reaped_within(self, seconds: float) -> bool:
+        deadline = time.monotonic() + seconds
+        while not self.try_reap() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return self.reaped
 
     def kill(self) -> None:
         self._signal(signal.SIGKILL)

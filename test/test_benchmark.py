@@ -103,3 +103,20 @@ def test_steal_meter_reads_a_share_of_this_machines_cpu_time():
         assert fraction is None
     else:
         assert fraction is not None and 0.0 <= fraction <= 1.0, fraction
+
+
+def test_a_node_that_ignores_sigint_is_killed_and_reaped():
+    """The benchmark's nodes are reaped with os.wait4 (for their rusage); one that does not
+    stop on SIGINT gets SIGUSR1 (stack dump), then SIGKILL, and is reaped all the same."""
+    import signal
+
+    from launch_free_demos.benchmark import MeasuredRun
+    with MeasuredRun() as run:
+        node = run.start('frozen', 'image_subscriber', topic='/frozen', timeout_sec=60.0)
+        time.sleep(1.0)
+        os.kill(node.process.pid, signal.SIGSTOP)  # deaf to SIGINT and SIGUSR1 from now on
+        started = time.monotonic()
+        node.stop(grace=0.5)
+        assert node.reaped and node.stuck
+        assert node.process.returncode == -signal.SIGKILL
+        assert time.monotonic() - started < 10
