@@ -22,9 +22,9 @@ Measured, from outside the nodes (nothing in the nodes is changed):
   apart: both meet the same machine, whose load (CPU steal on a shared VM) drifts by more than
   their difference at small payloads. Larger frames would overlap (a stock 1920x1080 frame
   takes 50 to 100 ms): they run one after the other, in alternating order. The full mode
-  repeats this in several rounds: the table shows
-  each one's median run, and the CPU path / stock checks take the median of the per-round
-  ratios. The CPU steal of every run is logged, and the run's total is in the report header;
+  repeats this in several rounds: the table shows each one's median run, and the CPU path /
+  stock checks take the median of the per-round ratios. The CPU steal of every run is logged,
+  and the run's total is in the report header;
 - maximum sustained rate: rates are tried in ascending order, ``rate x seconds`` frames each; a
   rate is sustained when every frame arrives exactly once (distinct == count, gaps == 0, no
   checksum failure) and the subscriber's receive rate is at least 90 % of it. The search stops
@@ -379,7 +379,8 @@ def _measure_with_retries(legs: List[Leg], payload: str, subscribers: int, count
 
 @dataclass
 class _LegRun:
-    leg: Leg
+    """The nodes of one leg in a run, and what was measured of them."""
+
     subs: List[MeasuredNode]
     pub: MeasuredNode
     result: Result
@@ -414,8 +415,8 @@ def _measure_once(legs: List[Leg], payload: str, subscribers: int, count: int, r
             started.append((leg, subs, t.publisher, pub_params))
         for n, (leg, subs, publisher, pub_params) in enumerate(started):
             pub = run.start(f'bench{n}_pub', publisher, **pub_params)
-            runs.append(_LegRun(leg, subs, pub, Result(leg.transport, payload, subscribers,
-                                                       count, rate)))
+            runs.append(_LegRun(subs, pub, Result(leg.transport, payload, subscribers, count,
+                                                  rate)))
         deadline = time.monotonic() + expected_sec + 180.0
         while True:
             now = time.monotonic()

@@ -55,12 +55,12 @@ def _lock_free(path: str) -> bool:
         return False
 
 
-def fastdds_leftovers(since: float, domain_id: int):
+def fastdds_leftovers(since: float, domain_id: int) -> List[str]:
     """Fast DDS files in /dev/shm that processes of this run left behind (created at or after
     ``since``): those whose lock file no living process holds (the rule of Fast DDS's own
-    ``fastdds shm clean``), and lock-less port files of our domain's ports (7400 + 250 x domain
-    onwards: the caller vouches that this domain is its alone). SIGKILLed participants leave them; a
-    participant that exits normally removes its own."""
+    ``fastdds shm clean``), and lock-less port files of the domain's ports (7400 + 250 x
+    domain onwards: the caller vouches that the domain is its alone). SIGKILLed participants
+    leave them; a participant that exits normally removes its own."""
     names = set(os.listdir('/dev/shm'))
 
     def recent(name):
