@@ -34,3 +34,10 @@ def dds_topic(ros_topic: str) -> str:
 def is_channel_topic(dds_name: str) -> bool:
     """True when ``dds_name`` is a per-endpoint channel (hidden from buffer discovery)."""
     return f'/{CHANNEL_INFIX}/' in dds_name
+
+
+#: Backend name of a *route fence* on a channel (see :mod:`rosidl_buffer_py.publisher`): a
+#: descriptor-encoded message whose descriptor is the source timestamp (uint64 little endian) of
+#: the last message the main topic served the subscription. Backend names match
+#: ``registry.BACKEND_NAME_PATTERN`` (no ``:``), so it never collides with a backend.
+FENCE_BACKEND = ':route-fence'

@@ -1,32 +1,46 @@
 """The buffer-aware publisher.
 
-It is an ordinary rclpy publisher on the main topic (legacy subscribers, bag recorders and rviz see
-a normal ``uint8[]`` topic) whose DataWriter also advertises ``BUFBE:cpu=;<backend>=<meta>;...``
-in USER_DATA. For every buffer-aware subscription it discovers, it opens a channel
-``rt/<topic>/_buf/<pub gid>_<sub gid>`` below rcl and, once that channel is matched, serves the
-subscription there: a descriptor when the backend accepts the peer, CPU bytes otherwise. The main
-topic is written only while some matched subscription is not served by a matched channel.
+It is an rclpy publisher (created by ``Node.create_publisher`` with ``publisher_class``, so the
+node owns it: ``destroy_publisher``, ``destroy_node`` and rclpy's event handlers work as for any
+publisher) whose DataWriter also advertises ``BUFBE:cpu=;<backend>=<meta>;...`` in USER_DATA. For
+every buffer-aware subscription it discovers, it opens a channel ``rt/<topic>/_buf/<pub gid>_<sub
+gid>`` below rcl and, once that channel is matched, serves the subscription there: a descriptor
+when the backend accepts the peer, CPU bytes otherwise. The main topic is written while some
+matched subscription is not served by a channel, and always for a TRANSIENT_LOCAL publisher (its
+DataWriter keeps the history late joiners get).
 
-Exactly-once: the channel copy and the main-topic copy of one message carry the same explicit
-source timestamp, and a subscription delivers each (publisher GID, source timestamp) once.
+Each message has one designated route per subscription. Every copy of a message carries the same
+explicit source timestamp, increasing per publisher. When a subscription starts being served on
+its channel, a *route fence* precedes the first channel message: it names the last message that
+went to that subscription on the main topic, which the subscription delivers first. So a
+subscription delivers every message once and in publish order without waiting on a clock (see
+:mod:`rosidl_buffer_py.subscription`).
 """
+import copy
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
+import functools
+import struct
+
+import rclpy.publisher
+from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.logging import get_logger
-from rclpy.qos import QoSProfile
+from rclpy.qos import DurabilityPolicy, LivelinessPolicy, QoSProfile
 
 from rosidl_buffer_py import _dds, advertisement, codec, discovery
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
-from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.channel import FENCE_BACKEND, channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
+from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, hook_destruction, qos_of, warn_unsupported_rmw)
+    BufferEndpoint, qos_of, track_endpoint, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.publisher')
 
@@ -53,6 +67,10 @@ class _SubscriptionPeer:
     sent_cpu: int = 0
     backend_in_use: Optional[str] = None
     matched_since: Optional[float] = None
+    #: Served on the channel by the current routes.
+    serving: bool = False
+    #: A route fence must precede the next channel message (the peer was just switched to it).
+    fence_pending: bool = False
 
 
 class _Routes(NamedTuple):
@@ -70,9 +88,11 @@ class _Routes(NamedTuple):
     targets: list  #: their channels, then the main-topic publisher when ``main``
     signature: tuple
     recheck_at: float
+    #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
+    unserved: Tuple[bytes, ...]
 
 
-class Publisher(BufferEndpoint):
+class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
     """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
 
     Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
@@ -80,76 +100,99 @@ class Publisher(BufferEndpoint):
     ``DemoBuffer``), or already serialized CDR ``bytes``.
     """
 
-    def __init__(self, node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
-                 callback_group=None, event_callbacks=None) -> None:
+    def __init__(self, publisher_impl, msg_type, topic: str, qos_profile: QoSProfile, *,
+                 event_callbacks: PublisherEventCallbacks, callback_group, node) -> None:
         self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
+        self._transport = _dds.is_supported()
+        deadline_callback = None
+        if self._transport and event_callbacks.deadline and finite(qos_profile.deadline):
+            # counted over every route by a DeadlineMonitor (see rosidl_buffer_py.events)
+            deadline_callback = event_callbacks.deadline
+            event_callbacks = copy.copy(event_callbacks)
+            event_callbacks.deadline = None
+        super().__init__(publisher_impl, msg_type, topic, qos_profile,
+                         event_callbacks=event_callbacks, callback_group=callback_group)
         self._peer_kind = EndpointKind.SUBSCRIPTION
         self._node = node
-        self.msg_type = msg_type
         self._lock = threading.RLock()
         self._peers: Dict[bytes, _SubscriptionPeer] = {}
         self._last_timestamp = 0
         self._sent_main = 0
         self._routes: Optional[_Routes] = None
+        #: GID -> source timestamp of the last message the main topic served that subscription
+        self._main_timestamps: Dict[bytes, int] = {}
         self._peers_added = 0
         self._peers_removed = 0
         self._destroyed = False
-        # the discovery tap goes first: peers re-announce as soon as they see our endpoint
-        self._discovery = discovery.for_node(node) if _dds.is_supported() else None
-        self._publisher = node.create_publisher(
-            msg_type, topic, qos_of(qos_profile), callback_group=callback_group,
-            event_callbacks=event_callbacks)
-        self.qos_profile = self._publisher.qos_profile
-        self._topic_name = self._publisher.topic_name  # usable after rclpy destroyed the handle
-        self._transport = _dds.is_supported()
+        self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
         if not self._transport:
-            warn_unsupported_rmw('publisher', self.topic_name)
+            warn_unsupported_rmw('publisher', self._topic_name)
             return
-        self._gid = _dds.endpoint_gid(self._publisher)
-        self._info = EndpointInfo(self._gid, self.topic_name, EndpointKind.PUBLISHER,
+        #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
+        #: joiners receive (as CPU bytes; their channels serve them from then on).
+        self._main_always = qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self._manual_liveliness = qos_profile.liveliness == LivelinessPolicy.MANUAL_BY_TOPIC
+        self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
+                                          callback_group)
+                          if deadline_callback else None)
+        self._gid = _dds.endpoint_gid(self)
+        self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.PUBLISHER,
                                   node.get_name(), node.get_namespace())
         self._backends = get_installed_backends()
         advertised = {CPU_BACKEND: ''}
         advertised.update({name: backend.get_backend_metadata()
                            for name, backend in self._backends.items() if name != CPU_BACKEND})
         self._advertised = advertised
-        self._user_data = advertisement.append(_dds.get_user_data(self._publisher), advertised)
+        self._user_data = advertisement.append(_dds.get_user_data(self), advertised)
+        self._discovery = discovery.for_node(node)
         self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
-        self._guard = node.create_guard_condition(self._on_wake, callback_group)
-        hook_destruction(self._guard, self._teardown)
-        self._discovery_guard = self._guard
-        self._discovery.add_wakeup(node, self._guard)
+        self._discovery_guard = node.create_guard_condition(self._discovery.process,
+                                                            callback_group)
+        self._discovery.add_wakeup(node, self._discovery_guard)
         self._start_reannounce_timer(node, callback_group)
         self._polled_at = 0.0
+        track_endpoint(self)
         with self._lock:
-            for peer in self._discovery.watch(dds_topic(self.topic_name), self):
+            for peer in self._discovery.watch(dds_topic(self._topic_name), self):
                 self._on_peer(peer)
 
-    # rclpy.publisher.Publisher compatible surface -------------------------------------------
+    # rclpy.publisher.Publisher surface ------------------------------------------------------
 
     @property
     def topic_name(self) -> str:
         """Fully qualified topic name."""
         return self._topic_name
 
-    @property
-    def handle(self):
-        """The rclpy handle of the main-topic publisher."""
-        return self._publisher.handle
+    def wait_for_all_acked(self, timeout: Duration = Duration(seconds=-1)) -> bool:
+        """Wait until every subscription acknowledged every message, on every route.
 
-    def get_subscription_count(self) -> int:
-        """Subscriptions matched on the main topic (every subscriber, buffer-aware or not)."""
-        return self._publisher.get_subscription_count()
+        As rclpy's: a negative timeout waits forever, 0 only checks; True when all is
+        acknowledged in time. Channels count: the main topic alone may carry nothing.
+        """
+        deadline = None if timeout.nanoseconds < 0 else time.monotonic() + timeout.nanoseconds / 1e9
+        if not super().wait_for_all_acked(timeout):
+            return False
+        if not self._transport:
+            return True
+        with self._lock:
+            channels = [p.channel for p in self._peers.values() if p.channel is not None]
+        for channel in channels:
+            left = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                if not channel.wait_for_all_acked(left):
+                    return False
+            except _dds.DdsError:  # the peer went away meanwhile: nothing left to acknowledge
+                continue
+        return True
 
-    def assert_liveliness(self) -> None:
-        self._publisher.assert_liveliness()
-
-    def wait_for_all_acked(self, timeout=None) -> bool:
-        return self._publisher.wait_for_all_acked(timeout) if timeout is not None else \
-            self._publisher.wait_for_all_acked()
+    def destroy(self) -> None:
+        """Destroy the channels, then the publisher (``Node.destroy_publisher`` calls this)."""
+        if self._transport:
+            self._teardown()
+        super().destroy()
 
     def publish(self, msg) -> None:
         """Publish ``msg`` to every subscription, each by the cheapest route it can take."""
@@ -163,7 +206,7 @@ class Publisher(BufferEndpoint):
         if not self._transport:
             if serialized is None and isinstance(getattr(msg, self._field), Buffer):
                 serialized = bytes(codec.encode(msg))  # stock rclpy cannot convert a Buffer
-            self._publisher.publish(bytes(serialized) if serialized is not None else msg)
+            super().publish(bytes(serialized) if serialized is not None else msg)
             return
         now = time.monotonic()
         if now - self._polled_at >= DISCOVERY_POLL_SECONDS and not self._spinning(now):
@@ -173,22 +216,36 @@ class Publisher(BufferEndpoint):
         payload = None if serialized is not None else getattr(msg, self._field)
         if serialized is None and not isinstance(payload, Buffer):
             self._publish_cpu_message(msg)
-            return
+        else:
+            self._publish_encoded(msg, serialized, payload)
+        if self._deadline is not None:
+            self._deadline.activity()
+
+    def _publish_encoded(self, msg, serialized, payload) -> None:
+        """Publish serialized bytes or a message whose payload is a Buffer (the codec's path).
+
+        Each distinct payload is encoded once: the CPU bytes at most once, and a descriptor once
+        per distinct descriptor the backend returns.
+        """
         vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
             else None
         cpu_bytes = serialized
+        encoded: Dict[bytes, bytearray] = {}
         with self._lock:
             if self._destroyed:
-                raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
+                raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
             timestamp = self._next_timestamp()
             routes = self._valid_routes()
             for peer in routes.peers:  # the others get the message on the main topic
-                channel = peer.channel
+                if peer.fence_pending:
+                    self._write_fence(peer, msg, timestamp)
                 data = None
                 if vendor is not None and vendor in peer.compatible:
                     descriptor = self._describe(vendor, payload, peer)
                     if descriptor is not None:
-                        data = codec.encode(msg, (vendor, descriptor))
+                        data = encoded.get(descriptor)
+                        if data is None:
+                            data = encoded[descriptor] = codec.encode(msg, (vendor, descriptor))
                         peer.sent_descriptor += 1
                         peer.backend_in_use = vendor
                 if data is None:
@@ -197,12 +254,14 @@ class Publisher(BufferEndpoint):
                     data = cpu_bytes
                     peer.sent_cpu += 1
                     peer.backend_in_use = CPU_BACKEND
-                channel.publish(data, timestamp)
+                peer.channel.publish(data, timestamp)
             if routes.main:
                 if cpu_bytes is None:
                     cpu_bytes = codec.encode(msg)
-                _dds.publish_serialized(self._publisher, cpu_bytes, timestamp)
-                self._sent_main += 1
+                _dds.publish_serialized(self, cpu_bytes, timestamp)
+                self._note_main_write(routes, timestamp)
+            elif self._manual_liveliness:
+                self.assert_liveliness()  # what a write on the main DataWriter would do
 
     def _publish_cpu_message(self, msg) -> None:
         """Publish a message whose payload is CPU memory (``array.array``): the common case.
@@ -218,16 +277,18 @@ class Publisher(BufferEndpoint):
         """
         with self._lock:
             if self._destroyed:
-                raise RuntimeError(f'publisher of {self.topic_name} was destroyed')
+                raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
             timestamp = self._next_timestamp()
             used = self._routes
             if used is None:
                 used = self._routes = self._current_routes()
+            self._write_fences(used, msg, timestamp)
             if used.targets:
                 _dds.write_message(msg, timestamp, used.targets)
             routes = self._valid_routes()
             served = used.peers
             if routes is not used:
+                self._write_fences(routes, msg, timestamp)
                 missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
                 if missing:
                     _dds.write_message(msg, timestamp, missing)
@@ -235,7 +296,32 @@ class Publisher(BufferEndpoint):
             for peer in served:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            self._sent_main += used.main or routes.main
+            if used.main or routes.main:
+                self._note_main_write(used if used.main else routes, timestamp)
+            elif self._manual_liveliness:
+                self.assert_liveliness()
+
+    def _write_fences(self, routes: '_Routes', msg, timestamp: int) -> None:
+        for peer in routes.peers:
+            if peer.fence_pending:
+                self._write_fence(peer, msg, timestamp)
+
+    def _write_fence(self, peer: _SubscriptionPeer, msg, timestamp: int) -> None:
+        """Tell a subscription just switched to its channel which main-topic message came last.
+
+        Written on the channel right before the first channel message (same source timestamp),
+        it carries the source timestamp of the last message the main topic served that
+        subscription (0: none). The subscription delivers main-topic messages up to it first.
+        """
+        last_main = self._main_timestamps.get(peer.info.gid, 0)
+        peer.channel.publish(codec.encode(msg, (FENCE_BACKEND, _FENCE.pack(last_main))),
+                             timestamp)
+        peer.fence_pending = False
+
+    def _note_main_write(self, routes: '_Routes', timestamp: int) -> None:
+        self._sent_main += 1
+        for gid in routes.unserved:
+            self._main_timestamps[gid] = timestamp
 
     def _valid_routes(self) -> '_Routes':
         """The cached routes if they are still current, else freshly computed (and cached)."""
@@ -247,37 +333,35 @@ class Publisher(BufferEndpoint):
 
     def _route_signature(self) -> tuple:
         """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
-        return (self._publisher.get_subscription_count(),
+        return (self.get_subscription_count(),
                 tuple(-1 if peer.channel is None else peer.channel.matched_count()
                       for peer in self._peers.values()))
 
     def _current_routes(self) -> '_Routes':
-        """The channels that serve their peers now, and whether the main topic is needed."""
+        """The channels that serve their peers now, and whether the main topic is needed.
+
+        A peer that starts being served here gets a route fence before its next channel
+        message (see :meth:`_write_fence`).
+        """
         signature = self._route_signature()
         now = time.monotonic()
         recheck_at = now + ROUTES_RECHECK_SECONDS
         peers = []
         for peer in self._peers.values():
-            if peer.channel is None:
-                continue
-            if self._channel_ready(peer):
+            ready = peer.channel is not None and self._channel_ready(peer)
+            if ready:
                 peers.append(peer)
+                if not peer.serving:
+                    peer.fence_pending = True
             elif peer.matched_since is not None:  # settling: ready at the end of it
                 recheck_at = min(recheck_at, peer.matched_since + CHANNEL_SETTLE_SECONDS)
-        main = self._main_topic_needed({peer.info.gid for peer in peers})
-        targets = [peer.channel for peer in peers] + ([self._publisher] if main else [])
-        return _Routes(tuple(peers), main, targets, signature, recheck_at)
-
-    def _main_topic_needed(self, served: Set[bytes]) -> bool:
-        """Whether a matched subscription is not served by one of the ``served`` channels."""
-        return any(gid not in served for gid in _dds.matched_subscription_gids(self._publisher))
-
-    def destroy(self) -> None:
-        """Destroy the publisher, its channels and its main-topic publisher."""
-        if not self._transport:
-            self._node.destroy_publisher(self._publisher)
-            return
-        self._node.destroy_guard_condition(self._guard)  # runs _teardown through the hook
+            peer.serving = ready
+        served = {peer.info.gid for peer in peers}
+        unserved = tuple(gid for gid in _dds.matched_subscription_gids(self)
+                         if gid not in served)
+        main = bool(unserved) or self._main_always
+        targets = [peer.channel for peer in peers] + ([self] if main else [])
+        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved)
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -319,8 +403,8 @@ class Publisher(BufferEndpoint):
         """True once the channel has been matched for ``CHANNEL_SETTLE_SECONDS``.
 
         A DDS VOLATILE reader that matches the writer after the writer matched it may discard
-        the first samples; until the match has settled, the main topic serves the peer (the
-        subscription drops the second copy), so bring-up loses nothing.
+        the first samples; until the match has settled, the main topic serves the peer, so
+        bring-up loses nothing.
         """
         if peer.channel.matched_count() == 0:
             peer.matched_since = None
@@ -341,10 +425,13 @@ class Publisher(BufferEndpoint):
 
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _dds.set_user_data(self._publisher, self._user_data)
+        _dds.set_user_data(self, self._user_data)
 
-    def _on_wake(self) -> None:
-        self._discovery.process()
+    def _node_entities(self) -> list:
+        entities = [self._reannounce_timer, self._discovery_guard]
+        if self._deadline is not None:
+            entities.append(self._deadline.timer)
+        return entities
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         record = _SubscriptionPeer(info=info, backends=backends)
@@ -364,6 +451,7 @@ class Publisher(BufferEndpoint):
     def _on_peer_gone(self, gid: bytes) -> None:
         with self._lock:
             self._routes = None
+            self._main_timestamps.pop(gid, None)
         super()._on_peer_gone(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
@@ -373,14 +461,22 @@ class Publisher(BufferEndpoint):
         if gid in self._peers:
             self._peers_removed += 1
 
-    def _release(self) -> None:
-        try:
-            self._node.destroy_publisher(self._publisher)
-        except Exception as exc:  # already destroyed with the node
-            _logger.debug(f'destroy_publisher: {exc}')
+
+#: The route fence's payload: the source timestamp of the last main-topic message (uint64 LE).
+_FENCE = struct.Struct('<Q')
+
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
-                     callback_group=None, event_callbacks=None) -> Publisher:
-    """Create a buffer-aware publisher on ``node`` (arguments as ``Node.create_publisher``)."""
-    return Publisher(node, msg_type, topic, qos_profile, callback_group=callback_group,
-                     event_callbacks=event_callbacks)
+                     callback_group=None, event_callbacks=None,
+                     qos_overriding_options=None) -> Publisher:
+    """Create a buffer-aware publisher on ``node`` (arguments as ``Node.create_publisher``).
+
+    The node owns it like any publisher: ``node.destroy_publisher(pub)`` and
+    ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do.
+    """
+    if _dds.is_supported():
+        discovery.for_node(node)  # the tap goes first: peers re-announce when they see us
+    return node.create_publisher(
+        msg_type, topic, qos_of(qos_profile), callback_group=callback_group,
+        event_callbacks=event_callbacks, qos_overriding_options=qos_overriding_options,
+        publisher_class=functools.partial(Publisher, node=node))

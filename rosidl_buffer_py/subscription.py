@@ -1,50 +1,78 @@
 """The buffer-aware subscription.
 
-Its main-topic DataReader is an ordinary rcl subscription (so plain rclpy and C++ publishers reach
-it) that advertises ``BUFBE:`` with the backends it accepts; for every buffer-aware publisher it
-discovers it opens the channel ``rt/<topic>/_buf/<pub gid>_<sub gid>`` below rcl. One guard
-condition in the user's callback group is triggered by new data on any of them and by discovery;
-its callback takes everything available and calls the user callback once per message.
+It is an rclpy subscription: the node owns it (``node.subscriptions`` lists it,
+``destroy_subscription`` and ``destroy_node`` destroy it), executors wait on its main-topic
+reader as on any subscription's, and its ``event_callbacks`` are rclpy's own event handlers. Its
+main-topic DataReader is an ordinary rcl subscription (so plain rclpy and C++ publishers reach it)
+that advertises ``BUFBE:`` with the backends it accepts; for every buffer-aware publisher it
+discovers it opens the channel ``rt/<topic>/_buf/<pub gid>_<sub gid>`` below rcl, whose new data
+triggers a guard condition in the same callback group.
 
-Exactly-once: a buffer-aware publisher writes the channel copy and any main-topic copy of one
-message with the same source timestamp; the subscription delivers each (publisher GID, source
-timestamp) of a buffer-aware publisher once. Messages of legacy publishers are never filtered.
+One delivery path, :meth:`Subscription._next`, whichever of the two woke the executor. Per
+publisher, messages are delivered once and in publish order:
+
+- every copy of a message carries the publisher's source timestamp, increasing per publisher; a
+  copy not newer than the last delivered message of its publisher is dropped;
+- channels are taken first: a publisher writes a message's channel copy before its main-topic
+  copy (kept for legacy subscribers), so the channel's route fence and copy are normally seen
+  first, and the main-topic copy is dropped as their duplicate;
+- a publisher that starts serving us on its channel first sends a *route fence* naming the last
+  message the main topic carried for us; channel messages wait until that one was delivered
+  (main-topic messages are never held), and main-topic copies from the fence's message on are
+  duplicates of channel messages.
+
+No copy waits for its twin on a clock. The only timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds
+the wait for a fenced message that was lost (a reader history that overflowed), as DDS's own
+KEEP_LAST loses it. Messages of legacy publishers arrive on the main topic only, as with stock.
 """
 import collections
-import inspect
+import copy
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Dict, List, Optional, Union
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple, Union
 
-from rclpy.exceptions import InvalidHandle
+import rclpy.subscription
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
-from rclpy.qos import QoSProfile
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from rosidl_buffer_py import _dds, advertisement, codec, discovery
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
-from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.channel import FENCE_BACKEND, channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
+from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, hook_destruction, qos_of, warn_unsupported_rmw)
+    BufferEndpoint, qos_of, track_endpoint, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.subscription')
 
-#: Source timestamps remembered per buffer-aware publisher to drop a message's second copy.
-DEDUP_WINDOW = 4096
-#: The main topic is polled first at least once every this many takes (fairness).
-MAIN_TOPIC_TURN = 16
-#: How long a main-topic copy waits for its channel twin (see Subscription._should_hold).
-HOLD_SECONDS = 0.05
-#: Messages delivered per wake-up before yielding to the executor's other callbacks.
+#: How long channel messages wait for a fenced main-topic message before it counts as lost.
+FENCE_TIMEOUT_SECONDS = 1.0
+#: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
 MAX_BATCH = 64
 #: CPU messages up to this many CDR bytes are deserialized in C (rclpy's own conversion: no
 #: Python-level work); longer ones are decoded by the codec, which splices the payload with one
 #: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
 C_DESERIALIZE_MAX_BYTES = 64 * 1024
+#: A route fence is a small descriptor-encoded message: longer samples are not searched for one.
+_FENCE_MAX_BYTES = 64 * 1024
+_FENCE_NAME = FENCE_BACKEND.encode()
+
+
+class _Taken(NamedTuple):
+    """One sample taken from the main topic or a channel."""
+
+    raw: object        #: a deserialized message, or CDR bytes for the codec
+    publisher_gid: bytes
+    info: dict         #: rclpy's message info (source_timestamp, ...)
+
+    @property
+    def timestamp(self) -> int:
+        return self.info['source_timestamp']
 
 
 @dataclass
@@ -61,9 +89,35 @@ class _PublisherPeer:
     backend_in_use: Optional[str] = None
     #: The publisher advertises a backend we accept besides CPU: descriptors may come.
     descriptors_possible: bool = False
+    #: A route fence arrived: later channel samples of a CPU-only peer are CPU messages.
+    fence_seen: bool = False
 
 
-class Subscription(BufferEndpoint):
+@dataclass
+class _Stream:
+    """One publisher's messages as this subscription delivers them (every publisher has one)."""
+
+    #: Source timestamp of the last delivered message: older copies are late or duplicates.
+    last: int = 0
+    #: From the route fence: main-topic messages up to ``fence`` come before channel messages,
+    #: and main-topic copies from ``switch`` on duplicate channel messages.
+    fence: int = 0
+    switch: Optional[int] = None
+    #: A channel message waiting for the fenced main-topic message, and since when.
+    waiting: Optional[Tuple[_Taken, _PublisherPeer]] = None
+    waiting_since: float = 0.0
+
+
+class _MainTopicReader(_rclpy.Subscription):
+    """The main topic's rcl subscription. The executor takes through it as through any
+    subscription's handle; its takes are the owner's delivery path."""
+
+    def take_message(self, msg_type, raw):
+        owner = self._owner()
+        return None if owner is None else owner._next()
+
+
+class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
     """Receive messages whose ``uint8[]`` payload may arrive as a backend Buffer.
 
     Create it with :func:`rosidl_buffer_py.create_subscription`. The callback gets ``(msg)`` or
@@ -71,45 +125,43 @@ class Subscription(BufferEndpoint):
     a Buffer of an accepted backend for descriptor data.
     """
 
-    def __init__(self, node, msg_type, topic: str, callback: Callable,
-                 qos_profile: Union[QoSProfile, int], *, callback_group=None,
-                 event_callbacks=None,
-                 acceptable_buffer_backends: Optional[str] = 'cpu') -> None:
+    def __init__(self, node, msg_type, topic: str, callback: Callable, qos_profile: QoSProfile,
+                 callback_group, event_callbacks: SubscriptionEventCallbacks,
+                 acceptable_buffer_backends: Optional[str]) -> None:
         self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
         self._peer_kind = EndpointKind.PUBLISHER
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         self._node = node
-        self.msg_type = msg_type
-        self.callback = callback
-        self.qos_profile = qos_of(qos_profile)
         self._lock = threading.RLock()
         self._peers: Dict[bytes, _PublisherPeer] = {}
-        self._seen: Dict[bytes, 'collections.OrderedDict[int, None]'] = {}
+        self._streams: Dict[bytes, _Stream] = collections.defaultdict(_Stream)
         self._counts = collections.Counter()
         self._next_channel = 0
         self._channels: List[_PublisherPeer] = []  # the peers with a channel, polled in turn
-        self._takes = 0
-        self._held = collections.deque()
-        self._hold_timer = None
+        self._waiting = 0  # streams with a channel message waiting for its fence
+        self._reliable = qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT
         self._destroyed = False
-        self._plain = None
-        self._transport = _dds.is_supported()
-        if not self._transport:
-            self._plain = node.create_subscription(
-                msg_type, topic, callback, self.qos_profile, callback_group=callback_group,
-                event_callbacks=event_callbacks)
-            warn_unsupported_rmw('subscription', self._plain.topic_name)
-            return
-        self._with_info = _takes_message_info(callback)
-        _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
         self._discovery = discovery.for_node(node)
+        deadline_callback = None
+        if event_callbacks.deadline and finite(qos_profile.deadline):
+            deadline_callback = event_callbacks.deadline  # counted over every route
+            event_callbacks = copy.copy(event_callbacks)
+            event_callbacks.deadline = None
+        _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
         with node.handle:
-            self._sub = _rclpy.Subscription(node.handle, msg_type, topic,
-                                            self.qos_profile.get_c_qos_profile())
-        self._topic_name = self._sub.get_topic_name()
-        self._gid = _dds.endpoint_gid(self._sub, 'subscription')
+            reader = _MainTopicReader(node.handle, msg_type, topic,
+                                      qos_profile.get_c_qos_profile())
+        reader._owner = lambda: None
+        try:
+            super().__init__(reader, msg_type, topic, callback, callback_group, qos_profile,
+                             False, event_callbacks=event_callbacks)
+        except Exception:
+            reader.destroy_when_not_in_use()
+            raise
+        self._topic_name = reader.get_topic_name()
+        self._gid = _dds.endpoint_gid(reader, 'subscription')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.SUBSCRIPTION,
                                   node.get_name(), node.get_namespace())
         backends = get_installed_backends()
@@ -117,35 +169,34 @@ class Subscription(BufferEndpoint):
         self._advertised = {name: backend.get_backend_metadata()
                             for name, backend in sorted(self._backends.items())}
         self._user_data = advertisement.append(
-            _dds.get_user_data(self._sub, 'subscription'), self._advertised)
+            _dds.get_user_data(reader, 'subscription'), self._advertised)
         self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
-        self._guard = node.create_guard_condition(self._on_wake, callback_group)
-        hook_destruction(self._guard, self._teardown)
-        _dds.set_new_message_wakeup(self._sub, self._guard)
+        self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
+                                          callback_group)
+                          if deadline_callback else None)
+        self._fence_timer = None
+        self._channel_guard = node.create_guard_condition(self._deliver_available,
+                                                          callback_group)
         # discovery wakes its own guard: data wake-ups do not poll discovery
         self._discovery_guard = node.create_guard_condition(self._discovery.process,
                                                             callback_group)
         self._discovery.add_wakeup(node, self._discovery_guard)
         self._start_reannounce_timer(node, callback_group)
+        track_endpoint(self)
         with self._lock:
             for peer in self._discovery.watch(dds_topic(self._topic_name), self):
                 self._on_peer(peer)
-        self._guard.trigger()  # take what arrived before the wake-up was armed
+        owner = self
+        reader._owner = lambda: owner if not owner._destroyed else None
 
-    # rclpy.subscription.Subscription compatible surface --------------------------------------
+    # rclpy.subscription.Subscription surface ------------------------------------------------
 
     @property
     def topic_name(self) -> str:
         """Fully qualified topic name."""
-        return self._plain.topic_name if self._plain is not None else self._topic_name
-
-    def get_publisher_count(self) -> int:
-        """Publishers matched on the main topic (every publisher, buffer-aware or not)."""
-        if self._plain is not None:
-            return self._plain.get_publisher_count()
-        return self._sub.get_publisher_count()
+        return self._topic_name
 
     @property
     def acceptable_buffer_backends(self) -> frozenset:
@@ -153,11 +204,10 @@ class Subscription(BufferEndpoint):
         return self._accepted
 
     def destroy(self) -> None:
-        """Destroy the subscription and its channels."""
-        if self._plain is not None:
-            self._node.destroy_subscription(self._plain)
-            return
-        self._node.destroy_guard_condition(self._guard)  # runs _teardown through the hook
+        """Destroy the channels, then the subscription (``Node.destroy_subscription`` calls
+        this)."""
+        self._teardown()
+        super().destroy()
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -178,173 +228,195 @@ class Subscription(BufferEndpoint):
     def statistics(self) -> dict:
         """Counters: delivered, duplicates dropped, rejected descriptors, by route."""
         with self._lock:
-            return {'gid': self._gid.hex() if self._transport else None,
-                    'buffer_aware': self._transport,
-                    'advertised_backends': dict(getattr(self, '_advertised', {})),
+            return {'gid': self._gid.hex(),
+                    'buffer_aware': True,
+                    'advertised_backends': dict(self._advertised),
                     **{key: self._counts[key] for key in (
                         'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
-                        'rejected')},
+                        'rejected', 'fences', 'fence_timeouts')},
                     'peers': self.buffer_peers()}
 
-    # internals ------------------------------------------------------------------------------
+    # the delivery path ----------------------------------------------------------------------
 
-    def _announce(self) -> None:
-        """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _dds.set_user_data(self._sub, self._user_data, 'subscription')
-
-    def _on_wake(self) -> None:
-        for _ in range(MAX_BATCH):
-            with self._lock:
-                if self._destroyed:
-                    return
-                item = self._take_one()
-            if item is None:
-                return
-            msg, info = item
-            if self._with_info:
-                self.callback(msg, info)
-            else:
-                self.callback(msg)
-        self._wake()  # more may be waiting: let other callbacks run first
-
-    def _wake(self) -> None:
-        """Trigger our guard condition, unless the subscription is being destroyed."""
+    def _next(self) -> Optional[Tuple[object, dict]]:
+        """The next message to deliver, with its message info, or None when none is left."""
         with self._lock:
-            if self._destroyed:
-                return
-            try:
-                self._guard.trigger()
-            except InvalidHandle:  # the node is being destroyed
-                pass
-
-    def _take_one(self):
-        """Take and decode the next deliverable message, or return None when none is left.
-
-        Channels are polled before the main topic: a buffer-aware publisher writes a message's
-        channel copy before its main-topic copy (kept for legacy subscribers), so the descriptor
-        copy is normally found first and the CPU copy dropped as its duplicate. Channels are
-        polled in rotating order, and the main topic gets a turn at least every
-        ``MAIN_TOPIC_TURN`` takes, so that no source starves.
-        """
-        while True:
-            taken = self._release_held() if self._held else None
-            if taken is not None:
-                raw, publisher_gid, info, peer = taken
-                if self._is_duplicate(peer.info.gid, info['source_timestamp']):
-                    self._counts['duplicates_dropped'] += 1
+            while not self._destroyed:
+                found = self._next_from_channels()
+                if found is not None:
+                    msg, taken = found
+                    if msg is not None:
+                        return self._delivered(msg, taken)
                     continue
-                msg = self._decode(raw, peer, publisher_gid)
+                taken = self._take_main()
+                if taken is None:
+                    return None
+                msg = self._accept_main(taken)
                 if msg is not None:
-                    self._counts['delivered'] += 1
-                    return msg, info
-                continue
-            taken, peer, from_main = None, None, False
-            self._takes += 1
-            main_first = self._takes % MAIN_TOPIC_TURN == 0
-            if main_first:
-                taken, peer = self._take_main()
-                from_main = taken is not None
-            if taken is None:
-                taken, peer = self._take_channels()
-            if taken is None and not main_first:
-                taken, peer = self._take_main()
-                from_main = taken is not None
-            if taken is None:
-                return None
-            raw, publisher_gid, info = taken
-            if from_main and self._should_hold(peer, taken):
-                continue
-            # a channel's own writer has its own GID: both copies are keyed by the publisher's
-            if peer is not None and self._is_duplicate(peer.info.gid, info['source_timestamp']):
-                self._counts['duplicates_dropped'] += 1
-                continue
-            msg = self._decode(raw, peer, publisher_gid)
-            if msg is not None:
-                self._counts['delivered'] += 1
-                return msg, info
+                    if self._waiting:
+                        self._wake()  # it may open a fence: the channel guard delivers the rest
+                    return self._delivered(msg, taken)
+            return None
 
-    def _take_channels(self):
-        """The next message of any channel (polled in rotating order), and its peer."""
+    def _delivered(self, msg, taken: _Taken) -> Tuple[object, dict]:
+        self._counts['delivered'] += 1
+        if self._deadline is not None:
+            self._deadline.activity()
+        return msg, taken.info
+
+    def _take_main(self) -> Optional[_Taken]:
+        # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
+        taken = _dds.take_message_with_gid(self.handle, self.msg_type, C_DESERIALIZE_MAX_BYTES)
+        if taken is None:
+            return None
+        self._counts['from_main_topic'] += 1
+        return _Taken(*taken)
+
+    def _accept_main(self, taken: _Taken):
+        """The message of a main-topic sample, or None when it is not to be delivered."""
+        stream = self._streams[taken.publisher_gid]
+        ts = taken.timestamp
+        if ts <= stream.last or (stream.switch is not None and ts >= stream.switch):
+            self._counts['duplicates_dropped'] += 1  # delivered, or to be, from the channel
+            return None
+        peer = self._peers.get(taken.publisher_gid)
+        stream.last = ts
+        return self._decode(taken, peer)
+
+    def _next_from_channels(self):
+        """``(message or None, taken)`` from the channels (rotating), or None when all are
+        empty or waiting for their fence."""
         channels = self._channels
         count = len(channels)
         for i in range(count):
             peer = channels[(self._next_channel + i) % count]
-            # peers that cannot send us descriptors: deserialized in C, as rclpy's take does
-            taken = peer.channel.take() if peer.descriptors_possible else \
-                peer.channel.take_message(self.msg_type, C_DESERIALIZE_MAX_BYTES)
-            if taken is not None:
-                self._counts['from_channels'] += 1
-                self._next_channel = (self._next_channel + i + 1) % count
-                return taken, peer
-        return None, None
-
-    def _should_hold(self, peer: Optional[_PublisherPeer], taken: tuple) -> bool:
-        """Hold a main-topic copy whose channel copy is probably on its way.
-
-        When the publisher serves us on a matched channel, the main-topic copy (written for
-        legacy subscribers) is a duplicate whose descriptor twin may simply not have been taken
-        yet: keep it up to ``HOLD_SECONDS`` so the channel copy wins. If none comes (the
-        publisher had not matched the channel yet), it is delivered then.
-        """
-        if peer is None or peer.channel is None or peer.channel.matched_count() == 0:
-            return False
-        if taken[2]['source_timestamp'] in self._seen.get(peer.info.gid, ()):
-            return False  # its twin was already delivered: let the duplicate check drop it
-        self._held.append((time.monotonic() + HOLD_SECONDS, taken, peer))
-        if self._hold_timer is None or not self._hold_timer.is_alive():
-            self._hold_timer = threading.Timer(HOLD_SECONDS, self._wake)
-            self._hold_timer.daemon = True
-            self._hold_timer.start()
-        return True
-
-    def _release_held(self):
-        """The oldest held main-topic copy whose hold expired, or None."""
-        if self._held and self._held[0][0] <= time.monotonic():
-            _, (raw, publisher_gid, info), peer = self._held.popleft()
-            return raw, publisher_gid, info, peer
-        if self._held and (self._hold_timer is None or not self._hold_timer.is_alive()):
-            self._hold_timer = threading.Timer(
-                max(0.0, self._held[0][0] - time.monotonic()), self._wake)
-            self._hold_timer.daemon = True
-            self._hold_timer.start()
+            stream = self._streams[peer.info.gid]
+            if stream.waiting is not None:
+                if not self._fence_passed(stream):
+                    continue
+                taken, _ = stream.waiting
+                stream.waiting = None
+                self._waiting -= 1
+                msg = None
+                if taken.timestamp > stream.last:
+                    stream.last = taken.timestamp
+                    msg = self._decode(taken, peer)
+            else:
+                taken = self._take_channel(peer)
+                if taken is None:
+                    continue
+                msg = self._accept_channel(taken, peer, stream)
+            self._next_channel = (self._next_channel + i + 1) % count
+            return msg, taken
         return None
 
-    def _take_main(self):
-        # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
-        taken = _dds.take_message_with_gid(self._sub, self.msg_type, C_DESERIALIZE_MAX_BYTES)
-        if taken is None:
-            return None, None
-        self._counts['from_main_topic'] += 1
-        return taken, self._peers.get(taken[1])
+    def _take_channel(self, peer: _PublisherPeer) -> Optional[_Taken]:
+        # peers that cannot send us descriptors: deserialized in C, as rclpy's take does (once
+        # their route fence, a descriptor-encoded sample, has come)
+        if peer.descriptors_possible or not peer.fence_seen:
+            taken = peer.channel.take()
+        else:
+            taken = peer.channel.take_message(self.msg_type, C_DESERIALIZE_MAX_BYTES)
+        return None if taken is None else _Taken(*taken)
 
-    def _is_duplicate(self, publisher_gid: bytes, source_timestamp: int) -> bool:
-        seen = self._seen.setdefault(publisher_gid, collections.OrderedDict())
-        if source_timestamp in seen:
-            del seen[source_timestamp]  # at most two copies exist: forget it now
+    def _accept_channel(self, taken: _Taken, peer: _PublisherPeer, stream: _Stream):
+        """The message of a channel sample, or None (a fence, a duplicate, or it must wait)."""
+        ts = taken.timestamp
+        if type(taken.raw) is not self.msg_type:
+            fence = self._fence_of(taken.raw)
+            if fence is not None:
+                self._counts['fences'] += 1
+                peer.fence_seen = True
+                stream.switch, stream.fence = ts, fence
+                return None
+        self._counts['from_channels'] += 1
+        if ts <= stream.last:
+            self._counts['duplicates_dropped'] += 1
+            return None
+        if stream.switch is None:  # no fence yet: channel messages are newer than main's
+            stream.switch = ts
+        if self._reliable and stream.fence > stream.last and stream.waiting is None:
+            stream.waiting, stream.waiting_since = (taken, peer), time.monotonic()
+            self._waiting += 1
+            self._arm_fence_timer()
+            return None
+        stream.last = ts
+        return self._decode(taken, peer)
+
+    def _fence_passed(self, stream: _Stream) -> bool:
+        if stream.last >= stream.fence:
             return True
-        seen[source_timestamp] = None
-        if len(seen) > DEDUP_WINDOW:
-            seen.popitem(last=False)
+        if time.monotonic() - stream.waiting_since >= FENCE_TIMEOUT_SECONDS:
+            self._counts['fence_timeouts'] += 1  # the fenced message was lost on the way
+            stream.fence = 0
+            return True
         return False
 
-    def _decode(self, raw, peer: Optional[_PublisherPeer], publisher_gid: bytes):
+    def _fence_of(self, raw) -> Optional[int]:
+        """The timestamp a route fence carries, or None when ``raw`` is not a fence."""
+        if len(raw) > _FENCE_MAX_BYTES or _FENCE_NAME not in raw:
+            return None
+        try:
+            decoded = codec.decode(raw, self.msg_type)
+        except codec.CodecError:
+            return None
+        if decoded.backend_type != FENCE_BACKEND or len(decoded.descriptor) != 8:
+            return None
+        return int.from_bytes(decoded.descriptor, 'little')
+
+    def _deliver_available(self) -> None:
+        """Channel data woke us: deliver what is deliverable (at most ``MAX_BATCH``)."""
+        for _ in range(MAX_BATCH):
+            item = self._next()
+            if item is None:
+                return
+            self._call(*item)
+        self._wake()  # more may be waiting: let other callbacks run first
+
+    def _on_fence_timer(self) -> None:
+        with self._lock:
+            if not self._waiting and self._fence_timer is not None:
+                self._fence_timer.cancel()
+        self._deliver_available()
+
+    def _arm_fence_timer(self) -> None:
+        if self._fence_timer is None:
+            self._fence_timer = self._node.create_timer(
+                FENCE_TIMEOUT_SECONDS / 4, self._on_fence_timer, self.callback_group)
+        elif self._fence_timer.is_canceled():
+            self._fence_timer.reset()
+
+    def _call(self, msg, info) -> None:
+        if self._callback_type is rclpy.subscription.Subscription.CallbackType.MessageOnly:
+            self.callback(msg)
+        else:
+            self.callback(msg, info)
+
+    def _wake(self) -> None:
+        with self._lock:
+            if not self._destroyed:
+                self._channel_guard.trigger()
+
+    def _decode(self, taken: _Taken, peer: Optional[_PublisherPeer]):
         """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes."""
+        raw = taken.raw
         if type(raw) is self.msg_type:
             if peer is not None:
                 peer.received_cpu += 1
-                peer.backend_in_use = 'cpu'
+                peer.backend_in_use = CPU_BACKEND
             return raw
         try:
             decoded = codec.decode(raw, self.msg_type, known_backends=self._backends)
             if decoded.backend_type is None:
                 if peer is not None:
                     peer.received_cpu += 1
-                    peer.backend_in_use = 'cpu'
+                    peer.backend_in_use = CPU_BACKEND
                 return decoded.msg
             if peer is None:
                 raise codec.CodecError(
                     f'descriptor of backend {decoded.backend_type!r} from publisher '
-                    f'{publisher_gid.hex()}, which is not a discovered buffer-aware publisher')
+                    f'{taken.publisher_gid.hex()}, which is not a discovered buffer-aware '
+                    'publisher')
             buffer = self._backends[decoded.backend_type].from_descriptor_with_endpoint(
                 decoded.descriptor, peer.info)
             setattr(decoded.msg, self._field, buffer)
@@ -354,16 +426,23 @@ class Subscription(BufferEndpoint):
         except Exception as exc:  # bytes from the network: reject, count, log, go on
             self._counts['rejected'] += 1
             _logger.warning(
-                f'rejected a message on {self._topic_name} from {publisher_gid.hex()}: '
+                f'rejected a message on {self._topic_name} from {taken.publisher_gid.hex()}: '
                 f'{type(exc).__name__}: {exc} ({self._counts["rejected"]} rejected so far)',
                 throttle_duration_sec=5.0)
             return None
+
+    # peers ----------------------------------------------------------------------------------
+
+    def _announce(self) -> None:
+        """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
+        _dds.set_user_data(self.handle, self._user_data, 'subscription')
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
         record = _PublisherPeer(info=info, backends=backends)
         record.channel_topic = channel_topic(self._topic_name, info.gid, self._gid)
         record.channel = _dds.create_channel_subscription(
-            self._node, self.msg_type, record.channel_topic, self.qos_profile, self._guard)
+            self._node, self.msg_type, record.channel_topic, self.qos_profile,
+            self._channel_guard)
         return record
 
     def _update_peer(self, record: _PublisherPeer, compatible) -> None:
@@ -374,38 +453,91 @@ class Subscription(BufferEndpoint):
             name != CPU_BACKEND and name in self._backends for name in record.backends)
         self._channels = [p for p in self._peers.values() if p.channel is not None]
 
+    def _on_peer_gone(self, gid: bytes) -> None:
+        with self._lock:
+            stream = self._streams.pop(gid, None)
+            if stream is not None and stream.waiting is not None:
+                self._waiting -= 1
+        super()._on_peer_gone(gid)
+
     def _forget_peer(self, gid: bytes) -> None:
-        self._seen.pop(gid, None)
+        # its channel goes: its next messages (if any) come on the main topic again
+        stream = self._streams.get(gid)
+        if stream is not None:
+            stream.switch, stream.fence = None, 0
         self._channels = [p for p in self._channels if p.info.gid != gid]
 
-    def _release(self) -> None:
-        self._node.destroy_guard_condition(self._discovery_guard)
-        if self._hold_timer is not None:
-            self._hold_timer.cancel()
-        self._held.clear()
-        _dds.clear_new_message_wakeup(self._sub)
-        self._sub.destroy_when_not_in_use()
-
-def _takes_message_info(callback: Callable) -> bool:
-    """True when ``callback`` accepts ``(msg, message_info)`` (the rule rclpy applies)."""
-    try:
-        inspect.signature(callback).bind(object())
-        return False
-    except TypeError:
-        inspect.signature(callback).bind(object(), object())
-        return True
+    def _node_entities(self) -> list:
+        entities = [self._reannounce_timer, self._discovery_guard, self._channel_guard]
+        if self._fence_timer is not None:
+            entities.append(self._fence_timer)
+        if self._deadline is not None:
+            entities.append(self._deadline.timer)
+        return entities
 
 
 def create_subscription(node, msg_type, topic: str, callback: Callable,
                         qos_profile: Union[QoSProfile, int], *, callback_group=None,
-                        event_callbacks=None,
-                        acceptable_buffer_backends: Optional[str] = 'cpu') -> Subscription:
+                        event_callbacks=None, raw: bool = False,
+                        acceptable_buffer_backends: Optional[str] = 'cpu'):
     """Create a buffer-aware subscription on ``node`` (arguments as ``Node.create_subscription``).
+
+    The node owns it like any subscription: ``node.destroy_subscription(sub)`` and
+    ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do.
 
     :param acceptable_buffer_backends: Backends whose descriptors this subscription accepts:
         ``"cpu"`` (the default), ``""`` or ``None`` for CPU only, ``"any"`` for every installed
         backend, or a comma-separated list such as ``"demo"``. CPU data is always accepted.
+    :param raw: Not supported: raw (serialized) messages are CPU bytes anyway, so use
+        ``node.create_subscription(..., raw=True)``, which receives them from every publisher.
     """
-    return Subscription(node, msg_type, topic, callback, qos_profile,
-                        callback_group=callback_group, event_callbacks=event_callbacks,
-                        acceptable_buffer_backends=acceptable_buffer_backends)
+    if raw:
+        raise ValueError('raw=True is not supported by buffer-aware subscriptions: serialized '
+                         'messages are always CPU bytes, which a plain '
+                         'node.create_subscription(..., raw=True) receives from every publisher, '
+                         'buffer-aware ones included')
+    qos = qos_of(qos_profile)
+    callback_group = callback_group or node.default_callback_group
+    event_callbacks = event_callbacks or SubscriptionEventCallbacks()
+    if _dds.is_supported():
+        sub = Subscription(node, msg_type, topic, callback, qos, callback_group, event_callbacks,
+                           acceptable_buffer_backends)
+    else:
+        sub = _PlainSubscription(node, msg_type, topic, callback, qos, callback_group,
+                                 event_callbacks, acceptable_buffer_backends)
+        warn_unsupported_rmw('subscription', sub.topic_name)
+    # registered as Node.create_subscription registers its own (rclpy has no public hook)
+    callback_group.add_entity(sub)
+    node._subscriptions.append(sub)
+    node._wake_executor()
+    for handler in sub.event_handlers:
+        node.add_waitable(handler)
+    return sub
+
+
+class _PlainSubscription(rclpy.subscription.Subscription):
+    """What :func:`create_subscription` gives under another rmw: a plain rclpy subscription
+    (CPU bytes only) with the diagnostics surface of :class:`Subscription`."""
+
+    def __init__(self, node, msg_type, topic: str, callback: Callable, qos_profile: QoSProfile,
+                 callback_group, event_callbacks: SubscriptionEventCallbacks,
+                 acceptable_buffer_backends: Optional[str]) -> None:
+        self.acceptable_buffer_backends = parse_acceptable_buffer_backends(
+            acceptable_buffer_backends)
+        _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
+        with node.handle:
+            handle = _rclpy.Subscription(node.handle, msg_type, topic,
+                                         qos_profile.get_c_qos_profile())
+        super().__init__(handle, msg_type, topic, callback, callback_group, qos_profile, False,
+                         event_callbacks=event_callbacks)
+
+    @property
+    def topic_name(self) -> str:
+        with self.handle:
+            return self.handle.get_topic_name()
+
+    def buffer_peers(self) -> List[dict]:
+        return []
+
+    def statistics(self) -> dict:
+        return {'gid': None, 'buffer_aware': False, 'advertised_backends': {}, 'peers': []}

@@ -1,10 +1,12 @@
 """What the buffer-aware publisher and subscription share: peer bookkeeping and small helpers."""
+import atexit
 import threading
 import time
-from typing import Callable, Dict, Mapping, Set, Union
+import weakref
+from typing import Dict, Mapping, Set, Union
 
 from rclpy.logging import get_logger
-from rclpy.qos import QoSProfile
+from rclpy.qos import QoSCompatibility, QoSProfile, qos_check_compatible
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import dds_topic
@@ -49,22 +51,50 @@ def warn_unsupported_rmw(what: str, topic: str) -> None:
                     'use plain rclpy pub/sub on the main topic, CPU bytes only')
 
 
-def hook_destruction(guard_condition, teardown: Callable[[], None]) -> None:
-    """Run ``teardown`` when ``guard_condition`` is destroyed.
+_live_endpoints: 'weakref.WeakSet' = weakref.WeakSet()
 
-    rclpy's ``Node.destroy_node()`` destroys every guard condition of the node, so a wrapper that
-    owns a guard condition is torn down with its node (channels included), just like the
-    publishers and subscriptions rclpy creates itself.
+
+def track_endpoint(endpoint: 'BufferEndpoint') -> None:
+    """Remember a live buffer-aware endpoint, to be torn down at interpreter exit at the latest.
+
+    Channels and discovery wake-ups pin their node (rclpy defers destroying it). A script that
+    ends without ``destroy_node()`` (Ctrl-C out of ``rclpy.spin``) would otherwise keep the DDS
+    participant alive until the process dies, and Fast DDS's shared-memory files with it; stock
+    rclpy frees everything when the interpreter exits, and so do we.
     """
-    destroy = guard_condition.destroy
+    _live_endpoints.add(endpoint)
 
-    def destroy_with_teardown():
+
+@atexit.register
+def _teardown_live_endpoints() -> None:
+    for endpoint in list(_live_endpoints):
         try:
-            teardown()
-        finally:
-            destroy()
+            endpoint._teardown()
+        except Exception as exc:  # exiting: report, never raise
+            _logger.debug(f'teardown at exit: {type(exc).__name__}: {exc}')
 
-    guard_condition.destroy = destroy_with_teardown
+
+def qos_compatible(node, topic: str, own_gid: bytes, peer_gid: bytes,
+                   peer_kind: EndpointKind) -> bool:
+    """Whether our QoS and the peer's, as the ROS graph reports them, let them communicate.
+
+    A peer whose QoS is incompatible with ours gets no channel: stock endpoints would not talk,
+    and an unmatched channel would make both sides re-announce (and log) forever. Both profiles
+    come from the graph (what DDS uses: rclpy's "default" durations are resolved there).
+    """
+    try:
+        publishers = node.get_publishers_info_by_topic(topic)
+        subscriptions = node.get_subscriptions_info_by_topic(topic)
+    except Exception:  # the node is being destroyed
+        return True
+    pub_gid, sub_gid = ((own_gid, peer_gid) if peer_kind is EndpointKind.SUBSCRIPTION
+                        else (peer_gid, own_gid))
+    pub = next((i.qos_profile for i in publishers if bytes(i.endpoint_gid) == pub_gid), None)
+    sub = next((i.qos_profile for i in subscriptions if bytes(i.endpoint_gid) == sub_gid), None)
+    if pub is None or sub is None:
+        return True  # not in the graph yet: assume it is
+    compatibility, _reason = qos_check_compatible(pub, sub)
+    return compatibility != QoSCompatibility.ERROR
 
 
 class BufferEndpoint:
@@ -75,8 +105,8 @@ class BufferEndpoint:
     (create the record and its channel), and optionally ``_update_peer(record, compatible)``,
     ``_forget_peer(gid)`` and ``_release()`` (free the endpoint itself, under the lock).
     The subclass constructor sets ``_lock``, ``_peers``, ``_destroyed``, ``_backends``,
-    ``_discovery``, ``_guard``, ``_discovery_guard`` (woken by discovery events) and
-    ``_topic_name``.
+    ``_discovery``, ``_discovery_guard`` (woken by discovery events) and
+    ``_topic_name``, and calls :func:`track_endpoint`.
     """
 
     _peer_kind: EndpointKind
@@ -99,6 +129,9 @@ class BufferEndpoint:
                     self._drop_peer(peer.gid)
                 return
             info = EndpointInfo(peer.gid, self._topic_name, self._peer_kind)
+            if known is None and not qos_compatible(self._node, self._topic_name, self._gid,
+                                                    peer.gid, self._peer_kind):
+                return  # stock endpoints would not communicate: neither do our channels
             compatible = self._compatible_backends(info, peer.backends)
             if known is None:
                 known = self._add_peer(info, dict(peer.backends))
@@ -234,8 +267,18 @@ class BufferEndpoint:
         with self._lock:
             for gid in list(self._peers):
                 self._drop_peer(gid)
-            self._node.destroy_timer(self._reannounce_timer)
+            for entity in self._node_entities():
+                try:
+                    (self._node.destroy_timer if hasattr(entity, 'timer_period_ns')
+                     else self._node.destroy_guard_condition)(entity)
+                except Exception as exc:  # the node was destroyed first
+                    _logger.debug(f'destroying {entity!r}: {exc}')
             self._release()
+        _live_endpoints.discard(self)
+
+    def _node_entities(self) -> list:
+        """The timers and guard conditions this endpoint created on its node."""
+        return [self._reannounce_timer]
 
     def _release(self) -> None:
-        """Hook: free the endpoint itself (called once, under the lock)."""
+        """Hook: free what else the endpoint holds (called once, under the lock)."""

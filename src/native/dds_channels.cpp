@@ -464,6 +464,47 @@ PyObject * pub_matched_count(PyObject * op, PyObject *)
     "rmw_publisher_count_matched_subscriptions");
 }
 
+/// Block until every matched subscription acknowledged every sample, or `timeout_sec` passes.
+PyObject * pub_wait_for_all_acked(PyObject * op, PyObject * arg)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  double timeout_sec = PyFloat_AsDouble(arg);
+  if (timeout_sec == -1.0 && PyErr_Occurred()) {
+    return nullptr;
+  }
+  rmw_time_t timeout = RMW_DURATION_INFINITE;
+  if (timeout_sec >= 0.0) {
+    timeout.sec = static_cast<uint64_t>(timeout_sec);
+    timeout.nsec = static_cast<uint64_t>((timeout_sec - static_cast<double>(timeout.sec)) * 1e9);
+  }
+  rmw_ret_t ret = RMW_RET_OK;
+  bool valid = true;
+  std::string error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (self->publisher == nullptr) {
+      valid = false;
+    } else {
+      ret = rmw_publisher_wait_for_all_acked(self->publisher, timeout);
+      if (ret != RMW_RET_OK && ret != RMW_RET_TIMEOUT) {
+        error = take_rmw_error();
+      }
+    }
+  }
+  if (!valid) {
+    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    return nullptr;
+  }
+  if (ret == RMW_RET_TIMEOUT) {
+    Py_RETURN_FALSE;
+  }
+  if (ret != RMW_RET_OK) {
+    return raise_rmw_error("rmw_publisher_wait_for_all_acked failed", error);
+  }
+  Py_RETURN_TRUE;
+}
+
 PyObject * pub_valid(PyObject * op, void *)
 {
   return PyBool_FromLong(reinterpret_cast<ChannelPublisherObject *>(op)->publisher != nullptr);
@@ -480,6 +521,9 @@ PyMethodDef pub_methods[] = {
     "matched_count() -> int: subscriptions currently matched."},
   {"matched_gids", pub_matched_gids, METH_NOARGS,
     "matched_gids() -> list[bytes]: 16-byte GIDs of the DataReaders currently matched."},
+  {"wait_for_all_acked", pub_wait_for_all_acked, METH_O,
+    "wait_for_all_acked(timeout_sec: float) -> bool: wait until every matched subscription\n"
+    "acknowledged every sample (reliable channels); a negative timeout waits forever."},
   {"destroy", pub_destroy, METH_NOARGS,
     "destroy() -> None: delete the rmw publisher and unpin the node (idempotent)."},
   {nullptr, nullptr, 0, nullptr},

@@ -1,0 +1,51 @@
+"""QoS deadline events counted over every route of a buffer-aware endpoint.
+
+A stock DataWriter reports an offered deadline missed when it wrote nothing for a deadline
+period, and a DataReader a requested deadline missed when it received nothing: counted from the
+first sample on, once per period of silence. A buffer-aware endpoint's traffic also travels on
+its channels, which its main-topic DataWriter or DataReader does not see, so DDS would report
+misses while messages flow. :class:`DeadlineMonitor` counts them instead, over every route, with
+the same rule, from a timer of the node (it runs in the endpoint's callback group, like rclpy's
+own event handlers). Every other event (liveliness, incompatible QoS, matched, message lost)
+comes from the main topic's DDS entities through rclpy's own event handlers.
+"""
+from typing import Callable, NamedTuple
+
+from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
+
+
+class DeadlineMissedInfo(NamedTuple):
+    """What rclpy's deadline callbacks receive (the fields of rmw's deadline status)."""
+
+    total_count: int
+    total_count_change: int
+
+
+def finite(duration: Duration) -> bool:
+    """Whether a QoS duration is set (rclpy's default, 0, means infinite)."""
+    return 0 < duration.nanoseconds < 0x7FFFFFFFFFFFFFFF
+
+
+class DeadlineMonitor:
+    """Call ``callback(DeadlineMissedInfo)`` once per ``period`` without :meth:`activity`.
+
+    Armed by the first :meth:`activity` (a message published or delivered); each later one
+    restarts the period, as DDS restarts its deadline timer on every sample.
+    """
+
+    def __init__(self, node, period: Duration, callback: Callable, callback_group) -> None:
+        self._node = node
+        self._callback = callback
+        self._count = 0
+        self.timer = node.create_timer(period.nanoseconds / 1e9, self._on_timer, callback_group,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME),
+                                       autostart=False)
+
+    def activity(self) -> None:
+        """A message went out (publisher) or was delivered (subscription): restart the period."""
+        self.timer.reset()
+
+    def _on_timer(self) -> None:
+        self._count += 1
+        self._callback(DeadlineMissedInfo(self._count, 1))
