@@ -92,6 +92,37 @@ class _Routes(NamedTuple):
     unserved: Tuple[bytes, ...]
 
 
+class _Encoder:
+    """The wire forms of one message, each made at most once per ``publish()``.
+
+    A message whose payload is CPU memory is written as the message itself (rmw serializes it);
+    serialized bytes and Buffer payloads go through the codec: the CPU bytes once, and the
+    descriptor form once per distinct descriptor.
+    """
+
+    __slots__ = ('msg', 'payload', 'cpu_message', 'vendor', '_cpu', '_described')
+
+    def __init__(self, msg, serialized, payload) -> None:
+        self.msg = msg
+        self.payload = payload
+        self.cpu_message = serialized is None and not isinstance(payload, Buffer)
+        self.vendor = (payload.backend_type
+                       if isinstance(payload, Buffer) and not payload.is_cpu else None)
+        self._cpu = serialized
+        self._described: Dict[bytes, bytearray] = {}
+
+    def cpu_bytes(self):
+        if self._cpu is None:
+            self._cpu = codec.encode(self.msg)
+        return self._cpu
+
+    def with_descriptor(self, vendor: str, descriptor: bytes) -> bytearray:
+        data = self._described.get(descriptor)
+        if data is None:
+            data = self._described[descriptor] = codec.encode(self.msg, (vendor, descriptor))
+        return data
+
+
 class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
     """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
 
@@ -195,7 +226,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         super().destroy()
 
     def publish(self, msg) -> None:
-        """Publish ``msg`` to every subscription, each by the cheapest route it can take."""
+        """Publish ``msg`` to every subscription, each by the cheapest route it can take.
+
+        One pipeline: write to the routes the last call found (see :class:`_Routes`), then
+        re-check them, off the path the subscribers' latency sees. A target that became needed
+        meanwhile (a channel that settled, a new legacy subscriber) gets the message then, with
+        the same source timestamp; a route no longer needed costs at most one extra copy, which
+        buffer-aware subscriptions drop as a duplicate.
+        """
         if isinstance(msg, (bytes, bytearray, memoryview)):
             serialized = msg
         elif isinstance(msg, self.msg_type):
@@ -214,67 +252,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             self._discovery.process()
             self._reannounce_if_unmatched()
         payload = None if serialized is not None else getattr(msg, self._field)
-        if serialized is None and not isinstance(payload, Buffer):
-            self._publish_cpu_message(msg)
-        else:
-            self._publish_encoded(msg, serialized, payload)
-        if self._deadline is not None:
-            self._deadline.activity()
-
-    def _publish_encoded(self, msg, serialized, payload) -> None:
-        """Publish serialized bytes or a message whose payload is a Buffer (the codec's path).
-
-        Each distinct payload is encoded once: the CPU bytes at most once, and a descriptor once
-        per distinct descriptor the backend returns.
-        """
-        vendor = payload.backend_type if isinstance(payload, Buffer) and not payload.is_cpu \
-            else None
-        cpu_bytes = serialized
-        encoded: Dict[bytes, bytearray] = {}
-        with self._lock:
-            if self._destroyed:
-                raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
-            timestamp = self._next_timestamp()
-            routes = self._valid_routes()
-            for peer in routes.peers:  # the others get the message on the main topic
-                if peer.fence_pending:
-                    self._write_fence(peer, msg, timestamp)
-                data = None
-                if vendor is not None and vendor in peer.compatible:
-                    descriptor = self._describe(vendor, payload, peer)
-                    if descriptor is not None:
-                        data = encoded.get(descriptor)
-                        if data is None:
-                            data = encoded[descriptor] = codec.encode(msg, (vendor, descriptor))
-                        peer.sent_descriptor += 1
-                        peer.backend_in_use = vendor
-                if data is None:
-                    if cpu_bytes is None:
-                        cpu_bytes = codec.encode(msg)
-                    data = cpu_bytes
-                    peer.sent_cpu += 1
-                    peer.backend_in_use = CPU_BACKEND
-                peer.channel.publish(data, timestamp)
-            if routes.main:
-                if cpu_bytes is None:
-                    cpu_bytes = codec.encode(msg)
-                _dds.publish_serialized(self, cpu_bytes, timestamp)
-                self._note_main_write(routes, timestamp)
-            elif self._manual_liveliness:
-                self.assert_liveliness()  # what a write on the main DataWriter would do
-
-    def _publish_cpu_message(self, msg) -> None:
-        """Publish a message whose payload is CPU memory (``array.array``): the common case.
-
-        Every target gets the same legacy CPU encoding, so rmw serializes the message itself, as
-        rclpy's ``publish`` does: one conversion to C, no Python-level CDR work.
-
-        The message goes first to the cached routes (see :class:`_Routes`), which are checked
-        right after the write, off the path the subscribers' latency sees: a target that became
-        needed meanwhile (a channel that settled, a new legacy subscriber) gets the message
-        then, with the same source timestamp. A route no longer needed costs at most one extra
-        copy, which buffer-aware subscriptions drop as a duplicate.
-        """
+        encoder = _Encoder(msg, serialized, payload)
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
@@ -282,29 +260,55 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             used = self._routes
             if used is None:
                 used = self._routes = self._current_routes()
-            self._write_fences(used, msg, timestamp)
-            if used.targets:
-                _dds.write_message(msg, timestamp, used.targets)
+            self._write(encoder, timestamp, used.peers, used.main)
             routes = self._valid_routes()
-            served = used.peers
+            main = used.main
             if routes is not used:
-                self._write_fences(routes, msg, timestamp)
-                missing = [t for t in routes.targets if not any(t is u for u in used.targets)]
-                if missing:
-                    _dds.write_message(msg, timestamp, missing)
-                served += tuple(p for p in routes.peers if not any(p is u for u in used.peers))
-            for peer in served:
+                self._write(encoder, timestamp,
+                            [p for p in routes.peers if not any(p is u for u in used.peers)],
+                            routes.main and not used.main)
+                main = main or routes.main
+            if main:
+                self._sent_main += 1
+                for gid in (used if used.main else routes).unserved:
+                    self._main_timestamps[gid] = timestamp
+            elif self._manual_liveliness:
+                self.assert_liveliness()  # what a write on the main DataWriter would do
+        if self._deadline is not None:
+            self._deadline.activity()
+
+    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool) -> None:
+        """Write one message to ``peers``' channels (after their route fence, if pending) and,
+        when ``main``, to the main topic."""
+        for peer in peers:
+            if peer.fence_pending:
+                self._write_fence(peer, encoder.msg, timestamp)
+        if encoder.cpu_message:
+            # CPU payload: one conversion to C, rmw serializes into each target, as rclpy's
+            # publish does (no Python-level CDR work)
+            targets = [peer.channel for peer in peers] + ([self] if main else [])
+            if targets:
+                _dds.write_message(encoder.msg, timestamp, targets)
+            for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            if used.main or routes.main:
-                self._note_main_write(used if used.main else routes, timestamp)
-            elif self._manual_liveliness:
-                self.assert_liveliness()
-
-    def _write_fences(self, routes: '_Routes', msg, timestamp: int) -> None:
-        for peer in routes.peers:
-            if peer.fence_pending:
-                self._write_fence(peer, msg, timestamp)
+            return
+        vendor = encoder.vendor
+        for peer in peers:
+            data = None
+            if vendor is not None and vendor in peer.compatible:
+                descriptor = self._describe(vendor, encoder.payload, peer)
+                if descriptor is not None:
+                    data = encoder.with_descriptor(vendor, descriptor)
+                    peer.sent_descriptor += 1
+                    peer.backend_in_use = vendor
+            if data is None:
+                data = encoder.cpu_bytes()
+                peer.sent_cpu += 1
+                peer.backend_in_use = CPU_BACKEND
+            peer.channel.publish(data, timestamp)
+        if main:
+            _dds.publish_serialized(self, encoder.cpu_bytes(), timestamp)
 
     def _write_fence(self, peer: _SubscriptionPeer, msg, timestamp: int) -> None:
         """Tell a subscription just switched to its channel which main-topic message came last.
@@ -317,11 +321,6 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         peer.channel.publish(codec.encode(msg, (FENCE_BACKEND, _FENCE.pack(last_main))),
                              timestamp)
         peer.fence_pending = False
-
-    def _note_main_write(self, routes: '_Routes', timestamp: int) -> None:
-        self._sent_main += 1
-        for gid in routes.unserved:
-            self._main_timestamps[gid] = timestamp
 
     def _valid_routes(self) -> '_Routes':
         """The cached routes if they are still current, else freshly computed (and cached)."""
