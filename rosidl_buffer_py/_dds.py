@@ -16,7 +16,8 @@ DdsError = _native.DdsError
 UnsupportedRmwError = _native.UnsupportedRmwError
 #: ``ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)``:
 #: ``.publish(data, source_timestamp: Optional[int] = None) -> None``,
-#: ``.matched_count() -> int``, ``.matched_gids() -> List[bytes]``, ``.destroy()``,
+#: ``.matched_count() -> int``, ``.matched_gids() -> List[bytes]``,
+#: ``.wait_for_all_acked(timeout_sec: float) -> bool``, ``.destroy()``,
 #: ``.gid``, ``.topic_name``, ``.valid``.
 ChannelPublisher = _native.ChannelPublisher
 #: ``ChannelSubscription(node, type_support, topic_name, ..., guard_condition=None)``:
