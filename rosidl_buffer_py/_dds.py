@@ -109,6 +109,18 @@ def take_message_with_gid(subscription: Any, msg_type: Any,
     return _native.take_message_with_gid(subscription, msg_type, max_size)
 
 
+def peek_untaken(subscription: Any) -> Optional[Tuple[bytes, int]]:
+    """``(publisher_gid, source_timestamp)`` of the next unread sample of an rclpy subscription,
+    from its DDS sample info: nothing is taken or copied. None when there is none."""
+    return _native.peek_untaken(subscription)
+
+
+def discard_untaken(subscription: Any) -> Optional[Tuple[bytes, int]]:
+    """Take the next unread sample without copying its payload (a duplicate to drop); its key,
+    or None when there was none."""
+    return _native.discard_untaken(subscription)
+
+
 def write_message(msg: Any, source_timestamp: int, targets: List[Any]) -> None:
     """Write a ROS message to channel publishers and/or rclpy publishers of its type.
 

@@ -30,7 +30,7 @@ import copy
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, Dict, List, NamedTuple, Optional, Tuple, Union
+from typing import Callable, Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -107,6 +107,10 @@ class _Stream:
     waiting: Optional[Tuple[_Taken, _PublisherPeer]] = None
     waiting_since: float = 0.0
 
+    def duplicate(self, timestamp: int) -> bool:
+        """Whether a main-topic copy with this source timestamp is not to be delivered."""
+        return timestamp <= self.last or (self.switch is not None and timestamp >= self.switch)
+
 
 class _MainTopicReader(_rclpy.Subscription):
     """The main topic's rcl subscription. The executor takes through it as through any
@@ -140,6 +144,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._next_channel = 0
         self._channels: List[_PublisherPeer] = []  # the peers with a channel, polled in turn
         self._waiting = 0  # streams with a channel message waiting for its fence
+        self._switched: Set[bytes] = set()  # publishers serving us on their channel
         self._reliable = qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT
         self._destroyed = False
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
@@ -265,6 +270,22 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         return msg, taken.info
 
     def _take_main(self) -> Optional[_Taken]:
+        """The next main-topic sample to consider; duplicates are dropped uncopied first.
+
+        While some publisher serves us on its channel, its main-topic copies (written for
+        legacy subscribers) are duplicates: their key (publisher GID, source timestamp) is read
+        from the DDS sample info and they are discarded without copying their payload.
+        """
+        while self._switched:
+            key = _dds.peek_untaken(self.handle)
+            if key is None:
+                return None
+            stream = self._streams.get(key[0])
+            if stream is None or not stream.duplicate(key[1]):
+                break
+            if _dds.discard_untaken(self.handle) is not None:
+                self._counts['from_main_topic'] += 1
+                self._counts['duplicates_dropped'] += 1
         # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
         taken = _dds.take_message_with_gid(self.handle, self.msg_type, C_DESERIALIZE_MAX_BYTES)
         if taken is None:
@@ -276,7 +297,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         """The message of a main-topic sample, or None when it is not to be delivered."""
         stream = self._streams[taken.publisher_gid]
         ts = taken.timestamp
-        if ts <= stream.last or (stream.switch is not None and ts >= stream.switch):
+        if stream.duplicate(ts):
             self._counts['duplicates_dropped'] += 1  # delivered, or to be, from the channel
             return None
         peer = self._peers.get(taken.publisher_gid)
@@ -328,6 +349,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 self._counts['fences'] += 1
                 peer.fence_seen = True
                 stream.switch, stream.fence = ts, fence
+                self._switched.add(peer.info.gid)
                 return None
         self._counts['from_channels'] += 1
         if ts <= stream.last:
@@ -335,6 +357,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             return None
         if stream.switch is None:  # no fence yet: channel messages are newer than main's
             stream.switch = ts
+            self._switched.add(peer.info.gid)
         if self._reliable and stream.fence > stream.last and stream.waiting is None:
             stream.waiting, stream.waiting_since = (taken, peer), time.monotonic()
             self._waiting += 1
@@ -465,6 +488,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         stream = self._streams.get(gid)
         if stream is not None:
             stream.switch, stream.fence = None, 0
+        self._switched.discard(gid)
         self._channels = [p for p in self._channels if p.info.gid != gid]
 
     def _node_entities(self) -> list:

@@ -22,6 +22,9 @@
 #include "fastdds/dds/publisher/DataWriter.hpp"
 #include "fastdds/dds/publisher/qos/DataWriterQos.hpp"
 #include "fastdds/dds/subscriber/DataReader.hpp"
+#include "fastdds/dds/subscriber/SampleInfo.hpp"
+#include "fastcdr/Cdr.h"
+#include "rmw_fastrtps_shared_cpp/TypeSupport.hpp"
 #include "fastdds/dds/subscriber/qos/DataReaderQos.hpp"
 #include "rcl/error_handling.h"
 #include "rcl/guard_condition.h"
@@ -284,6 +287,83 @@ PyObject * take_message_with_gid(PyObject *, PyObject * args)
   return take_with_gid(sub_arg, &support, max_size);
 }
 
+/// The (writer GID, source timestamp in ns) of a sample's SampleInfo, as a Python tuple.
+PyObject * sample_key(const eprosima::fastdds::dds::SampleInfo & info)
+{
+  uint8_t gid[RMW_GID_STORAGE_SIZE] = {};
+  rmw_fastrtps_shared_cpp::copy_from_fastrtps_guid_to_byte_array(
+    info.sample_identity.writer_guid(), gid);
+  const int64_t ns = static_cast<int64_t>(info.source_timestamp.seconds()) * 1000000000LL +
+    static_cast<int64_t>(info.source_timestamp.nanosec());
+  return Py_BuildValue("(NL)", gid_bytes(gid), static_cast<long long>(ns));
+}
+
+/// peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None: the next sample's
+/// key, read from its SampleInfo (nothing is taken, nothing copied).
+PyObject * peek_untaken(PyObject *, PyObject * sub_arg)
+{
+  PinnedHandle sub;
+  DdsEndpoint dds;
+  if (sub.acquire(sub_arg, "subscription") < 0 || resolve_endpoint(sub.get(), false, &dds) < 0) {
+    return nullptr;
+  }
+  eprosima::fastdds::dds::SampleInfo info;
+  ReturnCode_t ret;
+  {
+    GilRelease nogil;
+    ret = dds.reader->get_first_untaken_info(&info);
+  }
+  if (ret != ReturnCode_t::RETCODE_OK) {
+    Py_RETURN_NONE;
+  }
+  return sample_key(info);
+}
+
+/// A cdr_deserialize that reads nothing: see discard_untaken.
+bool skip_payload(eprosima::fastcdr::Cdr &, void *)
+{
+  return true;
+}
+
+/// Callbacks whose deserialization leaves the payload where Fast DDS received it.
+const message_type_support_callbacks_t kSkipPayload = [] {
+    message_type_support_callbacks_t callbacks{};
+    callbacks.message_namespace_ = "rosidl_buffer_py";
+    callbacks.message_name_ = "discarded";
+    callbacks.cdr_deserialize = skip_payload;
+    return callbacks;
+  }();
+
+/// discard_untaken(subscription) -> (publisher_gid, source_timestamp) | None: take the next
+/// sample without copying its payload. rmw's type support deserializes a ROS message through
+/// the callbacks the caller hands it in SerializedData::impl (rmw_fastrtps_shared_cpp's
+/// TypeSupport::deserialize, FASTRTPS_SERIALIZED_DATA_TYPE_ROS_MESSAGE, over a FastBuffer that
+/// views the received payload): ours read nothing, so the one sample leaves the reader and its
+/// payload is released with it, never copied.
+PyObject * discard_untaken(PyObject *, PyObject * sub_arg)
+{
+  PinnedHandle sub;
+  DdsEndpoint dds;
+  if (sub.acquire(sub_arg, "subscription") < 0 || resolve_endpoint(sub.get(), false, &dds) < 0) {
+    return nullptr;
+  }
+  char unused = 0;
+  rmw_fastrtps_shared_cpp::SerializedData data;
+  data.type = rmw_fastrtps_shared_cpp::FASTRTPS_SERIALIZED_DATA_TYPE_ROS_MESSAGE;
+  data.data = &unused;
+  data.impl = &kSkipPayload;
+  eprosima::fastdds::dds::SampleInfo info;
+  ReturnCode_t ret;
+  {
+    GilRelease nogil;
+    ret = dds.reader->take_next_sample(&data, &info);
+  }
+  if (ret != ReturnCode_t::RETCODE_OK) {
+    Py_RETURN_NONE;
+  }
+  return sample_key(info);
+}
+
 PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
 {
   static const char * kwlist[] = {"publisher", "data", "source_timestamp", nullptr};
@@ -521,6 +601,13 @@ PyMethodDef endpoint_methods[] = {
     "into a msg_class instance as rclpy's take does; CDR that does not deserialize (a "
     "descriptor payload, malformed data), or is longer than max_size bytes when max_size >= 0, "
     "comes back as bytes."},
+  {"peek_untaken", peek_untaken, METH_O,
+    "peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
+    "The next unread sample's publisher GID and source timestamp (ns), from its SampleInfo:\n"
+    "nothing is taken or copied."},
+  {"discard_untaken", discard_untaken, METH_O,
+    "discard_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
+    "Take the next unread sample without copying its payload (a duplicate to drop)."},
   {"take_serialized_with_gid", take_serialized_with_gid, METH_VARARGS,
     "take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None\n\n"
     "rcl_take_serialized_message on an rcl subscription: the CDR bytes, the 16-byte GID of\n"
