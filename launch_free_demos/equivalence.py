@@ -1,0 +1,601 @@
+"""The equivalence suite: every scenario run with stock endpoints (the oracle) and buffer-aware ones.
+
+"Stock rclpy is the oracle": a graph where some endpoints are buffer-aware must be observed as
+the same graph of plain rclpy endpoints. A :class:`Scenario` is a graph (publishers and
+subscriptions, each ``ours`` or ``stock``, their QoS) and a timeline per process, run by
+:mod:`launch_free_demos.probe_node` in real processes over real Fast DDS:
+
+- the **stock** variant makes every endpoint a plain rclpy one;
+- the **ours** variant makes the ``ours`` endpoints buffer-aware (cpu or demo publishers,
+  subscriptions accepting cpu, demo or any) and leaves the ``stock`` ones (legacy peers) plain.
+
+Both variants of a scenario run at once, each in its own ROS_DOMAIN_ID. The outcome of each
+variant (:func:`outcome`) is, per endpoint: the messages each subscription received from each
+publisher (late joiners' history apart), checksum failures, QoS events per type and phase,
+incompatible QoS warnings logged by the endpoint's node, what destroying it through its node
+returned; per process: steps that timed out, tracebacks. :func:`compare` lists the differences,
+with the tolerances explained at :data:`TOLERANCES`.
+
+``python -m launch_free_demos.equivalence [names] [--echo]`` prints one row per scenario.
+"""
+import argparse
+import collections
+import json
+import os
+import re
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+from launch_free_demos.domains import claim_domain_ids
+from launch_free_demos.probe_node import SIGNAL_PREFIX
+from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers
+
+#: Messages per publishing step and their rate: small, so the matrix fits CI (~2.5 min).
+N = 30
+RATE = 50.0
+
+# --- building scenarios ----------------------------------------------------------------------
+
+RELIABLE_5 = {'reliability': 'reliable', 'history': 'keep_last', 'depth': 5}
+
+
+def pub(topic: str, qos: dict, payload: str = 'cpu', impl: str = 'ours',
+        events: bool = True) -> dict:
+    """A publisher: ``payload`` ``cpu`` (array.array) or ``demo`` (a DemoBuffer filled in
+    place; the oracle publishes the same bytes from the CPU)."""
+    return {'kind': 'pub', 'topic': topic, 'qos': qos, 'payload': payload, 'impl': impl,
+            'events': events}
+
+
+def sub(topic: str, qos: dict, accept: str = 'cpu', impl: str = 'ours',
+        events: bool = True) -> dict:
+    """A subscription: ``accept`` is its acceptable_buffer_backends (ignored when stock)."""
+    return {'kind': 'sub', 'topic': topic, 'qos': qos, 'accept': accept, 'impl': impl,
+            'events': events}
+
+
+def publishers(prefix: str, topic: str, qos: dict, legacy: bool = True) -> Dict[str, dict]:
+    """A cpu and a demo publisher of ours, and a plain rclpy one when ``legacy``."""
+    ends = {f'{prefix}c': pub(topic, qos, 'cpu'), f'{prefix}d': pub(topic, qos, 'demo')}
+    if legacy:
+        ends[f'{prefix}l'] = pub(topic, qos, impl='stock')
+    return ends
+
+
+def subscriptions(prefix: str, topic: str, qos: dict, legacy: bool = True) -> Dict[str, dict]:
+    """Subscriptions of ours accepting cpu, demo and any, and a plain rclpy one when
+    ``legacy``."""
+    ends = {f'{prefix}{a[0]}': sub(topic, qos, a) for a in ('cpu', 'demo', 'any')}
+    if legacy:
+        ends[f'{prefix}l'] = sub(topic, qos, impl='stock')
+    return ends
+
+
+def step(op: str, **kwargs) -> dict:
+    return dict(op=op, **kwargs)
+
+
+@dataclass
+class Scenario:
+    name: str
+    about: str
+    endpoints: Dict[str, dict]
+    #: process label -> its timeline (see probe_node's steps)
+    processes: Dict[str, List[dict]]
+    timeout: float = 60.0
+
+    def ids(self, kind: str, topic: Optional[str] = None, process: Optional[str] = None):
+        created = None
+        if process is not None:
+            created = {i for s in self.processes[process] if s['op'] == 'create'
+                       for i in s['ids']}
+        return [i for i, e in self.endpoints.items() if e['kind'] == kind and
+                (topic is None or e['topic'] == topic) and (created is None or i in created)]
+
+
+def _end_steps(signal: str) -> List[dict]:
+    """What a subscriber process does once the publishers are done: take what is still in
+    flight, then tell the publishers they may go."""
+    return [step('await', names=['done']), step('drain', quiet=0.4, timeout=6.0),
+            step('signal', name=signal)]
+
+
+def simple(name: str, about: str, qos: dict, *, legacy: bool, sub_first: bool,
+           wait: float, n: int = N, sub_qos: Optional[dict] = None) -> Scenario:
+    """One topic, publishers in one process and subscriptions in another: whoever comes
+    second waits for the first; the publishers start once every subscription is matched,
+    at once (``wait`` 0: the first matched instant) or after ``wait`` seconds."""
+    ends = {**publishers('p', 'eq', qos, legacy), **subscriptions('s', 'eq', sub_qos or qos,
+                                                                  legacy)}
+    pubs = [i for i in ends if i.startswith('p')]
+    subs = [i for i in ends if i.startswith('s')]
+    pub_steps = [step('await', names=['subs_up'])] if sub_first else []
+    pub_steps += [step('create', ids=pubs), step('signal', name='pubs_up'),
+                  step('wait_matched', ids=pubs, count=len(subs))]
+    if wait:
+        pub_steps.append(step('sleep', s=wait))
+    pub_steps += [step('signal', name='go'), step('publish', ids=pubs, n=n, rate=RATE),
+                  step('signal', name='done'), step('await', names=['subs_end'])]
+    sub_steps = [] if sub_first else [step('await', names=['pubs_up'])]
+    sub_steps += [step('create', ids=subs), step('signal', name='subs_up'),
+                  *_end_steps('subs_end')]
+    return Scenario(name, about, ends, {'pubs': pub_steps, 'subs': sub_steps})
+
+
+def _late_joiners() -> List[Scenario]:
+    """TRANSIENT_LOCAL history for late joiners, before any subscriber and with early
+    buffer-aware subscribers served on channels."""
+    tl = {'reliability': 'reliable', 'durability': 'transient_local'}
+    tl5, tl1, tlall = ({**tl, 'history': 'keep_last', 'depth': 5},
+                       {**tl, 'history': 'keep_last', 'depth': 1},
+                       {**tl, 'history': 'keep_all'})
+    # A late joiner takes the history of every publisher of its topic in one burst, into one
+    # reader history (the topic has one instance): with depth 5 a stock reader keeps only the
+    # last 5 of the 15 that arrive. Late joiners therefore have room for all of them.
+    late, late_volatile = {**tl, 'history': 'keep_last', 'depth': 20}, {**RELIABLE_5,
+                                                                         'depth': 20}
+    before = {**publishers('a', 'tl5', tl5), **subscriptions('la', 'tl5', late),
+              'bd': pub('tl1', tl1, 'demo'), 'bl': pub('tl1', tl1, impl='stock'),
+              'lba': sub('tl1', late, 'any'), 'lbl': sub('tl1', late, impl='stock'),
+              'cc': pub('tlall', tlall, 'cpu'), 'cl': pub('tlall', tlall, impl='stock'),
+              'lcd': sub('tlall', tlall, 'demo'), 'lcl': sub('tlall', tlall, impl='stock')}
+    history = {'tl5': 5, 'tl1': 1, 'tlall': 8}
+    scenarios = [_late_scenario(
+        'transient_local_before_any_subscriber',
+        'TRANSIENT_LOCAL KEEP_LAST 5 / 1 / KEEP_ALL, 8 published before anyone subscribed, '
+        'late joiners (plain, cpu, demo, any) get the history, then 5 live',
+        before, early=[], history=history)]
+    early = {**publishers('a', 'tl5', tl5),
+             **subscriptions('e', 'tl5', {**tl5, 'depth': 20}, legacy=False),
+             **subscriptions('la', 'tl5', late),
+             'lvl': sub('tl5', late_volatile, impl='stock'),
+             'lva': sub('tl5', late_volatile, 'any')}
+    scenarios.append(_late_scenario(
+        'transient_local_early_ours',
+        'TRANSIENT_LOCAL KEEP_LAST 5 with early buffer-aware subscribers served on channels; '
+        'late joiners (plain, cpu, demo, any; VOLATILE ones get no history)',
+        early, early=['ec', 'ed', 'ea'], history={'tl5': 5}))
+    return scenarios
+
+
+def _late_scenario(name: str, about: str, ends: Dict[str, dict], early: List[str],
+                   history: Dict[str, int]) -> Scenario:
+    pubs = [i for i, e in ends.items() if e['kind'] == 'pub']
+    late = [i for i, e in ends.items() if e['kind'] == 'sub' and i not in early]
+    expected = {}  # the history a stock publisher gives each late joiner
+    for i in late:
+        if ends[i]['qos'].get('durability') == 'transient_local':
+            topic = ends[i]['topic']
+            expected[i] = history[topic] * sum(ends[p]['topic'] == topic for p in pubs)
+    pub_steps = ([step('await', names=['early_up'])] if early else []) + [
+        step('create', ids=pubs)]
+    if early:
+        pub_steps += [step('wait_matched', ids=pubs, count=len(early)), step('sleep', s=1.0)]
+    pub_steps += [step('publish', ids=pubs, n=8, rate=RATE), step('signal', name='published'),
+                  step('await', names=['late_ready']), step('publish', ids=pubs, n=5,
+                                                             rate=RATE),
+                  step('signal', name='done'),
+                  step('await', names=['late_end'] + (['early_end'] if early else []))]
+    late_steps = [step('await', names=['published']), step('create', ids=late),
+                  step('phase', name='history'),
+                  step('wait_received', counts=expected, timeout=4.0),
+                  # a late joiner matched, its history in: now the publishers go on
+                  step('wait_matched', ids=late, count=1),
+                  step('signal', name='late_ready'), *_end_steps('late_end')]
+    processes = {'pubs': pub_steps, 'late': late_steps}
+    if early:
+        processes['early'] = [step('create', ids=early), step('signal', name='early_up'),
+                              *_end_steps('early_end')]
+    return Scenario(name, about, ends, processes)
+
+
+def _events_scenario() -> Scenario:
+    qos = {**RELIABLE_5, 'deadline': 0.25, 'liveliness': 'manual_by_topic', 'lease': 0.5}
+    ends = {**publishers('p', 'eq', qos), **subscriptions('s', 'eq', qos)}
+    pubs = [i for i in ends if i.startswith('p')]
+    subs = [i for i in ends if i.startswith('s')]
+    return Scenario(
+        'deadline_liveliness',
+        'deadline 0.25 s, MANUAL_BY_TOPIC lease 0.5 s: 2 s at 20 Hz, silent 1.5 s, 1 s at '
+        '20 Hz; deadline, liveliness and matched events on both sides',
+        ends, {
+            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
+                     step('wait_matched', ids=pubs, count=len(subs)),
+                     step('signal', name='publishing'),
+                     step('publish', ids=pubs, n=40, rate=20.0),
+                     step('signal', name='silent'), step('sleep', s=1.5),
+                     step('signal', name='resumed'),
+                     step('publish', ids=pubs, n=20, rate=20.0),
+                     step('signal', name='done'), step('await', names=['subs_end'])],
+            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
+                     *_end_steps('subs_end')]})
+
+
+def _incompatible_scenario() -> Scenario:
+    best_effort = {'reliability': 'best_effort', 'history': 'keep_last', 'depth': 5}
+    # BEST_EFFORT publishers, RELIABLE subscriptions: each pair is incompatible. "warn"
+    # endpoints keep rclpy's default callbacks, which log the warning; the others count the
+    # event. One BEST_EFFORT subscription shows that the data still flows.
+    ends = {'pc': pub('eq', best_effort, 'cpu'),
+            'pdw': pub('eq', best_effort, 'demo', events=False),
+            'plw': pub('eq', best_effort, impl='stock', events=False),
+            'sc': sub('eq', RELIABLE_5, 'cpu'), 'saw': sub('eq', RELIABLE_5, 'any', events=False),
+            'sl': sub('eq', RELIABLE_5, impl='stock'),
+            'slw': sub('eq', RELIABLE_5, impl='stock', events=False),
+            'sb': sub('eq', best_effort, 'any')}
+    pubs = ['pc', 'pdw', 'plw']
+    subs = ['sc', 'saw', 'sl', 'slw', 'sb']
+    return Scenario(
+        'incompatible_qos',
+        'BEST_EFFORT publishers (cpu, demo, plain) and RELIABLE subscriptions (cpu, any, '
+        'plain): incompatible QoS events and warnings on both sides; a BEST_EFFORT '
+        'subscription still receives',
+        ends, {
+            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
+                     step('wait_matched', ids=pubs, count=1), step('sleep', s=0.5),
+                     step('signal', name='go'), step('publish', ids=pubs, n=10, rate=RATE),
+                     step('signal', name='done'), step('await', names=['subs_end'])],
+            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
+                     *_end_steps('subs_end')]})
+
+
+def _restart_scenario() -> Scenario:
+    ends = {**publishers('p', 'eq', RELIABLE_5), **subscriptions('s', 'eq', RELIABLE_5)}
+    pubs = [i for i in ends if i.startswith('p')]
+    subs = [i for i in ends if i.startswith('s')]
+    return Scenario(
+        'publisher_restart',
+        'RELIABLE KEEP_LAST 5: 15 messages, every publisher destroyed through its node and '
+        'created again, 15 more from the first matched instant; seq numbers continue',
+        ends, {
+            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
+                     step('wait_matched', ids=pubs, count=len(subs)), step('sleep', s=0.5),
+                     step('publish', ids=pubs, n=15, rate=RATE), step('destroy', ids=pubs),
+                     step('create', ids=pubs), step('wait_matched', ids=pubs, count=len(subs)),
+                     step('publish', ids=pubs, n=15, rate=RATE),
+                     step('signal', name='done'), step('await', names=['subs_end'])],
+            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
+                     *_end_steps('subs_end')]})
+
+
+def scenarios() -> List[Scenario]:
+    """The matrix."""
+    best_effort = {'reliability': 'best_effort', 'history': 'keep_last', 'depth': 5}
+    last1 = {'reliability': 'reliable', 'history': 'keep_last', 'depth': 1}
+    keep_all = {'reliability': 'reliable', 'history': 'keep_all'}
+    return [
+        simple('reliable_pub_first_wait',
+               'RELIABLE VOLATILE KEEP_LAST 5, buffer-aware only, publisher first, publishing '
+               '1 s after every subscription matched', RELIABLE_5, legacy=False,
+               sub_first=False, wait=1.0),
+        simple('reliable_sub_first_matched_mixed',
+               'RELIABLE KEEP_LAST 5 with plain rclpy peers, subscriber first, publishing from '
+               'the first matched instant', RELIABLE_5, legacy=True, sub_first=True, wait=0.0),
+        simple('reliable_pub_first_matched_ours',
+               'RELIABLE KEEP_LAST 5, buffer-aware only, publisher first, publishing from the '
+               'first matched instant', RELIABLE_5, legacy=False, sub_first=False, wait=0.0),
+        simple('best_effort_mixed',
+               'BEST_EFFORT KEEP_LAST 5 with plain peers, publisher first, from the first '
+               'matched instant', best_effort, legacy=True, sub_first=False, wait=0.0),
+        simple('keep_last_1_mixed',
+               'RELIABLE KEEP_LAST 1 with plain peers, subscriber first, after 0.5 s',
+               last1, legacy=True, sub_first=True, wait=0.5),
+        simple('keep_all_mixed',
+               'RELIABLE KEEP_ALL with plain peers, subscriber first, from the first matched '
+               'instant', keep_all, legacy=True, sub_first=True, wait=0.0),
+        *_late_joiners(),
+        _events_scenario(),
+        _incompatible_scenario(),
+        _restart_scenario(),
+    ]
+
+
+# --- running -----------------------------------------------------------------------------
+
+def probe_spec(scenario: Scenario, variant: str, label: str) -> dict:
+    return {'variant': variant, 'endpoints': {
+        i: e for i, e in scenario.endpoints.items()
+        if any(i in s.get('ids', ()) or i in s.get('counts', {})
+               for s in scenario.processes[label])},
+        'steps': scenario.processes[label]}
+
+
+@dataclass
+class VariantRun:
+    """What the processes of one variant reported: reports and stderr per process label."""
+
+    variant: str
+    reports: Dict[str, Optional[dict]]
+    stderr: Dict[str, List[str]]
+    exit_codes: Dict[str, Optional[int]]
+    seconds: float
+
+
+def run_variant(scenario: Scenario, variant: str, domain_id: int,
+                echo: bool = False) -> VariantRun:
+    """Start the scenario's probes in ``domain_id``, relay their signals, wait, reap."""
+    lock = threading.Lock()
+    started = time.monotonic()
+    since = time.time() - 1.0
+    with Run(echo=echo) as run:
+        def relay(sender: NodeProcess, line: str) -> None:
+            if line.startswith(SIGNAL_PREFIX):
+                with lock:
+                    for node in list(run.nodes.values()):
+                        if node is not sender:
+                            node.send(line[len(SIGNAL_PREFIX):])
+
+        with lock:
+            for label in scenario.processes:
+                run.add(NodeProcess(
+                    f'{variant}:{label}', 'probe_node',
+                    arguments=[json.dumps(probe_spec(scenario, variant, label))],
+                    env={'ROS_DOMAIN_ID': str(domain_id)}, on_line=relay,
+                    rename_node=False))
+        run.wait(timeout=scenario.timeout)
+    remove_fastdds_leftovers(since, domain_id)
+    return VariantRun(
+        variant, {label.split(':', 1)[1]: node.report for label, node in run.nodes.items()},
+        {label.split(':', 1)[1]: node.stderr for label, node in run.nodes.items()},
+        {label.split(':', 1)[1]: node.process.returncode for label, node in run.nodes.items()},
+        time.monotonic() - started)
+
+
+# --- outcome -----------------------------------------------------------------------------
+
+_LOG = re.compile(r'^\[(WARN|ERROR|FATAL)\] \[[\d.]+\] \[([^\]]+)\]: (.*)$')
+_INCOMPATIBLE = re.compile(r'incompatible QoS', re.IGNORECASE)
+
+
+def outcome(scenario: Scenario, run: VariantRun) -> dict:
+    """The observable outcome of one variant, per endpoint and per process."""
+    result = {'endpoints': {}, 'processes': {}}
+    for label, report in run.reports.items():
+        errors = []
+        if report is None:
+            errors.append(f'no report (exit {run.exit_codes[label]})')
+        else:
+            errors += [f'timed out: {t}' for t in report['timeouts']]
+        if any('Traceback' in line for line in run.stderr[label]):
+            errors.append('traceback on stderr')
+        warnings = collections.Counter()
+        for line in run.stderr[label]:
+            match = _LOG.match(line)
+            if match:
+                level, logger, text = match.groups()
+                what = 'incompatible_qos' if _INCOMPATIBLE.search(text) else \
+                    f'{level} {text[:70]}'
+                warnings[(logger, what)] += 1
+        result['processes'][label] = {'errors': errors, 'warnings': warnings}
+        for eid, rep in (report or {}).get('endpoints', {}).items():
+            result['endpoints'][eid] = _endpoint_outcome(eid, rep, warnings)
+    return result
+
+
+def _endpoint_outcome(eid: str, rep: dict, warnings: collections.Counter) -> dict:
+    node = f'eq_{eid}'
+    got = {'kind': rep['kind'], 'ours': rep['ours'], 'destroy': rep['destroy_results'],
+           'published': rep['published'],
+           'incompatible_warnings': sum(n for (logger, what), n in warnings.items()
+                                        if logger == node and what == 'incompatible_qos')}
+    history, live = collections.defaultdict(list), collections.defaultdict(list)
+    backends = collections.Counter()
+    bad = 0
+    for publisher, seq, phase, backend, ok in rep['messages']:
+        (history if phase == 'history' else live)[publisher].append(seq)
+        backends[backend] += 1
+        bad += not ok
+    got.update(history=dict(history), live=dict(live), backends=dict(backends),
+               checksum_failures=bad)
+    counts = collections.Counter()  # (event, phase) -> total_count_change summed
+    # Liveliness as the publishers' sequence of "all alive" / "none alive" states: the
+    # publishers of a scenario go silent together, and whether Fast DDS reports them one by one
+    # ((3, 0), (2, 1), (0, 3)) or at once depends on timing, so mixed states are left out.
+    liveliness = []
+    matched = {'max_current': 0, 'total': 0}
+    for kind, phase, fields in rep['events']:
+        if kind == 'matched':
+            matched['max_current'] = max(matched['max_current'], fields['current_count'])
+            matched['total'] = max(matched['total'], fields['total_count'])
+        elif kind == 'liveliness' and 'alive_count' in fields:
+            state = (fields['alive_count'], fields['not_alive_count'])
+            if 0 in state and liveliness[-1:] != [state]:
+                liveliness.append(state)
+        else:
+            counts[(kind, phase)] += fields.get('total_count_change', 1)
+    got.update(events={f'{k}@{p}': n for (k, p), n in sorted(counts.items())},
+               liveliness_states=liveliness, matched=matched)
+    return got
+
+
+# --- comparison ----------------------------------------------------------------------------
+
+#: Where timing makes exact equality meaningless, ours may differ from stock by this much.
+TOLERANCES = {
+    # Deadline misses are (length of a phase) / (period), and a phase's length depends on
+    # when a process got the CPU and on discovery (startup phase): on a shared 2-core machine
+    # two runs of the same stock graph differ by one or two periods, more in long phases.
+    'deadline': lambda stock: 2 + stock // 4,
+    # Liveliness is lost once per silence; a loss can land just across a phase boundary.
+    'liveliness': lambda stock: 1,
+    # Lost messages (BEST_EFFORT, depth 1) come from scheduling: allow what a loaded machine
+    # loses in a run of this size.
+    'message_lost': lambda stock: max(2, stock // 5),
+}
+#: Missing live messages allowed on top of stock's where the QoS does not promise delivery
+#: (BEST_EFFORT, or depth 1 on either side): scheduling on a loaded machine decides them.
+LENIENT_MISSING = 3
+
+
+def _promises_everything(scenario: Scenario, sid: str, pid: str) -> bool:
+    """RELIABLE on both sides and depths that hold what a stalled subscriber needs."""
+    def roomy(qos):
+        return qos.get('history') == 'keep_all' or qos.get('depth', 10) >= 5
+    s, p = scenario.endpoints[sid]['qos'], scenario.endpoints.get(pid, {}).get('qos', {})
+    return all(q.get('reliability', 'reliable') == 'reliable' and roomy(q) for q in (s, p))
+
+
+def runs(seqs: List[int]) -> str:
+    """``[0, 1, 2, 5, 3]`` -> ``"0-2,5,3"``: order visible, short."""
+    parts, i = [], 0
+    while i < len(seqs):
+        j = i
+        while j + 1 < len(seqs) and seqs[j + 1] == seqs[j] + 1:
+            j += 1
+        parts.append(str(seqs[i]) if i == j else f'{seqs[i]}-{seqs[j]}')
+        i = j + 1
+    return ','.join(parts) or '-'
+
+
+def compare(scenario: Scenario, stock: dict, ours: dict) -> List[str]:
+    """Every difference between the two outcomes that the tolerances do not cover."""
+    diffs = []
+    for label in scenario.processes:
+        s_err, o_err = (x['processes'].get(label, {'errors': ['missing']})['errors']
+                        for x in (stock, ours))
+        if s_err:
+            diffs.append(f'ORACLE {label}: {"; ".join(s_err)}')
+        if o_err and o_err != s_err:
+            diffs.append(f'{label}: {"; ".join(o_err)}')
+        s_warn = stock['processes'].get(label, {}).get('warnings', {})
+        o_warn = ours['processes'].get(label, {}).get('warnings', {})
+        for key, n in sorted(o_warn.items()):
+            if key[1] != 'incompatible_qos' and n != s_warn.get(key, 0):
+                diffs.append(f'{label}: logged {n}x [{key[0]}] {key[1]} (stock '
+                             f'{s_warn.get(key, 0)})')
+    for eid, spec in scenario.endpoints.items():
+        s, o = stock['endpoints'].get(eid), ours['endpoints'].get(eid)
+        if s is None or o is None:
+            if s is not None:
+                diffs.append(f'{eid}: no report')
+            continue
+        diffs += [f'{eid}: {d}' for d in _compare_endpoint(scenario, eid, s, o)]
+    return diffs
+
+
+def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[str]:
+    diffs = []
+    if s['destroy'] != o['destroy']:
+        diffs.append(f'destroy through the node returned {o["destroy"]} (stock {s["destroy"]})')
+    if o['checksum_failures']:
+        diffs.append(f'{o["checksum_failures"]} messages failed their checksum')
+    # rclpy logs incompatible QoS once per event callback, and Fast DDS folds the peers it
+    # discovers close together into one event (total_count_change > 1): stock logs between
+    # once and once per incompatible peer, depending on discovery timing.
+    sw, ow = s['incompatible_warnings'], o['incompatible_warnings']
+    spec = scenario.endpoints[eid]
+    peers = sum(e['topic'] == spec['topic'] and e['kind'] != spec['kind']
+                for e in scenario.endpoints.values())
+    if (sw == 0) != (ow == 0) or ow > peers:
+        diffs.append(f'incompatible QoS logged {ow}x (stock {sw}x, at most once per peer: '
+                     f'{peers})')
+    if s['kind'] == 'sub':
+        for pid in sorted(set(s['history']) | set(o['history'])):
+            sh, oh = s['history'].get(pid, []), o['history'].get(pid, [])
+            if sh != oh:  # a late joiner's history is deterministic: exact
+                diffs.append(f'history from {pid}: {runs(oh)} (stock {runs(sh)})')
+        for pid in sorted(set(s['live']) | set(o['live'])):
+            sl, ol = s['live'].get(pid, []), o['live'].get(pid, [])
+            if sl == ol:
+                continue
+            # Exact where the QoS promises every message and stock got them all. Otherwise
+            # (BEST_EFFORT, depth 1, or stock itself missed some: the first messages when
+            # publishing from the first matched instant, as the publisher may match before
+            # the subscription does; a stalled process) ours must still be in publish order
+            # without duplicates, and miss at most LENIENT_MISSING more than stock.
+            first = max(s['history'][pid]) + 1 if s['history'].get(pid) else 0
+            exact = (_promises_everything(scenario, eid, pid) and
+                     sl == list(range(first, first + len(sl))))
+            ordered = all(a < b for a, b in zip(ol, ol[1:]))
+            if exact or not ordered or len(ol) + LENIENT_MISSING < len(sl):
+                diffs.append(f'from {pid}: {runs(ol)} (stock {runs(sl)})')
+    if s['matched'] != o['matched']:
+        diffs.append(f'matched events {o["matched"]} (stock {s["matched"]})')
+    for key in sorted(set(s['events']) | set(o['events'])):
+        kind = key.split('@')[0]
+        sn, on = s['events'].get(key, 0), o['events'].get(key, 0)
+        tolerance = TOLERANCES.get(kind, lambda stock: 0)(sn)
+        if abs(sn - on) > tolerance:
+            diffs.append(f'{key}: {on} (stock {sn}, tolerance {tolerance})')
+    if s['liveliness_states'] != o['liveliness_states']:
+        diffs.append(f'liveliness changes (alive, not alive) {o["liveliness_states"]} '
+                     f'(stock {s["liveliness_states"]})')
+    return diffs
+
+
+def summary(result: dict) -> str:
+    """A short outcome: per subscription, messages received per publisher; events seen."""
+    parts = []
+    for eid, e in sorted(result['endpoints'].items()):
+        if e['kind'] == 'sub':
+            got = ' '.join(f'{p}:{len(e["history"].get(p, []))}h+{len(e["live"].get(p, []))}'
+                           if e['history'].get(p) else f'{p}:{len(e["live"].get(p, []))}'
+                           for p in sorted(set(e['history']) | set(e['live'])))
+            parts.append(f'{eid}[{got}]')
+        ev = sum(e['events'].values()) + e['matched']['total']
+        if ev:
+            parts.append(f'{eid}:{ev}ev')
+    return ' '.join(parts)
+
+
+@dataclass
+class Result:
+    scenario: Scenario
+    stock: dict
+    ours: dict
+    differences: List[str]
+    seconds: float
+
+
+def run_scenario(scenario: Scenario, domains: Tuple[int, int], echo: bool = False) -> Result:
+    """Both variants at once, each in its own domain; their outcomes and differences."""
+    started = time.monotonic()
+    with ThreadPoolExecutor(2) as pool:
+        futures = [pool.submit(run_variant, scenario, variant, domain, echo)
+                   for variant, domain in zip(('stock', 'ours'), domains)]
+        stock_run, ours_run = (f.result() for f in futures)
+    stock, ours = outcome(scenario, stock_run), outcome(scenario, ours_run)
+    return Result(scenario, stock, ours, compare(scenario, stock, ours),
+                  time.monotonic() - started)
+
+
+def table(results: List[Result]) -> str:
+    lines = ['| scenario | s | stock | ours | result |', '|---|---|---|---|---|']
+    for r in results:
+        verdict = 'equal' if not r.differences else f'{len(r.differences)} differences'
+        lines.append(f'| {r.scenario.name} | {r.seconds:.0f} | {summary(r.stock)} | '
+                     f'{summary(r.ours)} | {verdict} |')
+    for r in results:
+        if r.differences:
+            lines.append(f'\n{r.scenario.name} ({r.scenario.about}):')
+            lines += [f'  - {d}' for d in r.differences]
+    return '\n'.join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('names', nargs='*', help='scenarios to run (default: all)')
+    parser.add_argument('--echo', action='store_true', help="print the probes' output")
+    args = parser.parse_args(argv)
+    chosen = [s for s in scenarios() if not args.names or s.name in args.names]
+    unknown = set(args.names) - {s.name for s in scenarios()}
+    if unknown:
+        parser.error(f'unknown scenarios {sorted(unknown)}; known: '
+                     f'{[s.name for s in scenarios()]}')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    domains = tuple(claim_domain_ids(2))
+    started = time.monotonic()
+    results = [run_scenario(s, domains, args.echo) for s in chosen]
+    print(table(results))
+    print(f'\n{sum(not r.differences for r in results)} of {len(results)} equal, '
+          f'{time.monotonic() - started:.0f} s')
+    return 0 if all(not r.differences for r in results) else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
