@@ -14,7 +14,8 @@ probe processes. A probe takes one JSON spec as its first argument::
   Each endpoint has its own node, ``eq_<id>``, so the log lines name the endpoint.
 - ``steps``: run in order; each waits by spinning the executor (one thread, no sleeps):
   ``create``/``destroy`` (ids), ``wait_matched`` (ids, count, timeout), ``publish`` (ids, n,
-  rate: each publisher publishes n messages, in turn), ``wait_received`` (ids and count, or counts: id -> count; timeout),
+  rate, first_seq: each publisher publishes n messages, in turn), ``acked`` (ids, timeout:
+  ``wait_for_all_acked``), ``wait_received`` (ids and count, or counts: id -> count; timeout),
   ``drain`` (quiet, timeout: until no subscription here received anything for ``quiet`` s),
   ``sleep`` (s), ``phase`` (name: tags what is received and every event from now on),
   ``signal`` (name: a ``SIGNAL <name>`` line on stdout, which the suite relays to the other
@@ -24,8 +25,9 @@ probe processes. A probe takes one JSON spec as its first argument::
 Every message carries ``"<publisher id> <seq> <crc32 of data>"`` in ``header.frame_id`` and its
 seq in the first 8 bytes of ``data``; subscriptions check both. The report (a ``REPORT`` JSON
 line on stdout at exit) lists, per endpoint, the messages received ``[publisher, seq, phase,
-backend, ok]``, the QoS events ``[type, phase, fields]``, the result of destroying it through its
-node, and the steps that timed out. Log lines (incompatible QoS warnings) are on stderr, which
+backend, ok]``, the QoS events ``[type, phase, fields]``, whether its node lists it, what
+destroying it through its node and ``wait_for_all_acked`` returned; and the steps that timed out
+or raised. Log lines (incompatible QoS warnings) are on stderr, which
 the suite reads.
 """
 import array
@@ -100,6 +102,8 @@ class Endpoint:
         self.messages: List[list] = []
         self.events: List[list] = []
         self.destroy_results: List[bool] = []
+        self.acked: List[bool] = []
+        self.owned: List[bool] = []
         self.last_received = 0.0
 
     # lifecycle ---------------------------------------------------------------------------
@@ -127,6 +131,8 @@ class Endpoint:
             else:
                 self.entity = self.node.create_subscription(Image, topic, self.on_message, qos,
                                                             event_callbacks=callbacks)
+        owners = self.node.publishers if self.kind == 'pub' else self.node.subscriptions
+        self.owned.append(any(e is self.entity for e in owners))
 
     def destroy(self) -> None:
         """Destroy through the node, as a user would; a buffer-aware endpoint that the node
@@ -208,6 +214,7 @@ class Endpoint:
     def report(self) -> dict:
         return {'kind': self.kind, 'ours': self.ours, 'messages': self.messages,
                 'events': self.events, 'destroy_results': self.destroy_results,
+                'acked': self.acked, 'owned': self.owned,
                 'published': self.next_seq if self.kind == 'pub' else None}
 
 
@@ -225,6 +232,7 @@ class Probe:
         self.executor = SingleThreadedExecutor()
         self.phase = 'start'
         self.timeouts: List[str] = []
+        self.errors: List[str] = []
         self.signals: Dict[str, float] = {}
         self._signals_lock = threading.Lock()
         self._wake_node = rclpy.create_node('eq_probe_wake')
@@ -262,7 +270,11 @@ class Probe:
 
     def run(self) -> None:
         for step in self.spec['steps']:
-            getattr(self, 'step_' + step['op'])(step)
+            try:
+                getattr(self, 'step_' + step['op'])(step)
+            except Exception as error:  # noqa: B902 (an endpoint that raises is an outcome)
+                self.errors.append(f'{step["op"]} {step.get("ids", "")}: '
+                                   f'{type(error).__name__}: {error}')
 
     # steps -------------------------------------------------------------------------------
 
@@ -282,12 +294,23 @@ class Probe:
 
     def step_publish(self, step: dict) -> None:
         ends = [self.endpoints[eid] for eid in step['ids']]
+        if 'first_seq' in step:  # a restarted publisher process goes on where it stopped
+            for endpoint in ends:
+                endpoint.next_seq = step['first_seq']
         period = 1.0 / step.get('rate', 50.0)
         start = time.monotonic()
         for i in range(step['n']):
-            self.spin_for(start + i * period - time.monotonic())
-            for endpoint in ends:
+            for k, endpoint in enumerate(ends):
+                # spread over the period: a burst from every publisher at once overruns a
+                # depth-1 reader (one instance per topic) whatever the endpoints are
+                self.spin_for(start + (i + k / len(ends)) * period - time.monotonic())
                 endpoint.publish_next()
+
+    def step_acked(self, step: dict) -> None:
+        for eid in step['ids']:
+            endpoint = self.endpoints[eid]
+            endpoint.acked.append(bool(endpoint.entity.wait_for_all_acked(
+                Duration(seconds=step.get('timeout', 2.0)))))
 
     def step_wait_received(self, step: dict) -> None:
         counts = step.get('counts') or {eid: step['count'] for eid in step['ids']}
@@ -329,7 +352,7 @@ class Probe:
 
     def finish(self) -> None:
         print_report({'endpoints': {eid: e.report() for eid, e in self.endpoints.items()},
-                      'timeouts': self.timeouts,
+                      'timeouts': self.timeouts, 'errors': self.errors,
                       'seconds': round(time.monotonic() - self.started, 3)})
 
     def destroy_node(self) -> None:

@@ -22,13 +22,15 @@ def test_same_outcome_as_stock(scenario, extra_domain_ids):
 
 # The comparison itself, on outcomes made up for the purpose ----------------------------------
 
-def _graph() -> Scenario:
+def _graph(startup_race: bool = False) -> Scenario:
     qos = {'reliability': 'reliable', 'history': 'keep_last', 'depth': 5}
-    return Scenario('made_up', '', {'p': pub('t', qos), 's': sub('t', qos)}, {'x': []})
+    return Scenario('made_up', '', {'p': pub('t', qos), 's': sub('t', qos)}, {'x': []},
+                    startup_race=startup_race)
 
 
 def _outcome(live=(), history=(), events=None, warnings=0) -> dict:
-    endpoint = {'kind': 'sub', 'ours': True, 'destroy': [], 'published': None,
+    endpoint = {'kind': 'sub', 'ours': True, 'destroy': [], 'owned': [True], 'acked': [],
+                'published': None,
                 'incompatible_warnings': warnings, 'history': {'p': list(history)} if history
                 else {}, 'live': {'p': list(live)}, 'backends': {}, 'checksum_failures': 0,
                 'events': events or {}, 'liveliness_states': [],
@@ -62,3 +64,14 @@ def test_compare_tolerances():
     assert compare(graph, warned, _outcome(live=range(3, 30), events={'deadline@silent': 6},
                                            warnings=2))  # more than once per peer (1 peer)
     assert compare(graph, warned, _outcome(live=range(3, 30), events={'deadline@silent': 6}))
+
+
+def test_compare_startup_race():
+    stock = _outcome(live=range(0, 30))
+    assert compare(_graph(), stock, _outcome(live=range(2, 30)))  # a loss after a wait
+    raced = _graph(startup_race=True)
+    assert compare(raced, stock, _outcome(live=range(2, 30))) == []
+    assert compare(raced, _outcome(live=range(2, 30)), _outcome(live=range(0, 30))) == []
+    assert compare(raced, stock, _outcome(live=range(10, 30)))  # more than a startup race
+    assert compare(raced, stock, _outcome(live=[2, 0, 1] + list(range(3, 30))))
+    assert compare(raced, stock, _outcome(live=list(range(2, 20)) + list(range(21, 30))))
