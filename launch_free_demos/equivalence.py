@@ -9,14 +9,22 @@ subscriptions, each ``ours`` or ``stock``, their QoS) and a timeline per process
 - the **ours** variant makes the ``ours`` endpoints buffer-aware (cpu or demo publishers,
   subscriptions accepting cpu, demo or any) and leaves the ``stock`` ones (legacy peers) plain.
 
-Both variants of a scenario run at once, each in its own ROS_DOMAIN_ID. The outcome of each
-variant (:func:`outcome`) is, per endpoint: the messages each subscription received from each
-publisher (late joiners' history apart), checksum failures, QoS events per type and phase,
-incompatible QoS warnings logged by the endpoint's node, what destroying it through its node
-returned; per process: steps that timed out, tracebacks. :func:`compare` lists the differences,
-with the tolerances explained at :data:`TOLERANCES`.
+A scenario has two or three probe processes (publishers, early subscriptions, late joiners
+or a restarted publisher, the last ones started when a signal says so). Every message carries
+its publisher's id, a sequence number and a CRC32 of its payload. Both variants of a scenario
+run at once, each in its own ROS_DOMAIN_ID. The outcome of each variant (:func:`outcome`) is,
+per endpoint: the messages each subscription received from each publisher, a late joiner's
+history apart; checksum failures; QoS events per type and phase (deadline, liveliness,
+incompatible QoS, message lost, matched); incompatible QoS warnings logged by the endpoint's
+node; whether its node lists it, what ``wait_for_all_acked`` and destroying it through its
+node returned. Per process: other warnings, steps that timed out or raised, tracebacks.
+:func:`compare` lists the differences, with the tolerances explained where they are
+(:data:`TOLERANCES`, :data:`LENIENT_MISSING`, :data:`STARTUP_RACE_MESSAGES`, incompatible QoS
+warnings).
 
-``python -m launch_free_demos.equivalence [names] [--echo]`` prints one row per scenario.
+``python -m launch_free_demos.equivalence [names] [--echo]`` prints one row per scenario, then
+the differences; ``--oracle-vs-oracle`` runs the stock graph twice, which shows what timing
+alone changes (it should say "equal" everywhere).
 """
 import argparse
 import collections
@@ -103,12 +111,11 @@ def _end_steps(signal: str) -> List[dict]:
 
 
 def simple(name: str, about: str, qos: dict, *, legacy: bool, sub_first: bool,
-           wait: float, n: int = N, sub_qos: Optional[dict] = None) -> Scenario:
+           wait: float) -> Scenario:
     """One topic, publishers in one process and subscriptions in another: whoever comes
     second waits for the first; the publishers start once every subscription is matched,
     at once (``wait`` 0: the first matched instant) or after ``wait`` seconds."""
-    ends = {**publishers('p', 'eq', qos, legacy), **subscriptions('s', 'eq', sub_qos or qos,
-                                                                  legacy)}
+    ends = {**publishers('p', 'eq', qos, legacy), **subscriptions('s', 'eq', qos, legacy)}
     pubs = [i for i in ends if i.startswith('p')]
     subs = [i for i in ends if i.startswith('s')]
     pub_steps = [step('await', names=['subs_up'])] if sub_first else []
@@ -116,7 +123,7 @@ def simple(name: str, about: str, qos: dict, *, legacy: bool, sub_first: bool,
                   step('wait_matched', ids=pubs, count=len(subs))]
     if wait:
         pub_steps.append(step('sleep', s=wait))
-    pub_steps += [step('signal', name='go'), step('publish', ids=pubs, n=n, rate=RATE),
+    pub_steps += [step('signal', name='go'), step('publish', ids=pubs, n=N, rate=RATE),
                   step('signal', name='done'), step('await', names=['subs_end'])]
     sub_steps = [] if sub_first else [step('await', names=['pubs_up'])]
     sub_steps += [step('create', ids=subs), step('signal', name='subs_up'),
@@ -383,9 +390,8 @@ def run_variant(scenario: Scenario, variant: str, domain_id: int,
             with lock:
                 nodes = list(run.nodes.values())
             if all(n.process.poll() is not None for n in nodes):
-                for node in nodes:  # the last lines (signals) of the processes that ended
-                    for thread in node._threads:
-                        thread.join(1.0)
+                for node in nodes:  # reaped: their last lines (signals) are read
+                    node.stop()
                 with lock:
                     if len(run.nodes) == len(nodes):
                         break
@@ -623,9 +629,12 @@ def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[st
 def summary(result: dict) -> str:
     """One variant's outcome in a few numbers: messages received (of them history), streams
     (subscription x publisher) out of order or with duplicates, checksum failures, QoS events,
-    incompatible QoS warnings, processes with errors."""
+    incompatible QoS warnings, processes with errors, and the backends the messages came in
+    when not only CPU (not compared: stock has only CPU)."""
     received = history = disordered = bad = events = warnings = 0
+    backends = collections.Counter()
     for e in result['endpoints'].values():
+        backends.update(e['backends'])
         for seqs in list(e['history'].values()) + list(e['live'].values()):
             received += len(seqs)
             disordered += any(a >= b for a, b in zip(seqs, seqs[1:]))
@@ -636,7 +645,8 @@ def summary(result: dict) -> str:
     errors = sum(bool(p['errors']) for p in result['processes'].values())
     return (f'{received} msgs ({history} history), {disordered} streams disordered, '
             f'{bad} bad, {events} events, {warnings} warnings' +
-            (f', {errors} processes with errors' if errors else ''))
+            (f', {errors} processes with errors' if errors else '') +
+            (f', backends {dict(backends)}' if set(backends) - {'cpu'} else ''))
 
 
 @dataclass
