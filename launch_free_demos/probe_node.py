@@ -42,6 +42,7 @@ import numpy
 import rclpy
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
@@ -249,7 +250,10 @@ class Probe:
                 with self._signals_lock:
                     self.signals.setdefault(name, time.monotonic())
                 self.phase = name  # what happens from now on happens after that signal
-                self._wake.trigger()
+                try:
+                    self._wake.trigger()
+                except InvalidHandle:  # a signal relayed while the probe tears down
+                    return
 
     def spin_until(self, condition, timeout: float, what: str) -> bool:
         """Spin until ``condition()``; False (and the step recorded as timed out) after
