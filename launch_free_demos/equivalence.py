@@ -110,25 +110,33 @@ def _end_steps(signal: str) -> List[dict]:
             step('signal', name=signal)]
 
 
+def _two_processes(ends: Dict[str, dict], pub_steps: List[dict], *, sub_first: bool = False,
+                   matched: Optional[int] = None) -> Dict[str, List[dict]]:
+    """Publishers in one process, subscriptions in another; whoever comes second waits for
+    the first. The publishers wait until ``matched`` (default: every) subscription matched
+    them, run ``pub_steps``, then wait for the subscriptions to take what is in flight."""
+    pubs = [i for i, e in ends.items() if e['kind'] == 'pub']
+    subs = [i for i, e in ends.items() if e['kind'] == 'sub']
+    return {
+        'pubs': ([step('await', names=['subs_up'])] if sub_first else []) + [
+            step('create', ids=pubs), step('signal', name='pubs_up'),
+            step('wait_matched', ids=pubs, count=matched or len(subs)), *pub_steps,
+            step('signal', name='done'), step('await', names=['subs_end'])],
+        'subs': ([] if sub_first else [step('await', names=['pubs_up'])]) + [
+            step('create', ids=subs), step('signal', name='subs_up'), *_end_steps('subs_end')]}
+
+
 def simple(name: str, about: str, qos: dict, *, legacy: bool, sub_first: bool,
            wait: float) -> Scenario:
-    """One topic, publishers in one process and subscriptions in another: whoever comes
-    second waits for the first; the publishers start once every subscription is matched,
-    at once (``wait`` 0: the first matched instant) or after ``wait`` seconds."""
+    """One topic: cpu and demo publishers of ours (and a plain one when ``legacy``), and
+    subscriptions of ours accepting cpu, demo, any (and a plain one). The publishers start
+    once every subscription is matched, at once (``wait`` 0: the first matched instant) or
+    after ``wait`` seconds."""
     ends = {**publishers('p', 'eq', qos, legacy), **subscriptions('s', 'eq', qos, legacy)}
     pubs = [i for i in ends if i.startswith('p')]
-    subs = [i for i in ends if i.startswith('s')]
-    pub_steps = [step('await', names=['subs_up'])] if sub_first else []
-    pub_steps += [step('create', ids=pubs), step('signal', name='pubs_up'),
-                  step('wait_matched', ids=pubs, count=len(subs))]
-    if wait:
-        pub_steps.append(step('sleep', s=wait))
-    pub_steps += [step('signal', name='go'), step('publish', ids=pubs, n=N, rate=RATE),
-                  step('signal', name='done'), step('await', names=['subs_end'])]
-    sub_steps = [] if sub_first else [step('await', names=['pubs_up'])]
-    sub_steps += [step('create', ids=subs), step('signal', name='subs_up'),
-                  *_end_steps('subs_end')]
-    return Scenario(name, about, ends, {'pubs': pub_steps, 'subs': sub_steps},
+    pub_steps = ([step('sleep', s=wait)] if wait else []) + [
+        step('signal', name='go'), step('publish', ids=pubs, n=N, rate=RATE)]
+    return Scenario(name, about, ends, _two_processes(ends, pub_steps, sub_first=sub_first),
                     startup_race=not wait)
 
 
@@ -202,22 +210,15 @@ def _events_scenario() -> Scenario:
     qos = {**RELIABLE_5, 'deadline': 0.25, 'liveliness': 'manual_by_topic', 'lease': 0.5}
     ends = {**publishers('p', 'eq', qos), **subscriptions('s', 'eq', qos)}
     pubs = [i for i in ends if i.startswith('p')]
-    subs = [i for i in ends if i.startswith('s')]
     return Scenario(
         'deadline_liveliness',
         'deadline 0.25 s, MANUAL_BY_TOPIC lease 0.5 s: 2 s at 20 Hz, silent 1.5 s, 1 s at '
         '20 Hz; deadline, liveliness and matched events on both sides',
-        ends, {
-            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
-                     step('wait_matched', ids=pubs, count=len(subs)), step('sleep', s=0.5),
-                     step('signal', name='publishing'),
-                     step('publish', ids=pubs, n=40, rate=20.0),
-                     step('signal', name='silent'), step('sleep', s=1.5),
-                     step('signal', name='resumed'),
-                     step('publish', ids=pubs, n=20, rate=20.0),
-                     step('signal', name='done'), step('await', names=['subs_end'])],
-            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
-                     *_end_steps('subs_end')]})
+        ends, _two_processes(ends, [
+            step('sleep', s=0.5), step('signal', name='publishing'),
+            step('publish', ids=pubs, n=40, rate=20.0),
+            step('signal', name='silent'), step('sleep', s=1.5),
+            step('signal', name='resumed'), step('publish', ids=pubs, n=20, rate=20.0)]))
 
 
 def _incompatible_scenario() -> Scenario:
@@ -232,20 +233,14 @@ def _incompatible_scenario() -> Scenario:
             'sl': sub('eq', RELIABLE_5, impl='stock'),
             'slw': sub('eq', RELIABLE_5, impl='stock', events=False),
             'sb': sub('eq', best_effort, 'any')}
-    pubs = ['pc', 'pdw', 'plw']
-    subs = ['sc', 'saw', 'sl', 'slw', 'sb']
     return Scenario(
         'incompatible_qos',
         'BEST_EFFORT publishers (cpu, demo, plain) and RELIABLE subscriptions (cpu, any, '
         'plain): incompatible QoS events and warnings on both sides; a BEST_EFFORT '
         'subscription still receives',
-        ends, {
-            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
-                     step('wait_matched', ids=pubs, count=1), step('sleep', s=0.5),
-                     step('signal', name='go'), step('publish', ids=pubs, n=10, rate=RATE),
-                     step('signal', name='done'), step('await', names=['subs_end'])],
-            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
-                     *_end_steps('subs_end')]})
+        ends, _two_processes(ends, [
+            step('sleep', s=0.5), step('signal', name='go'),
+            step('publish', ids=['pc', 'pdw', 'plw'], n=10, rate=RATE)], matched=1))
 
 
 def _restart_scenario() -> Scenario:
@@ -256,17 +251,12 @@ def _restart_scenario() -> Scenario:
         'publisher_restart',
         'RELIABLE KEEP_LAST 5: 15 messages, wait_for_all_acked, every publisher destroyed '
         'through its node and created again, 15 more; seq numbers continue',
-        ends, {
-            'pubs': [step('create', ids=pubs), step('signal', name='pubs_up'),
-                     step('wait_matched', ids=pubs, count=len(subs)), step('sleep', s=0.5),
-                     step('publish', ids=pubs, n=15, rate=RATE),
-                     step('acked', ids=pubs, timeout=5.0), step('destroy', ids=pubs),
-                     step('create', ids=pubs), step('wait_matched', ids=pubs, count=len(subs)),
-                     step('sleep', s=0.5),  # see publisher_process_restart
-                     step('publish', ids=pubs, n=15, rate=RATE),
-                     step('signal', name='done'), step('await', names=['subs_end'])],
-            'subs': [step('await', names=['pubs_up']), step('create', ids=subs),
-                     *_end_steps('subs_end')]})
+        ends, _two_processes(ends, [
+            step('sleep', s=0.5), step('publish', ids=pubs, n=15, rate=RATE),
+            step('acked', ids=pubs, timeout=5.0), step('destroy', ids=pubs),
+            step('create', ids=pubs), step('wait_matched', ids=pubs, count=len(subs)),
+            step('sleep', s=0.5),  # see publisher_process_restart
+            step('publish', ids=pubs, n=15, rate=RATE)]))
 
 
 def _process_restart_scenario() -> Scenario:
@@ -477,7 +467,10 @@ def _endpoint_outcome(eid: str, rep: dict, warnings: collections.Counter) -> dic
         elif kind == 'liveliness' and 'alive_count' in fields:
             states.append((fields['alive_count'], fields['not_alive_count']))
         else:
-            counts[(kind, phase)] += fields.get('total_count_change', 1)
+            # deadline and liveliness lost count per phase (publishing, silent...); the
+            # others do not depend on the phase, only on the graph: counted over the run
+            counts[(kind, phase if kind in PHASED_EVENTS else 'run')] += \
+                fields.get('total_count_change', 1)
     everyone = max([alive for alive, _ in states], default=0)
     liveliness = []
     for state in states:
@@ -490,6 +483,9 @@ def _endpoint_outcome(eid: str, rep: dict, warnings: collections.Counter) -> dic
 
 # --- comparison ----------------------------------------------------------------------------
 
+#: Events counted per phase; incompatible QoS and message lost are counted over the run (the
+#: phase a discovery-time event lands in is timing).
+PHASED_EVENTS = ('deadline', 'liveliness')
 #: Where timing makes exact equality meaningless, ours may differ from stock by this much.
 TOLERANCES = {
     # Deadline misses are (length of a phase) / (period), and a phase's length depends on
@@ -502,9 +498,14 @@ TOLERANCES = {
     # loses in a run of this size.
     'message_lost': lambda stock: max(2, stock // 5),
 }
-#: Missing live messages allowed on top of stock's where the QoS does not promise delivery
-#: (BEST_EFFORT, or depth 1 on either side): scheduling on a loaded machine decides them.
+#: Missing live messages allowed on top of stock's where the QoS promises delivery but stock
+#: itself missed some (a process stalled on the loaded machine).
 LENIENT_MISSING = 3
+#: Where the QoS does not promise delivery (BEST_EFFORT, or depth 1 on either side), which
+#: messages a subscription gets is up to scheduling, and a buffer-aware subscription's own
+#: work per message changes it: ours must get at least this fraction of what stock got (in
+#: order, without duplicates: that is what such a QoS still promises).
+LENIENT_FRACTION = 0.5
 #: A publisher that starts at its first matched instant may write before the subscription has
 #: matched it in turn (discovery is not symmetric): the subscription then misses the first
 #: messages, with stock as with ours, 0 to 3 of them in our runs. Where a scenario does so,
@@ -528,9 +529,10 @@ def _live_equivalent(scenario: Scenario, sid: str, pid: str, sl: List[int], ol: 
 
     Exact where the QoS promises every message and stock got them all (from the first
     message, or the first after the late joiner's history; past the startup race, see
-    STARTUP_RACE_MESSAGES). Otherwise (BEST_EFFORT, depth 1, or stock itself missed some, as
-    a stalled process does) ours must still be in publish order without duplicates and miss
-    at most LENIENT_MISSING more than stock."""
+    STARTUP_RACE_MESSAGES). Otherwise ours must still be in publish order without duplicates,
+    and miss at most LENIENT_MISSING more than stock where the QoS promises delivery (stock
+    missed some as a stalled process does), or get LENIENT_FRACTION of stock's where it does
+    not."""
     if not all(a < b for a, b in zip(ol, ol[1:])):
         return False
     first = max(history) + 1 if history else 0
@@ -538,7 +540,9 @@ def _live_equivalent(scenario: Scenario, sid: str, pid: str, sl: List[int], ol: 
             0 < max(sl[0], ol[0]) - first <= STARTUP_RACE_MESSAGES:
         first = max(sl[0], ol[0])
         sl, ol = [x for x in sl if x >= first], [x for x in ol if x >= first]
-    if _promises_everything(scenario, sid, pid) and sl == list(range(first, first + len(sl))):
+    if not _promises_everything(scenario, sid, pid):
+        return len(ol) >= LENIENT_FRACTION * len(sl)
+    if sl == list(range(first, first + len(sl))):
         return sl == ol
     return len(ol) + LENIENT_MISSING >= len(sl)
 

@@ -5,6 +5,9 @@ A failure lists every difference between the two outcomes (see launch_free_demos
 for what is compared and the tolerances). One scenario by hand:
 ``.venv/bin/python -m launch_free_demos.equivalence <name> [--echo]``.
 """
+import subprocess
+import sys
+
 import pytest
 
 from launch_free_demos import equivalence
@@ -18,6 +21,20 @@ def test_same_outcome_as_stock(scenario, extra_domain_ids):
     result = equivalence.run_scenario(scenario, tuple(extra_domain_ids))
     if result.differences:
         pytest.fail('\n' + table([result]), pytrace=False)
+
+
+def test_command_line_runs_named_scenarios():
+    """README's command, on one scenario, the stock graph against itself (equal whatever
+    the buffer-aware endpoints do); --echo shows the probes' signals."""
+    done = subprocess.run(
+        [sys.executable, '-m', 'launch_free_demos.equivalence', '--oracle-vs-oracle',
+         '--echo', 'reliable_pub_first_wait'], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert '| reliable_pub_first_wait |' in done.stdout and '| equal |' in done.stdout
+    assert '[stock:pubs] SIGNAL go' in done.stdout
+    unknown = subprocess.run([sys.executable, '-m', 'launch_free_demos.equivalence', 'nope'],
+                             capture_output=True, text=True, timeout=60)
+    assert unknown.returncode == 2 and 'reliable_pub_first_wait' in unknown.stderr
 
 
 # The comparison itself, on outcomes made up for the purpose ----------------------------------
