@@ -168,6 +168,14 @@ def _late_joiners() -> List[Scenario]:
              **subscriptions('la', 'tl5', late),
              'lvl': sub('tl5', late_volatile, impl='stock'),
              'lva': sub('tl5', late_volatile, 'any')}
+    ours_only = {**publishers('a', 'tl5', tl5, legacy=False),
+                 **subscriptions('e', 'tl5', {**tl5, 'depth': 20}, legacy=False),
+                 **subscriptions('la', 'tl5', late, legacy=False)}
+    scenarios.append(_late_scenario(
+        'transient_local_ours_only',
+        'TRANSIENT_LOCAL KEEP_LAST 5, buffer-aware only: early subscribers served on '
+        'channels, late joiners (cpu, demo, any) get the history',
+        ours_only, early=['ec', 'ed', 'ea'], history={'tl5': 5}))
     scenarios.append(_late_scenario(
         'transient_local_early_ours',
         'TRANSIENT_LOCAL KEEP_LAST 5 with early buffer-aware subscribers served on channels; '
@@ -206,14 +214,15 @@ def _late_scenario(name: str, about: str, ends: Dict[str, dict], early: List[str
     return Scenario(name, about, ends, processes, deferred={'late': 'published'})
 
 
-def _events_scenario() -> Scenario:
+def _events_scenario(legacy: bool) -> Scenario:
     qos = {**RELIABLE_5, 'deadline': 0.25, 'liveliness': 'manual_by_topic', 'lease': 0.5}
-    ends = {**publishers('p', 'eq', qos), **subscriptions('s', 'eq', qos)}
+    ends = {**publishers('p', 'eq', qos, legacy), **subscriptions('s', 'eq', qos, legacy)}
     pubs = [i for i in ends if i.startswith('p')]
     return Scenario(
-        'deadline_liveliness',
+        'deadline_liveliness' + ('_mixed' if legacy else '_ours'),
         'deadline 0.25 s, MANUAL_BY_TOPIC lease 0.5 s: 2 s at 20 Hz, silent 1.5 s, 1 s at '
-        '20 Hz; deadline, liveliness and matched events on both sides',
+        '20 Hz; deadline, liveliness and matched events on both sides, ' +
+        ('with plain peers' if legacy else 'buffer-aware only'),
         ends, _two_processes(ends, [
             step('sleep', s=0.5), step('signal', name='publishing'),
             step('publish', ids=pubs, n=40, rate=20.0),
@@ -311,7 +320,8 @@ def scenarios() -> List[Scenario]:
                'RELIABLE KEEP_ALL with plain peers, subscriber first, from the first matched '
                'instant', keep_all, legacy=True, sub_first=True, wait=0.0),
         *_late_joiners(),
-        _events_scenario(),
+        _events_scenario(legacy=True),
+        _events_scenario(legacy=False),
         _incompatible_scenario(),
         _restart_scenario(),
         _process_restart_scenario(),
