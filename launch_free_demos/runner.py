@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 from rosidl_buffer_py.nodes.common import REPORT_PREFIX
 
@@ -24,6 +24,7 @@ NODES = {
     'image_subscriber': 'rosidl_buffer_py.nodes.image_subscriber',
     'legacy_image_publisher': 'rosidl_buffer_py.nodes.legacy_image_publisher',
     'legacy_image_subscriber': 'rosidl_buffer_py.nodes.legacy_image_subscriber',
+    'probe_node': 'launch_free_demos.probe_node',
 }
 
 
@@ -114,10 +115,22 @@ class NodeProcess:
     _threads: List[threading.Thread] = field(default_factory=list)
     #: True once the process outlived SIGINT's grace period (it was then dumped and killed).
     stuck: bool = False
+    #: Command-line arguments before ``--ros-args`` (the probe's JSON spec).
+    arguments: List[str] = field(default_factory=list)
+    #: Environment overrides (a scenario's own ``ROS_DOMAIN_ID``).
+    env: Dict[str, str] = field(default_factory=dict)
+    #: Called from the reader thread with every stdout line; with it, stdin is a pipe too
+    #: (:meth:`send`), so that a caller can relay lines between processes.
+    on_line: Optional[Callable[['NodeProcess', str], None]] = None
+    #: Name the node after ``label`` (``-r __node:=``, which renames every node of the
+    #: process: off for the probe, whose nodes are named after its endpoints).
+    rename_node: bool = True
+    _stdin_lock: threading.Lock = field(default_factory=threading.Lock)
 
     def command(self) -> List[str]:
-        args = [sys.executable, '-m', NODES[self.executable], '--ros-args',
-                '-r', f'__node:={self.label}']
+        args = [sys.executable, '-m', NODES[self.executable], *self.arguments, '--ros-args']
+        if self.rename_node:
+            args += ['-r', f'__node:={self.label}']
         for name, value in self.parameters.items():
             args += ['-p', f'{name}:={format_parameter(value)}']
         return args
@@ -125,11 +138,13 @@ class NodeProcess:
     def start(self, echo: bool = False) -> None:
         self.process = subprocess.Popen(
             self.command(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            env=dict(os.environ, PYTHONUNBUFFERED='1'), start_new_session=True)
-        for stream, sink in ((self.process.stdout, self.output), (self.process.stderr,
-                                                                  self.stderr)):
-            thread = threading.Thread(target=_pump, args=(stream, sink, self.label, echo),
-                                      daemon=True)
+            stdin=subprocess.PIPE if self.on_line else None,
+            env=dict(os.environ, PYTHONUNBUFFERED='1', **self.env), start_new_session=True)
+        relay = (lambda line: self.on_line(self, line)) if self.on_line else None
+        for stream, sink, on_line in ((self.process.stdout, self.output, relay),
+                                      (self.process.stderr, self.stderr, None)):
+            thread = threading.Thread(target=_pump, args=(stream, sink, self.label, echo,
+                                                          on_line), daemon=True)
             thread.start()
             self._threads.append(thread)
 
@@ -158,6 +173,16 @@ class NodeProcess:
         for thread in self._threads:
             thread.join(5)
 
+    def send(self, line: str) -> None:
+        """Write one line to the process's stdin (with ``on_line`` only); a process that
+        already exited is ignored."""
+        with self._stdin_lock:
+            try:
+                self.process.stdin.write(line + '\n')
+                self.process.stdin.flush()
+            except (BrokenPipeError, ValueError, OSError):
+                pass
+
     def kill(self) -> None:
         """SIGKILL now (a crashed peer) and reap."""
         if self.process is not None and self.process.poll() is None:
@@ -172,9 +197,12 @@ class NodeProcess:
         return None
 
 
-def _pump(stream, sink: List[str], label: str, echo: bool) -> None:
+def _pump(stream, sink: List[str], label: str, echo: bool,
+          on_line: Optional[Callable[[str], None]] = None) -> None:
     for line in stream:
         sink.append(line.rstrip('\n'))
+        if on_line is not None:
+            on_line(line.rstrip('\n'))
         if echo and not line.startswith(REPORT_PREFIX):
             print(f'[{label}] {line}', end='', flush=True)
 
@@ -190,6 +218,12 @@ class Run:
         node = NodeProcess(label, executable, dict(parameters))
         node.start(self.echo)
         self.nodes[label] = node
+        return node
+
+    def add(self, node: NodeProcess) -> NodeProcess:
+        """Start a prepared process (arguments, environment, ``on_line``) as one of the run."""
+        node.start(self.echo)
+        self.nodes[node.label] = node
         return node
 
     def wait(self, labels: Optional[List[str]] = None, timeout: float = 60.0) -> bool:

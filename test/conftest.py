@@ -3,9 +3,7 @@
 Each pytest run takes a ROS_DOMAIN_ID nobody else on the machine holds (an flock'ed file per
 domain id), so parallel runs never see each other's traffic. Child processes inherit it.
 """
-import fcntl
 import os
-import random
 import sys
 import time
 from pathlib import Path
@@ -18,27 +16,9 @@ _ROOT = Path(__file__).resolve().parent.parent
 if not list((_ROOT / 'rosidl_buffer_py').glob('_native*.so')):
     sys.path[:] = [p for p in sys.path if Path(p or '.').resolve() != _ROOT]
 
-_DOMAIN_LOCK_DIR = '/tmp'
-_domain_lock_file = None
+from launch_free_demos.domains import claim_domain_ids  # noqa: E402 (after the path fix)
 
-
-def _claim_domain_id() -> int:
-    global _domain_lock_file
-    ids = list(range(1, 101))
-    random.shuffle(ids)
-    for domain_id in ids:
-        f = open(os.path.join(_DOMAIN_LOCK_DIR, f'rosidl_buffer_py_domain_{domain_id}.lock'), 'w')
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            continue
-        _domain_lock_file = f  # held until the interpreter exits
-        return domain_id
-    raise RuntimeError('no free ROS_DOMAIN_ID in 1..100 (100 concurrent test runs?)')
-
-
-os.environ['ROS_DOMAIN_ID'] = str(_claim_domain_id())
+os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids()[0])
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
 
@@ -63,6 +43,19 @@ def _owner_alive(name: str) -> bool:
     except PermissionError:
         return True
     return True
+
+
+@pytest.fixture(scope='session')
+def extra_domain_ids():
+    """Two more domain ids of this run's own (same flock scheme as its ROS_DOMAIN_ID), for
+    tests that run graphs side by side, one per domain; Fast DDS files that their SIGKILLed
+    processes leave are removed at the end, as for the main domain."""
+    since = time.time() - 1.0
+    ids = claim_domain_ids(2)
+    yield ids
+    from launch_free_demos.runner import remove_fastdds_leftovers
+    for domain_id in ids:
+        remove_fastdds_leftovers(since, domain_id)
 
 
 @pytest.fixture(scope='session', autouse=True)
