@@ -6,9 +6,12 @@ the participant, local endpoints included. :class:`ParticipantDiscovery` turns t
 to the buffer-aware publishers and subscriptions that watch that topic. Processing happens in
 Python threads only (publish(), executor callbacks), never in DDS threads.
 
-Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. So every
-buffer-aware endpoint re-announces its USER_DATA when it discovers a new endpoint of the opposite
-kind on its topic: whoever just appeared then sees the advertisement as a 'changed' event.
+Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. A peer
+that missed our advertisement opens no channel to us, so ours stays unmatched: then, and only
+then, a buffer-aware endpoint re-announces its USER_DATA (see
+``BufferEndpoint._reannounce_if_unmatched``), and the peer sees it as a 'changed' event. Each
+re-announce makes DDS re-check matching at every peer (stock endpoints log incompatible QoS
+again), which is why nothing else re-announces.
 """
 import threading
 import weakref

@@ -6,10 +6,11 @@ first sample on, once per period of silence. A buffer-aware endpoint's traffic a
 its channels, which its main-topic DataWriter or DataReader does not see, so DDS would report
 misses while messages flow. :class:`DeadlineMonitor` counts them instead, over every route, with
 the same rule, from a timer of the node (it runs in the endpoint's callback group, like rclpy's
-own event handlers). Every other event (liveliness, incompatible QoS, matched, message lost)
-comes from the main topic's DDS entities through rclpy's own event handlers.
+own event handlers). Incompatible-QoS events come from the main topic's DDS entities, once per
+peer (:func:`once_per_peer`); every other event (liveliness, matched, message lost) comes from
+them through rclpy's own event handlers as it is.
 """
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Set
 
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
@@ -49,3 +50,37 @@ class DeadlineMonitor:
     def _on_timer(self) -> None:
         self._count += 1
         self._callback(DeadlineMissedInfo(self._count, 1))
+
+
+class IncompatibleQoSInfo(NamedTuple):
+    """What rclpy's incompatible-QoS callbacks receive (the fields of rmw's status)."""
+
+    total_count: int
+    total_count_change: int
+    last_policy_kind: object
+
+
+def once_per_peer(callback: Callable, incompatible_peers: Callable[[], Set[bytes]]) -> Callable:
+    """Wrap an incompatible-QoS event callback so it fires once per incompatible peer.
+
+    DDS reports incompatible QoS again whenever a peer's discovery data changes, and a
+    buffer-aware endpoint changes its USER_DATA right after creation (its advertisement): a
+    stock endpoint would see one event per incompatible peer, a buffer-aware peer would cause
+    two. ``incompatible_peers()`` gives the GIDs of the incompatible peers the ROS graph knows;
+    an event that brings none new is a repeat and is dropped. Counts are per peer, as stock's.
+    """
+    reported: Set[bytes] = set()
+    total = 0
+
+    def on_event(info) -> None:
+        nonlocal total
+        new = incompatible_peers() - reported
+        if not new:
+            if reported:
+                return  # a known peer's discovery data changed: stock would not report it
+            new = {b''}  # the graph does not list the peer yet: report it, once
+        reported.update(new)
+        total += len(new)
+        callback(IncompatibleQoSInfo(total, len(new), info.last_policy_kind))
+
+    return on_event

@@ -40,7 +40,8 @@ from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, qos_of, track_endpoint, warn_unsupported_rmw)
+    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, track_endpoint,
+    warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.publisher')
 
@@ -142,6 +143,10 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             deadline_callback = event_callbacks.deadline
             event_callbacks = copy.copy(event_callbacks)
             event_callbacks.deadline = None
+        if self._transport:
+            event_callbacks = incompatible_qos_once_per_peer(
+                event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
+                _dds.endpoint_gid(publisher_impl, 'publisher'))
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._peer_kind = EndpointKind.SUBSCRIPTION

@@ -46,7 +46,8 @@ from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, qos_of, track_endpoint, warn_unsupported_rmw)
+    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, track_endpoint,
+    warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.subscription')
 
@@ -159,6 +160,9 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             reader = _MainTopicReader(node.handle, msg_type, topic,
                                       qos_profile.get_c_qos_profile())
         reader._owner = lambda: None
+        event_callbacks = incompatible_qos_once_per_peer(
+            event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
+            _dds.endpoint_gid(reader, 'subscription'))
         try:
             super().__init__(reader, msg_type, topic, callback, callback_group, qos_profile,
                              False, event_callbacks=event_callbacks)

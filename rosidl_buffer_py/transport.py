@@ -1,16 +1,19 @@
 """What the buffer-aware publisher and subscription share: peer bookkeeping and small helpers."""
 import atexit
+import copy
 import threading
 import time
 import weakref
 from typing import Dict, Mapping, Set, Union
 
 from rclpy.logging import get_logger
-from rclpy.qos import QoSCompatibility, QoSProfile, qos_check_compatible
+from rclpy.qos import (
+    QoSCompatibility, QoSProfile, qos_check_compatible, qos_policy_name_from_kind)
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
+from rosidl_buffer_py.events import once_per_peer
 
 _logger = get_logger('rosidl_buffer_py')
 
@@ -74,6 +77,21 @@ def _teardown_live_endpoints() -> None:
             _logger.debug(f'teardown at exit: {type(exc).__name__}: {exc}')
 
 
+def _endpoint_qos(node, topic: str):
+    """GID -> QoS profile (as DDS uses it) of the topic's publishers and subscriptions."""
+    try:
+        publishers = node.get_publishers_info_by_topic(topic)
+        subscriptions = node.get_subscriptions_info_by_topic(topic)
+    except Exception:  # the node is being destroyed
+        return {}, {}
+    return ({bytes(i.endpoint_gid): i.qos_profile for i in publishers},
+            {bytes(i.endpoint_gid): i.qos_profile for i in subscriptions})
+
+
+def _incompatible(pub: QoSProfile, sub: QoSProfile) -> bool:
+    return qos_check_compatible(pub, sub)[0] == QoSCompatibility.ERROR
+
+
 def qos_compatible(node, topic: str, own_gid: bytes, peer_gid: bytes,
                    peer_kind: EndpointKind) -> bool:
     """Whether our QoS and the peer's, as the ROS graph reports them, let them communicate.
@@ -82,19 +100,58 @@ def qos_compatible(node, topic: str, own_gid: bytes, peer_gid: bytes,
     and an unmatched channel would make both sides re-announce (and log) forever. Both profiles
     come from the graph (what DDS uses: rclpy's "default" durations are resolved there).
     """
-    try:
-        publishers = node.get_publishers_info_by_topic(topic)
-        subscriptions = node.get_subscriptions_info_by_topic(topic)
-    except Exception:  # the node is being destroyed
-        return True
+    publishers, subscriptions = _endpoint_qos(node, topic)
     pub_gid, sub_gid = ((own_gid, peer_gid) if peer_kind is EndpointKind.SUBSCRIPTION
                         else (peer_gid, own_gid))
-    pub = next((i.qos_profile for i in publishers if bytes(i.endpoint_gid) == pub_gid), None)
-    sub = next((i.qos_profile for i in subscriptions if bytes(i.endpoint_gid) == sub_gid), None)
+    pub, sub = publishers.get(pub_gid), subscriptions.get(sub_gid)
     if pub is None or sub is None:
         return True  # not in the graph yet: assume it is
-    compatibility, _reason = qos_check_compatible(pub, sub)
-    return compatibility != QoSCompatibility.ERROR
+    return not _incompatible(pub, sub)
+
+
+def incompatible_peers(node, topic: str, own_gid: bytes, peer_kind: EndpointKind) -> Set[bytes]:
+    """GIDs of the endpoints of the opposite kind whose QoS is incompatible with ours."""
+    publishers, subscriptions = _endpoint_qos(node, topic)
+    if peer_kind is EndpointKind.SUBSCRIPTION:
+        own = publishers.get(own_gid)
+        return set() if own is None else {
+            gid for gid, qos in subscriptions.items() if _incompatible(own, qos)}
+    own = subscriptions.get(own_gid)
+    return set() if own is None else {
+        gid for gid, qos in publishers.items() if _incompatible(qos, own)}
+
+
+def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: EndpointKind,
+                                   gid: bytes):
+    """A copy of rclpy ``event_callbacks`` whose incompatible-QoS callback (the user's, or one
+    logging rclpy's default warning) fires once per incompatible peer (see
+    :func:`rosidl_buffer_py.events.once_per_peer`)."""
+    callback = event_callbacks.incompatible_qos
+    if callback is None:
+        if not event_callbacks.use_default_callbacks:
+            return event_callbacks
+        logger = get_logger(endpoint_impl.get_logger_name())
+        topic = endpoint_impl.get_topic_name()
+        if kind is EndpointKind.PUBLISHER:
+            text = (f"New subscription discovered on topic '{topic}', requesting incompatible "
+                    'QoS. No messages will be sent to it. Last incompatible policy: {}')
+        else:
+            text = (f"New publisher discovered on topic '{topic}', offering incompatible QoS. "
+                    'No messages will be received from it. Last incompatible policy: {}')
+
+        def callback(info):
+            logger.warn(text.format(qos_policy_name_from_kind(info.last_policy_kind)))
+    peer_kind = (EndpointKind.SUBSCRIPTION if kind is EndpointKind.PUBLISHER
+                 else EndpointKind.PUBLISHER)
+    event_callbacks = copy.copy(event_callbacks)
+    event_callbacks.incompatible_qos = once_per_peer(
+        callback, lambda: incompatible_peers(node, topic_of(endpoint_impl), gid, peer_kind))
+    return event_callbacks
+
+
+def topic_of(endpoint_impl) -> str:
+    with endpoint_impl:
+        return endpoint_impl.get_topic_name()
 
 
 class BufferEndpoint:
@@ -121,8 +178,6 @@ class BufferEndpoint:
         with self._lock:
             if self._destroyed:
                 return
-            if peer.new and not peer.local:
-                self._announce()  # it may have missed our advertisement (see discovery.py)
             known = self._peers.get(peer.gid)
             if not peer.buffer_aware:
                 if known is not None:  # it withdrew its advertisement: now a legacy endpoint
