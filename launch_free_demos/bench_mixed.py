@@ -1,0 +1,115 @@
+"""What a legacy listener costs the buffer-aware subscribers beside it: CPU per frame per process.
+
+Graphs, each a demo publisher (frames filled in place) of ``--payload`` at ``--rate`` Hz:
+
+- ``pure``: one subscriber accepting ``demo``;
+- ``mixed``: the same, plus one plain rclpy subscriber (what rviz or a bag recorder is);
+- ``stock``: a stock rclpy publisher and one plain rclpy subscriber (the reference for what the
+  publisher pays to serve a legacy subscriber).
+
+CPU per frame is differential, so start-up and discovery cancel out: every graph runs twice,
+with ``--frames`` and with ``--frames`` + ``--extra`` frames, and each process's CPU time
+(``os.wait4`` rusage, all threads) of the short run is subtracted from the long run's and divided
+by ``--extra``. Every frame is checked (counter and CRC32) by every subscriber. It prints a
+table; it asserts nothing about time.
+
+``python -m launch_free_demos.bench_mixed [--payload 3840x2160] [--rate 10] [--rounds 2]``
+"""
+import argparse
+import statistics
+import sys
+import time
+from typing import Dict, List, Tuple
+
+from launch_free_demos.benchmark import MeasuredRun
+
+GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
+    # label -> [(node label, executable, parameters)]: subscribers first, the publisher last
+    'pure': [('demo_sub', 'image_subscriber', {'acceptable_buffer_backends': 'demo'}),
+             ('pub', 'image_publisher', {'backend': 'demo', 'fill': 'allocate',
+                                         'wait_for_buffer_peers': 1})],
+    'mixed': [('demo_sub', 'image_subscriber', {'acceptable_buffer_backends': 'demo'}),
+              ('plain_sub', 'legacy_image_subscriber', {}),
+              ('pub', 'image_publisher', {'backend': 'demo', 'fill': 'allocate',
+                                          'wait_for_buffer_peers': 1})],
+    'stock': [('plain_sub', 'legacy_image_subscriber', {}),
+              ('pub', 'legacy_image_publisher', {})],
+}
+
+
+def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
+              topic: str) -> Dict[str, float]:
+    """CPU seconds of each process for one run of ``frames`` frames; also checks delivery."""
+    nodes = GRAPHS[graph]
+    subscribers = len(nodes) - 1
+    with MeasuredRun() as run:
+        started = {}
+        for label, executable, params in nodes:
+            params = dict(params, topic=topic, width=width, height=height, encoding='rgb8',
+                          depth=frames)
+            if executable.endswith('publisher'):
+                params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
+                              wait_timeout_sec=30.0, linger_sec=1.0)
+            else:
+                params.update(expected_count=frames, timeout_sec=60.0 + frames / rate)
+            started[label] = run.start(label, executable, **params)
+        deadline = time.monotonic() + 90.0 + frames / rate
+        while not all([node.try_reap() for node in started.values()]) and \
+                time.monotonic() < deadline:
+            time.sleep(0.05)  # reaped with os.wait4 (MeasuredNode), which keeps the rusage
+        run.stop_all()
+        reports = run.reports()
+    for label, executable, _ in nodes:
+        report = reports.get(label)
+        if executable.endswith('subscriber') and (report is None or report['distinct'] != frames
+                                                 or report['checksum_failures']):
+            raise RuntimeError(f'{graph}: {label} did not get every frame intact: {report}')
+    cpu = {}
+    for label, node in started.items():
+        usage = node.rusage
+        cpu[label] = usage.ru_utime + usage.ru_stime
+    return cpu
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--payload', default='3840x2160', help='WIDTHxHEIGHT of rgb8 frames')
+    parser.add_argument('--rate', type=float, default=10.0)
+    parser.add_argument('--frames', type=int, default=10, help='frames of the short run')
+    parser.add_argument('--extra', type=int, default=40, help='more frames in the long run')
+    parser.add_argument('--rounds', type=int, default=2, help='repeats (medians are shown)')
+    parser.add_argument('--graphs', default='pure,mixed,stock')
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.payload.split('x'))
+    graphs = [g.strip() for g in args.graphs.split(',') if g.strip()]
+    unknown = [g for g in graphs if g not in GRAPHS]
+    if unknown:
+        parser.error(f'unknown graph(s) {unknown}; known: {", ".join(GRAPHS)}')
+    per_frame: Dict[Tuple[str, str], List[float]] = {}
+    serial = 0
+    for _ in range(args.rounds):
+        for graph in graphs:
+            totals = []
+            for frames in (args.frames, args.frames + args.extra):
+                serial += 1
+                totals.append(run_graph(graph, width, height, frames, args.rate,
+                                        f'/bench_mixed/{graph}_{serial}'))
+            for label in totals[0]:
+                per_frame.setdefault((graph, label), []).append(
+                    (totals[1][label] - totals[0][label]) * 1000.0 / args.extra)
+    print(f'CPU per frame, ms (median of {args.rounds} rounds; each: ({args.frames}+{args.extra}'
+          f' frames) - ({args.frames} frames), / {args.extra}), {args.payload} rgb8 at '
+          f'{args.rate:g} Hz, demo frames filled in place\n')
+    print('| graph | demo subscriber | plain subscriber | publisher |\n|---|---|---|---|')
+    for graph in graphs:
+        cells = []
+        for label in ('demo_sub', 'plain_sub', 'pub'):
+            values = per_frame.get((graph, label))
+            cells.append('-' if not values else
+                         f'{statistics.median(values):.2f} ({", ".join(f"{v:.1f}" for v in values)})')
+        print(f'| {graph} | ' + ' | '.join(cells) + ' |')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
