@@ -10,7 +10,9 @@ from demo_buffer_backend import pool, presence, shm
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
 
 
-_UNKNOWN = object()
+def _depth_of(endpoint_info: EndpointInfo) -> int:
+    """The KEEP_LAST depth that bounds what the peer can take; 0 for KEEP_ALL or unknown."""
+    return getattr(endpoint_info, 'history_depth', None) or 0
 
 
 class DemoBackend(BufferBackend):
@@ -18,18 +20,31 @@ class DemoBackend(BufferBackend):
 
     Every instance shares the process-wide pool and mapping cache (:mod:`.pool`). The keyword
     arguments, when given, set the process-wide limits (see :func:`demo_buffer_backend.configure`).
-    Creating the first instance of a process removes segments left by dead processes.
+    Creating the first instance of a process removes segments left by dead processes and starts
+    the housekeeping thread that keeps doing so.
+
+    Fairness: every compatible peer has a ledger of its descriptors in flight (see
+    :mod:`.pool`, "Fairness"). ``create_descriptor_with_endpoint`` returns None, so that this
+    peer alone gets CPU bytes, when the peer is dead or not of our user, has its share of the
+    pool in flight, or has not taken anything for ``pool.IDLE_SECONDS``. Its KEEP_LAST depth
+    (``EndpointInfo.history_depth``, when the publisher passes it) lets descriptors it can no
+    longer take stop pinning their slots.
     """
 
     def __init__(self, *, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] = None,
-                 reclaim_timeout: Optional[float] = None) -> None:
-        if (max_pool_bytes, max_slots, reclaim_timeout) != (None, None, None):
+                 reclaim_timeout: Optional[float] = None,
+                 max_inflight_per_peer: Optional[int] = None) -> None:
+        if (max_pool_bytes, max_slots, reclaim_timeout, max_inflight_per_peer) != \
+                (None, None, None, None):
             pool.configure(max_pool_bytes=max_pool_bytes, max_slots=max_slots,
-                           reclaim_timeout=reclaim_timeout)
+                           reclaim_timeout=reclaim_timeout,
+                           max_inflight_per_peer=max_inflight_per_peer)
         self._domain = shm.domain_metadata()
         self._lock = threading.Lock()
         #: Compatible peers: gid -> presence token of their process (None: none advertised).
         self._peers: Dict[bytes, Optional[str]] = {}
+        #: Compatible peers: gid -> their ledger of descriptors in flight.
+        self._ledgers: Dict[bytes, pool.PeerLedger] = {}
         pool.get_state().start()
 
     def get_backend_type(self) -> str:
@@ -61,11 +76,18 @@ class DemoBackend(BufferBackend):
         """Compatible iff the peer's shm domain is ours (its token may differ: it names its
         process); its token is remembered to address its descriptors."""
         compatible, token = self.parse_metadata(endpoint_supported_backends.get(BACKEND_TYPE))
+        depth = _depth_of(endpoint_info)
         with self._lock:
             if compatible:
                 self._peers[endpoint_info.gid] = token
+                ledger = self._ledgers.get(endpoint_info.gid)
+                if ledger is None or ledger.token != token:
+                    self._ledgers[endpoint_info.gid] = pool.PeerLedger(token, depth)
+                else:
+                    ledger.depth = depth
             else:
                 self._peers.pop(endpoint_info.gid, None)
+                self._ledgers.pop(endpoint_info.gid, None)
         return compatible, []
 
     def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
@@ -74,6 +96,7 @@ class DemoBackend(BufferBackend):
         their protection (this hook also runs when *our* endpoint goes away)."""
         with self._lock:
             token = self._peers.pop(endpoint_info.gid, None)
+            self._ledgers.pop(endpoint_info.gid, None)
         if token is not None:
             pool.get_state().forget_liveness(token)
 
@@ -87,16 +110,28 @@ class DemoBackend(BufferBackend):
 
     def create_descriptor_with_endpoint(self, buffer: Buffer,
                                         endpoint_info: EndpointInfo) -> Optional[bytes]:
+        """A descriptor for this peer, or None (CPU bytes for it): unknown or incompatible peer,
+        private (fallback) memory, a received buffer (republishing one would let the original
+        publisher reuse it under the new peer), or what the peer's ledger says (dead, share in
+        flight, not taking)."""
         state = pool.get_state()
-        recipient = self._peers.get(endpoint_info.gid, _UNKNOWN)
-        if (recipient is _UNKNOWN
+        ledger = self._ledgers.get(endpoint_info.gid)
+        if (ledger is None
                 or not isinstance(buffer, DemoBuffer) or not isinstance(buffer._keepalive,
                                                                          pool.Pin)):
-            # Unknown or incompatible peer, private (fallback) memory, or a received buffer
-            # (republishing one would let the original publisher reuse it under the new peer).
             state.decline()
             return None
-        return state.describe(buffer._keepalive, recipient)
+        depth = _depth_of(endpoint_info)
+        if depth != ledger.depth:
+            ledger.depth = depth
+        return state.describe(buffer._keepalive, ledger=ledger)
+
+    def peer_ledgers(self) -> Dict[str, dict]:
+        """Per compatible peer (GID hex): its token, depth, messages, descriptors in flight and
+        whether it is taken for not taking."""
+        with self._lock:
+            ledgers = dict(self._ledgers)
+        return {gid.hex(): ledger.summary() for gid, ledger in ledgers.items()}
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> DemoBuffer:

@@ -27,19 +27,31 @@ class EndpointKind(enum.Enum):
 
 @dataclass(frozen=True)
 class EndpointInfo:
-    """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t)."""
+    """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t).
+
+    ``history_depth`` (not in upstream) is the endpoint's QoS history as far as it bounds what
+    the endpoint can still take: ``N > 0`` for KEEP_LAST depth N, ``0`` for KEEP_ALL, ``None``
+    when unknown. A backend may use it to stop reserving memory for a descriptor that N newer
+    messages to the same peer have pushed out of its reader history.
+    """
 
     gid: bytes
     topic_name: str
     endpoint_kind: EndpointKind
     node_name: str = ''
     node_namespace: str = ''
+    history_depth: Optional[int] = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:
             raise ValueError(f'gid must be {GID_SIZE} bytes, got {self.gid!r}')
         if not isinstance(self.endpoint_kind, EndpointKind):
             raise TypeError(f'endpoint_kind must be an EndpointKind, got {self.endpoint_kind!r}')
+        depth = self.history_depth
+        if depth is not None and (isinstance(depth, bool) or not isinstance(depth, int)
+                                  or depth < 0):
+            raise ValueError('history_depth must be None (unknown), 0 (KEEP_ALL) or a KEEP_LAST '
+                             f'depth > 0, got {depth!r}')
         object.__setattr__(self, 'gid', bytes(self.gid))
 
     @property
