@@ -441,6 +441,25 @@ def test_malformed_descriptors_raise_value_error(backend):
     }
     for length in range(len(good)):
         bad[f'truncated to {length}'] = good[:length]
+    # planted copies of the real segment (valid header): not created by the backend
+    with open(shm.path_of(d.name), 'rb') as f:
+        image = f.read()
+    planted = []
+    for label, mode in (('planted 0644', 0o644), ('planted 0666', 0o666), ('planted link', None),
+                        ('planted 0600 other owner', 0o600)):
+        name = f'rbpy_demo_{pid}_{os.urandom(8).hex()}'
+        planted.append(shm.path_of(name))
+        if mode is None:
+            os.symlink(shm.path_of(d.name), shm.path_of(name))
+        else:
+            content = bytearray(image)
+            if 'other owner' in label:
+                content[12:16] = (pid + 1).to_bytes(4, 'little')  # HEADER owner_pid
+            fd = os.open(shm.path_of(name), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+            os.write(fd, bytes(content))
+            os.fchmod(fd, mode)
+            os.close(fd)
+        bad[label] = _forge(good, name=name)
     rng = random.Random(1234)
     for i in range(200):
         bad[f'random {i}'] = bytes(rng.randrange(256) for _ in range(rng.randrange(120)))
@@ -460,8 +479,11 @@ def test_malformed_descriptors_raise_value_error(backend):
             continue
         # A bit flip may only land in a field that still names exactly the same bytes.
         assert label.startswith('bit flip') and bytes(memoryview(got)) == b'm' * 6000, label
+    for path in planted:
+        os.unlink(path)
     stats = demo_buffer_backend.stats()
     assert stats['rejected'] == rejected > 300
+    assert stats['untrusted_segments'] == 3  # (the symlink is refused by O_NOFOLLOW)
     assert stats['views_held'] == 0  # no hold leaked by a rejection
     ok = backend.from_descriptor_with_endpoint(good, ep)  # still fine afterwards
     assert bytes(memoryview(ok)) == b'm' * 6000
