@@ -22,9 +22,11 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
 - *KEEP_LAST depth N* (``EndpointInfo.history_depth``): a descriptor followed by N newer
   messages to the same peer has left its reader history and can no longer be taken by it, so it
   stops pinning its slot (``released_window``);
-- *share*: a peer has at most ``max_inflight_per_peer`` descriptors in flight (default a quarter
-  of ``max_slots``; also the bound for KEEP_ALL and unknown depths); past it, that peer alone gets
-  CPU bytes (``cpu_over_share``) until it takes;
+- *share*: a peer pins at most ``max_inflight_per_peer`` slots (default a quarter of
+  ``max_slots``; also the bound for KEEP_ALL and unknown depths). Descriptors past its share are
+  *soft*: sent while the pool has room, but at the pool's limits their slots are the first
+  reclaimed, before the pool falls back to CPU bytes for everyone (``over_share``; a late take of
+  such a reclaimed slot is rejected as stale and costs only that peer);
 - *in order*: a peer takes its channel in order, so descriptors older than one it took were
   dropped by it (best effort, or rejected) and stop pinning (``released_skipped``);
 - *not taking*: a peer that has had descriptors waiting for ``IDLE_SECONDS`` without taking any
@@ -35,11 +37,16 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
   nothing (``cpu_dead_peer``).
 
 Whatever a peer still pins is bounded by its share and becomes reclaimable under pressure after
-``reclaim_timeout``. Takes are recorded per subscriber *process* (the takers table), so the
+``reclaim_timeout``. Ledgers are per (peer, local publisher) when ``EndpointInfo.local_gid``
+names the publisher: the KEEP_LAST window counts the messages of one channel, so it is applied
+only then. Takes are recorded per subscriber *process* (the takers table), so the
 subscriptions of one process are told apart only by their own ledgers: a descriptor counts as
 taken when that process took as many of the slot's descriptors as it was sent. A process whose
-subscriptions take at different paces is paced by its slowest, within each one's share. The publisher hears of all this only as ``None`` from
-``create_descriptor_with_endpoint``: that peer gets the message as CPU bytes.
+subscriptions take at different paces is paced by its slowest, within each one's share.
+
+The publisher hears of all this only as ``None`` from ``create_descriptor_with_endpoint``: that
+peer gets the message as CPU bytes. Counters of each rule are in :func:`stats`, per-peer state in
+``DemoBackend.peer_ledgers()``.
 
 Housekeeping: every process that uses the backend runs one daemon thread (no Python callbacks
 into rclpy, one ``listdir`` of /dev/shm and a few syscalls per file every
@@ -134,7 +141,7 @@ class _Limits:
     def as_dict(self) -> dict:
         return {'max_pool_bytes': self.max_pool_bytes, 'max_slots': self.max_slots,
                 'reclaim_timeout': self.reclaim_timeout,
-                'max_inflight_per_peer': self.peer_share()}
+                'max_inflight_per_peer': self.max_inflight_per_peer}
 
 
 _limits = _Limits()
@@ -172,7 +179,7 @@ class _Slot:
     """A publisher-side slot: one segment this process created and owns."""
 
     __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'pins', 'generation',
-                 'last_used', 'closed', 'recipients', 'released')
+                 'last_used', 'closed', 'recipients', 'released', 'soft')
 
     def __init__(self, name, fd, header, data, capacity):
         self.name = name
@@ -189,6 +196,8 @@ class _Slot:
         self.recipients: Dict[Optional[str], int] = {}
         #: Of those, descriptors that no longer protect the slot (see PeerLedger), per token.
         self.released: Dict[Optional[str], int] = {}
+        #: Of the others, descriptors past their peer's share (reclaimable at the limits).
+        self.soft: Dict[Optional[str], int] = {}
 
 
 class Pin:
@@ -258,17 +267,19 @@ class _InFlight(NamedTuple):
     generation: int
     seq: int  #: the peer's message number it was sent with
     sent_ns: int
+    soft: bool  #: past the peer's share when sent
 
 
 class PeerLedger:
     """Per-peer accounting of descriptors in flight (see the module docstring, "Fairness").
 
     One per compatible peer endpoint, owned by the backend, used under the state's lock.
-    ``depth``: the peer's KEEP_LAST history depth, 0 for KEEP_ALL or unknown.
+    ``depth``: the peer's KEEP_LAST history depth, 0 for KEEP_ALL or unknown (or when the
+    ledger may see the messages of several channels: no ``local_gid``).
     """
 
     __slots__ = ('token', 'depth', 'seq', 'inflight', 'watch', 'pending_since_ns', 'idle',
-                 'probe_ns', 'gone')
+                 'probe_ns')
 
     def __init__(self, token: Optional[str], depth: int = 0) -> None:
         self.token = token
@@ -281,20 +292,20 @@ class PeerLedger:
         self.pending_since_ns: Optional[int] = None  #: oldest descriptor sent since a take
         self.idle = False
         self.probe_ns = 0
-        self.gone = False
 
     def summary(self) -> dict:
         return {'token': self.token, 'depth': self.depth, 'messages': self.seq,
-                'in_flight': len(self.inflight), 'not_taking': self.idle}
+                'in_flight': len(self.inflight),
+                'over_share': sum(1 for e in self.inflight if e.soft), 'not_taking': self.idle}
 
 
 _COUNTERS = ('segments_created', 'segments_removed', 'fallbacks', 'descriptors_created',
              'descriptors_declined', 'taken', 'rejected', 'stale', 'reclaimed', 'scavenged',
              'mappings_opened', 'mappings_closed', 'released_dead_recipients',
              'liveness_checks', 'released_window', 'released_skipped', 'released_idle',
-             'cpu_over_share', 'cpu_not_taking', 'cpu_dead_peer', 'probes', 'peers_idle',
-             'take_unrecorded', 'housekeeping_runs', 'untrusted_segments', 'fallbacks_held', 'fallbacks_too_large',
-             'fallbacks_enospc', 'fallbacks_shm_error')
+             'over_share', 'cpu_not_taking', 'cpu_dead_peer', 'probes', 'peers_idle',
+             'take_unrecorded', 'housekeeping_runs', 'untrusted_segments', 'fallbacks_held',
+             'fallbacks_too_large', 'fallbacks_enospc', 'fallbacks_shm_error')
 
 
 class _Locked:
@@ -520,6 +531,8 @@ class State:
             return True
         if not stale_ok:
             return False
+        if self._pinning(slot, now_ns, soft_ok=True) == 0:
+            return True  # only descriptors past their peers' shares
         last = shm.read_u64(slot.header, shm.OFF_LAST_PUBLISH)
         return now_ns - last >= _limits.reclaim_timeout * 1e9
 
@@ -541,9 +554,10 @@ class State:
             return None
         return untaken
 
-    def _pinning(self, slot: _Slot, now_ns: int) -> int:
+    def _pinning(self, slot: _Slot, now_ns: int, soft_ok: bool = False) -> int:
         """Descriptors of the slot's generation that still protect it: sent to a live
-        recipient, neither taken by its process nor released by its ledger.
+        recipient, neither taken by its process nor released by its ledger (with ``soft_ok``,
+        nor past their peer's share).
 
         Per recipient token ``t``: ``sent_t - released_t - taken_t`` (takes from the takers
         table; a peer without a token is credited the takes nobody in the table made). When the
@@ -565,7 +579,8 @@ class State:
                 continue
             else:
                 by = table.get(presence.token_id(token), 0)
-            pinning += max(0, count - slot.released.get(token, 0) - by)
+            soft = slot.soft.get(token, 0) if soft_ok else 0
+            pinning += max(0, count - slot.released.get(token, 0) - soft - by)
         return pinning
 
     def _taken_by(self, slot: _Slot, token: Optional[str]) -> int:
@@ -622,6 +637,7 @@ class State:
         slot.generation = generation
         slot.recipients.clear()
         slot.released.clear()
+        slot.soft.clear()
 
     def _reuse(self, nbytes: int, stale_ok: bool) -> Optional[_Slot]:
         now = time.monotonic_ns()
@@ -694,18 +710,23 @@ class State:
                 self.counters['descriptors_declined'] += 1
                 return None
             now = time.monotonic_ns()
+            soft = False
             if ledger is not None:
                 recipient = ledger.token
-                if not self._admit(ledger, now):
+                admitted = self._admit(ledger, now)
+                if admitted is None:
                     self.counters['descriptors_declined'] += 1
                     return None
+                soft = admitted == 'soft'
+                if soft:
+                    slot.soft[recipient] = slot.soft.get(recipient, 0) + 1
             header = slot.header
             shm.write_u64(header, shm.OFF_SENT, shm.read_u64(header, shm.OFF_SENT) + 1)
             slot.recipients[recipient] = slot.recipients.get(recipient, 0) + 1
             shm.write_u64(header, shm.OFF_LAST_PUBLISH, now)
             slot.last_used = now
             if ledger is not None:
-                ledger.inflight.append(_InFlight(slot, slot.generation, ledger.seq, now))
+                ledger.inflight.append(_InFlight(slot, slot.generation, ledger.seq, now, soft))
                 if ledger.pending_since_ns is None:
                     ledger.pending_since_ns = now
             self.counters['descriptors_created'] += 1
@@ -714,13 +735,14 @@ class State:
                     slot.name, self.pid, 0, pin.size, pin.generation))
             return pin.packed
 
-    def _admit(self, ledger: PeerLedger, now: int) -> bool:
-        """Count one message to the ledger's peer; whether it may be a descriptor."""
+    def _admit(self, ledger: PeerLedger, now: int) -> Optional[str]:
+        """Count one message to the ledger's peer; None when it gets CPU bytes, else 'hard' or
+        'soft' (a descriptor past its share)."""
         ledger.seq += 1
         token = ledger.token
-        if ledger.gone or (token is not None and not self._alive(token, now)):
+        if token is not None and not self._alive(token, now):
             self.counters['cpu_dead_peer'] += 1
-            return False
+            return None
         self._settle(ledger, now)
         if not ledger.idle and ledger.pending_since_ns is not None and \
                 now - ledger.pending_since_ns >= IDLE_SECONDS * 1e9:
@@ -733,20 +755,18 @@ class State:
         if ledger.idle:
             if now - ledger.probe_ns < PROBE_SECONDS * 1e9:
                 self.counters['cpu_not_taking'] += 1
-                return False
+                return None
             # A probe replaces its oldest descriptor: a peer that never takes keeps rotating
             # through its share, one that recovers finds a fresh descriptor in its history.
             while ledger.inflight and len(ledger.inflight) >= share:
-                entry = ledger.inflight.popleft()
-                if not entry.slot.closed and entry.slot.generation == entry.generation:
-                    self._release_entry(entry, token, 'released_idle')
+                self._release_entry(ledger.inflight.popleft(), token, 'released_idle')
             ledger.probe_ns = now
             self.counters['probes'] += 1
-            return True
-        if len(ledger.inflight) >= share:
-            self.counters['cpu_over_share'] += 1
-            return False
-        return True
+            return 'hard'
+        if sum(1 for entry in ledger.inflight if not entry.soft) >= share:
+            self.counters['over_share'] += 1
+            return 'soft'
+        return 'hard'
 
     def _settle(self, ledger: PeerLedger, now: int) -> None:
         """Bring the peer's in-flight list up to date: drop what it took or what was reclaimed,
@@ -757,7 +777,8 @@ class State:
             if entry.slot.generation == entry.generation and not entry.slot.closed and \
                     self._taken_by(entry.slot, token):
                 took = True
-        ledger.watch.clear() if took else None
+        if took:
+            ledger.watch.clear()
         kept: List[_InFlight] = []
         for entry in ledger.inflight:
             slot = entry.slot
@@ -766,6 +787,7 @@ class State:
             if self._taken_by(slot, token) + slot.released.get(token, 0) >= \
                     slot.recipients.get(token, 0):
                 took = True
+                self._unsoft(entry, token)
                 # Taken in order: what it had not taken before this one, it dropped.
                 for skipped in kept:
                     self._release_entry(skipped, token, 'released_skipped')
@@ -785,9 +807,19 @@ class State:
             ledger.pending_since_ns = None
 
     def _release_entry(self, entry: _InFlight, token: Optional[str], counter: str) -> None:
+        """The peer can no longer take ``entry``: it stops protecting its slot."""
         slot = entry.slot
+        if slot.closed or slot.generation != entry.generation:
+            return
+        self._unsoft(entry, token)
         slot.released[token] = slot.released.get(token, 0) + 1
         self.counters[counter] += 1
+
+    @staticmethod
+    def _unsoft(entry: _InFlight, token: Optional[str]) -> None:
+        if entry.soft and entry.slot.generation == entry.generation:
+            slot = entry.slot
+            slot.soft[token] = max(0, slot.soft.get(token, 0) - 1)
 
     def decline(self) -> None:
         with self.locked:
@@ -980,6 +1012,7 @@ class State:
                 views_held=sum(m.refs for m in self.mappings.values()),
                 presence=self.presence.token if self.presence is not None else None,
                 recipients_dead=sorted(t for t, (a, _) in self.liveness.items() if not a),
+                peer_share=_limits.peer_share(),
                 **_limits.as_dict())
             return result
 

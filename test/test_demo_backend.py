@@ -356,20 +356,27 @@ def test_killed_publisher_segments_are_removed_by_the_next_user(fresh, peers):
     names = {publisher('publish', n=n, fill=3, keep=str(n))['name'] for n in (10, 5000, 70000)}
     assert names == _segments_of(publisher.pid) and len(names) == 3
     publisher.kill9()
-    assert _segments_of(publisher.pid) == names  # nobody cleaned up yet
-    peers().exit()  # the next process that uses the backend scavenges on start
+    # The next process that uses the backend scavenges on start (unless the housekeeping of
+    # another user of the backend on this machine was quicker).
+    peers().exit()
     assert not _segments_of(publisher.pid)
 
 
-def test_killed_publisher_segment_is_removed_by_its_last_mapper(backend, peers):
+def test_killed_publisher_segment_is_removed_while_mapped_views_stay_valid(backend, peers):
     publisher, reader = peers(), peers()
     reply = publisher('publish', n=4096, fill=5, keep='p')
     assert reader('take', desc=reply['desc'], key='r')['ok']
     sha = reader('sha', key='r')['sha']
     publisher.kill9()
-    assert _segments_of(publisher.pid) == {reply['name']}
     assert reader('sha', key='r')['sha'] == sha  # the view outlives its publisher
-    reader.exit()  # the reader's atexit sees the owner gone and removes the file
+    # The reader's housekeeping thread (or its exit, or any other user's) removes the file;
+    # unlinking does not unmap, so the reader's view stays valid.
+    deadline = time.monotonic() + 10.0
+    while _segments_of(publisher.pid):
+        assert time.monotonic() < deadline, 'dead publisher segment not reclaimed in 10 s'
+        time.sleep(0.05)
+    assert reader('sha', key='r')['sha'] == sha
+    reader.exit()
     assert not _segments_of(publisher.pid)
 
 
@@ -701,7 +708,8 @@ def test_presence_file_is_private_removed_at_exit_and_scavenged_after_sigkill(fr
 def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, peers):
     """Descriptors for a SIGKILLed subscriber stop pinning slots at once; a live subscriber's
     untaken descriptors and held views stay protected."""
-    demo_buffer_backend.configure(max_slots=4, reclaim_timeout=3600)
+    demo_buffer_backend.configure(max_slots=4, reclaim_timeout=3600,
+                                  max_inflight_per_peer=4)  # each may pin every slot
     survivor, victim = peers(), peers()
     to_survivor, to_victim = _endpoint(b'\xa1' * 16), _endpoint(b'\xb2' * 16)
     for ep, peer in ((to_survivor, survivor), (to_victim, victim)):
@@ -796,8 +804,12 @@ def test_takers_table_counts_per_process_and_overflows_safely(fresh):
 
 # --- fairness: per-peer ledgers ------------------------------------------------------------------
 
+PUBLISHER_GID = b'\xee' * 16  # the local publisher the backend is called for
+
+
 def _discovered(be, gid, depth=None, metadata=None):
-    ep = EndpointInfo(gid, '/demo_backend_test', EndpointKind.SUBSCRIPTION, history_depth=depth)
+    ep = EndpointInfo(gid, '/demo_backend_test', EndpointKind.SUBSCRIPTION, history_depth=depth,
+                      local_gid=PUBLISHER_GID)
     assert be.on_discovering_endpoint(
         ep, [], {'demo': metadata or be.get_backend_metadata()}) == (True, [])
     return ep
@@ -812,31 +824,43 @@ def test_keep_last_window_stops_pinning_what_the_peer_can_no_longer_take(backend
         assert buf.in_shm, demo_buffer_backend.stats()
         assert backend.create_descriptor_with_endpoint(buf, ep) is not None
         del buf
-        assert backend.peer_ledgers()[ep.gid_hex]['in_flight'] <= 2
+        assert backend.peer_ledgers()[f'{ep.gid_hex}/{PUBLISHER_GID.hex()}']['in_flight'] <= 2
     stats = demo_buffer_backend.stats()
     assert stats['released_window'] >= 38 and stats['fallbacks'] == 0, stats
+    # without the publisher's GID the window would count other channels' messages: not applied
+    unnamed = EndpointInfo(ep.gid, ep.topic_name, ep.endpoint_kind, history_depth=2)
+    demo_buffer_backend.configure(max_slots=8)
+    for _ in range(3):
+        assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(5000), unnamed)
+    assert backend.peer_ledgers()[ep.gid_hex] == dict(
+        backend.peer_ledgers()[ep.gid_hex], depth=0, in_flight=3)
 
 
 def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers):
-    """A KEEP_ALL peer (another live process) that never takes gets CPU bytes past its share;
-    a peer that takes keeps getting descriptors and the pool never falls back."""
-    demo_buffer_backend.configure(max_slots=8, max_inflight_per_peer=2, reclaim_timeout=3600)
+    """A KEEP_ALL peer (another live process) that never takes keeps its share pinned; what it
+    was sent past its share is reclaimed at the pool's limits, so a peer that takes gets every
+    frame zero-copy and the pool never falls back."""
+    demo_buffer_backend.configure(max_slots=4, max_inflight_per_peer=1, reclaim_timeout=3600)
     stuck = _discovered(backend, b'\x31' * 16, depth=0, metadata=peers().metadata)
     healthy = _discovered(backend, b'\x32' * 16, depth=0)
     to_stuck = []
     for i in range(30):
         buf = DemoBuffer.from_cpu(bytes([i]) * 3000)
         assert buf.in_shm, demo_buffer_backend.stats()
-        to_stuck.append(backend.create_descriptor_with_endpoint(buf, stuck))
+        to_stuck.append((buf.segment_name, buf.generation,
+                         backend.create_descriptor_with_endpoint(buf, stuck)))
         desc = backend.create_descriptor_with_endpoint(buf, healthy)
         assert desc is not None
         del buf
         assert bytes(memoryview(backend.from_descriptor_with_endpoint(desc, healthy))) == \
             bytes([i]) * 3000
-    assert sum(d is not None for d in to_stuck) == 2 and to_stuck[0] and to_stuck[1]
     stats = demo_buffer_backend.stats()
-    assert stats['cpu_over_share'] == 28 and stats['fallbacks'] == 0, stats
-    assert stats['slots'] <= 4, stats
+    assert stats['over_share'] == 29 and stats['fallbacks'] == 0, stats
+    assert stats['slots'] == 4 and stats['reclaimed'] >= 20, stats
+    # its share (the first frame) is still protected: never reclaimed
+    name, generation, first = to_stuck[0]
+    assert first is not None
+    assert pool.get_state().slots[name].generation == generation
 
 
 def test_in_order_takes_release_what_the_peer_skipped(backend):
@@ -845,10 +869,12 @@ def test_in_order_takes_release_what_the_peer_skipped(backend):
     bufs = [DemoBuffer.allocate(100) for _ in range(3)]
     descs = [backend.create_descriptor_with_endpoint(b, ep) for b in bufs]
     assert all(descs)
-    assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep) is None  # share
+    key = f'{ep.gid_hex}/{PUBLISHER_GID.hex()}'
+    assert backend.peer_ledgers()[key]['in_flight'] == 3
     held = backend.from_descriptor_with_endpoint(descs[2], ep)  # 0 and 1 were dropped (lossy)
     assert backend.create_descriptor_with_endpoint(bufs[0], ep) is not None
     assert demo_buffer_backend.stats()['released_skipped'] == 2
+    assert backend.peer_ledgers()[key]['in_flight'] == 1
     del held
 
 
@@ -857,17 +883,20 @@ def test_peer_that_stops_taking_gets_cpu_and_probes_until_it_takes(backend, monk
     monkeypatch.setattr(pool, 'PROBE_SECONDS', 0.3)
     demo_buffer_backend.configure(max_slots=16, max_inflight_per_peer=4, reclaim_timeout=3600)
     ep = _discovered(backend, b'\x51' * 16, depth=0)
+
+    def ledger():
+        return backend.peer_ledgers()[f'{ep.gid_hex}/{PUBLISHER_GID.hex()}']
     first = backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep)
     assert first is not None
     time.sleep(0.25)
     buf = DemoBuffer.allocate(100)
     probe = backend.create_descriptor_with_endpoint(buf, ep)  # now idle: the first probe
-    assert probe is not None and backend.peer_ledgers()[ep.gid_hex]['not_taking']
+    assert probe is not None and ledger()['not_taking']
     got = [backend.create_descriptor_with_endpoint(buf, ep) for _ in range(5)]
     assert got == [None] * 5  # CPU bytes between probes
     view = backend.from_descriptor_with_endpoint(probe, ep)  # it takes again
     assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep) is not None
-    assert not backend.peer_ledgers()[ep.gid_hex]['not_taking']
+    assert not ledger()['not_taking']
     stats = demo_buffer_backend.stats()
     assert stats['peers_idle'] == 1 and stats['probes'] == 1 and stats['cpu_not_taking'] == 5
     del view
