@@ -6,13 +6,9 @@ segments of the processes of this test are looked at in /dev/shm (other test run
 import array
 import errno
 import gc
-import json
 import os
 import random
 import resource
-import signal
-import subprocess
-import sys
 import threading
 import time
 
@@ -23,9 +19,9 @@ import rosidl_buffer_py
 from rosidl_buffer_py import Buffer, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE
 
 import demo_buffer_backend
+from demo_backend_peer import Peer
 from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, pool, presence, shm
 
-PEER_SCRIPT = os.path.join(os.path.dirname(__file__), 'demo_backend_peer.py')
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 
 
@@ -58,43 +54,6 @@ def backend(fresh):
         assert be.on_discovering_endpoint(
             _endpoint(gid), [], {'demo': be.get_backend_metadata(), 'cpu': ''}) == (True, [])
     return be
-
-
-class Peer:
-    """Another Python process running demo_backend_peer.py."""
-
-    def __init__(self):
-        self.proc = subprocess.Popen([sys.executable, PEER_SCRIPT], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, bufsize=1)
-        hello = self._read()
-        assert hello['ready'], hello
-        self.pid = hello['pid']
-        self.metadata = hello['metadata']
-
-    def _read(self):
-        line = self.proc.stdout.readline()
-        assert line, f'peer exited with {self.proc.poll()}'
-        return json.loads(line)
-
-    def __call__(self, cmd, **kwargs):
-        self.proc.stdin.write(json.dumps(dict(cmd=cmd, **kwargs)) + '\n')
-        self.proc.stdin.flush()
-        return self._read()
-
-    def kill9(self):
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=30)
-
-    def exit(self):
-        assert self('exit')['ok']
-        assert self.proc.wait(timeout=30) == 0
-
-    def reap(self):
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(timeout=30)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            stream.close()
 
 
 @pytest.fixture

@@ -21,9 +21,9 @@ import time
 
 import pytest
 
+from demo_backend_peer import Peer
 from launch_free_demos.runner import Run
 
-PEER_SCRIPT = os.path.join(os.path.dirname(__file__), 'demo_backend_peer.py')
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 RECEIVED = re.compile(r'received (\d+) \((\d+) distinct\)')
 
@@ -140,34 +140,6 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
 
 # --- backend-level cases ------------------------------------------------------------------------
 
-class Peer:
-    """demo_backend_peer.py in another process (JSON lines)."""
-
-    def __init__(self, *, prefix=()):
-        self.proc = subprocess.Popen(list(prefix) + [sys.executable, PEER_SCRIPT],
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                     bufsize=1)
-        hello = self._read()
-        self.pid, self.metadata = hello['pid'], hello['metadata']
-
-    def _read(self):
-        line = self.proc.stdout.readline()
-        assert line, f'peer exited with {self.proc.poll()}'
-        return json.loads(line)
-
-    def __call__(self, cmd, **kwargs):
-        self.proc.stdin.write(json.dumps(dict(cmd=cmd, **kwargs)) + '\n')
-        self.proc.stdin.flush()
-        return self._read()
-
-    def reap(self):
-        if self.proc.poll() is None:
-            self.proc.kill()
-        self.proc.wait(timeout=30)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            stream.close()
-
-
 @pytest.fixture
 def backend():
     import gc
@@ -186,8 +158,8 @@ def backend():
     demo_buffer_backend.scavenge()
 
 
-def _peer(started, backend=None, **kwargs):
-    peer = Peer(**kwargs)
+def _peer(started, backend=None):
+    peer = Peer()
     started.append(peer)
     if backend is not None:
         from rosidl_buffer_py import EndpointInfo, EndpointKind
