@@ -139,7 +139,8 @@ class DemoBackend(BufferBackend):
         with self._lock:
             ledger = self._ledgers.get(key)
             if ledger is None:
-                ledger = self._ledgers[key] = pool.PeerLedger(token, depth)
+                ledger = self._ledgers[key] = pool.PeerLedger(
+                    token, depth, per_channel=key[1] is not None)
         ledger.depth = depth
         return state.describe(buffer._keepalive, ledger=ledger)
 

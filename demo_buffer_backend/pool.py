@@ -28,7 +28,8 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
   reclaimed, before the pool falls back to CPU bytes for everyone (``over_share``; a late take of
   such a reclaimed slot is rejected as stale and costs only that peer);
 - *in order*: a peer takes its channel in order, so descriptors older than one it took were
-  dropped by it (best effort, or rejected) and stop pinning (``released_skipped``);
+  dropped by it (best effort, or rejected) and stop pinning (``released_skipped``; only when
+  the ledger sees one channel, see below);
 - *not taking*: a peer that has had descriptors waiting for ``IDLE_SECONDS`` without taking any
   (stalled, stopped, or never taking) is served CPU bytes, plus one probe descriptor every
   ``PROBE_SECONDS``; its first observed take makes it a normal peer again (``peers_idle``);
@@ -38,8 +39,8 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
 
 Whatever a peer still pins is bounded by its share and becomes reclaimable under pressure after
 ``reclaim_timeout``. Ledgers are per (peer, local publisher) when ``EndpointInfo.local_gid``
-names the publisher: the KEEP_LAST window counts the messages of one channel, so it is applied
-only then. Takes are recorded per subscriber *process* (the takers table), so the
+names the publisher: the KEEP_LAST window and the in-order rule need the messages of one
+channel, so they are applied only then. Takes are recorded per subscriber *process* (the takers table), so the
 subscriptions of one process are told apart only by their own ledgers: a descriptor counts as
 taken when that process took as many of the slot's descriptors as it was sent. A process whose
 subscriptions take at different paces is paced by its slowest, within each one's share.
@@ -278,12 +279,15 @@ class PeerLedger:
     ledger may see the messages of several channels: no ``local_gid``).
     """
 
-    __slots__ = ('token', 'depth', 'seq', 'inflight', 'watch', 'pending_since_ns', 'idle',
-                 'probe_ns')
+    __slots__ = ('token', 'depth', 'per_channel', 'seq', 'inflight', 'watch',
+                 'pending_since_ns', 'idle', 'probe_ns')
 
-    def __init__(self, token: Optional[str], depth: int = 0) -> None:
+    def __init__(self, token: Optional[str], depth: int = 0, per_channel: bool = True) -> None:
         self.token = token
         self.depth = depth
+        #: Whether one channel's messages alone go through this ledger (the publisher is
+        #: named): only then are takes in order, so that what precedes a take was dropped.
+        self.per_channel = per_channel
         self.seq = 0  #: messages sent to the peer through the backend (descriptor or CPU)
         self.inflight: Deque[_InFlight] = collections.deque()
         #: Descriptors released unseen (by the window): still watched for takes, which show
@@ -788,10 +792,11 @@ class State:
                     slot.recipients.get(token, 0):
                 took = True
                 self._unsoft(entry, token)
-                # Taken in order: what it had not taken before this one, it dropped.
-                for skipped in kept:
-                    self._release_entry(skipped, token, 'released_skipped')
-                kept = []
+                if ledger.per_channel:
+                    # Taken in order: what it had not taken before this one, it dropped.
+                    for skipped in kept:
+                        self._release_entry(skipped, token, 'released_skipped')
+                    kept = []
                 continue
             kept.append(entry)
         if ledger.depth:

@@ -835,6 +835,15 @@ def test_in_order_takes_release_what_the_peer_skipped(backend):
     assert demo_buffer_backend.stats()['released_skipped'] == 2
     assert backend.peer_ledgers()[key]['in_flight'] == 1
     del held
+    # without the publisher's GID the ledger may mix channels, whose takes are not ordered
+    unnamed = EndpointInfo(ep.gid, ep.topic_name, ep.endpoint_kind)
+    bufs = [DemoBuffer.allocate(100) for _ in range(3)]
+    descs = [backend.create_descriptor_with_endpoint(b, unnamed) for b in bufs]
+    held = backend.from_descriptor_with_endpoint(descs[2], unnamed)
+    assert backend.create_descriptor_with_endpoint(bufs[0], unnamed) is not None
+    assert demo_buffer_backend.stats()['released_skipped'] == 2
+    assert backend.peer_ledgers()[ep.gid_hex]['in_flight'] == 3
+    del held
 
 
 def test_peer_that_stops_taking_gets_cpu_and_probes_until_it_takes(backend, monkeypatch):
