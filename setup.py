@@ -40,6 +40,26 @@ def requirements(name: str) -> list:
     return [line for line in lines if line]
 
 
+def package_version(prefix: str, package: str) -> str:
+    """The <version> of ``<prefix>/share/<package>/package.xml`` ('unknown' when absent)."""
+    import xml.etree.ElementTree as ElementTree
+    try:
+        version = ElementTree.parse(Path(prefix) / 'share' / package / 'package.xml').findtext(
+            'version')
+    except (OSError, ElementTree.ParseError):
+        return 'unknown'
+    return (version or 'unknown').strip()
+
+
+def built_against_macros(prefixes: list) -> list:
+    """The rmw_fastrtps versions the extension is built against, compiled in as macros (Fast
+    DDS's comes from its own config.h): rosidl_buffer_py._dds compares them with the running
+    libraries at import (see src/native/rmw_fastrtps_private.cpp)."""
+    prefix = prefixes[0] if prefixes else ''
+    return [(f'RBPY_BUILT_{package.upper()}', f'"{package_version(prefix, package)}"')
+            for package in ('rmw_fastrtps_cpp', 'rmw_fastrtps_shared_cpp')]
+
+
 def native_extension() -> Extension:
     prefixes = ros_prefixes()
     # ROS packages install their headers as include/<pkg>/<pkg>/...; Fast DDS as include/fastdds.
@@ -54,6 +74,7 @@ def native_extension() -> Extension:
         f'{PACKAGE}._native',
         sources=sorted(str(p.relative_to(HERE)) for p in (HERE / 'src' / 'native').glob('*.cpp')),
         include_dirs=include_dirs,
+        define_macros=built_against_macros(prefixes),
         library_dirs=library_dirs,
         runtime_library_dirs=library_dirs,
         # rcl: rcl_*_get_rmw_handle, rcl_take_serialized_message, rcl_trigger_guard_condition;

@@ -5,7 +5,9 @@ descriptor crosses DDS and the subscriber gets a zero-copy read-only view.
 
 - :mod:`.buffer`: :class:`DemoBuffer` (``from_cpu``, ``allocate``, ``to_array``);
 - :mod:`.backend`: :class:`DemoBackend`, the plugin;
-- :mod:`.pool`: the process-wide slot pool and mapping cache, limits, counters, lifecycle;
+- :mod:`.pool`: the process-wide slot pool and mapping cache, per-peer ledgers (fairness: what
+  one subscriber does costs only that subscriber), limits, counters, lifecycle and the
+  housekeeping thread (dead owners' files leave /dev/shm within seconds);
 - :mod:`.shm`: segment files, header layout (with the per-process takers table), liveness and
   scavenging;
 - :mod:`.presence`: per-process presence files, so that a publisher stops keeping slots for a
@@ -17,9 +19,14 @@ descriptor crosses DDS and the subscriber gets a zero-copy read-only view.
 Backend metadata: ``shm1.<boot id>.<st_dev>.<st_ino of /dev/shm>.<euid>.<pid>_<16 hex>``, the shm
 domain (peers are compatible when it is equal) then the process's presence token.
 
-Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=)``, the environment
-variables ``RBPY_DEMO_MAX_POOL_BYTES``, ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, or
-``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 32 slots, 5 s.
+Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=,
+max_inflight_per_peer=)``, the environment variables ``RBPY_DEMO_MAX_POOL_BYTES``,
+``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, ``RBPY_DEMO_MAX_INFLIGHT_PER_PEER``, or
+``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 32 slots, 5 s, a quarter of the slots.
+
+Trust: a segment is mapped only if it looks exactly as the backend creates them (regular file,
+no symlink, our uid, mode 0600, our header naming the owner of its name); no lock is waited for
+without bound (the take's mutex byte: 20 ms at most).
 """
 from demo_buffer_backend.backend import DemoBackend
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer

@@ -10,20 +10,43 @@ from demo_buffer_backend import pool
 BACKEND_TYPE = 'demo'
 
 
+#: struct-module item formats of plain data (no pointers, no Python objects), any byte order.
+_PLAIN_FORMATS = frozenset('cbB?hHiIlLqQnNefd')
+_ACCEPTED = ('bytes, bytearray, a memoryview or another buffer of plain numbers, or a numpy '
+             'array of a dtype without Python objects')
+
+
+def _plain_format(fmt: str) -> bool:
+    fmt = fmt.lstrip('@=<>!')
+    return len(fmt) == 1 and fmt in _PLAIN_FORMATS
+
+
 def _byte_view(data: Any) -> memoryview:
-    """The raw bytes of ``data`` (bytes-like or C-contiguous array of any dtype), no copy."""
+    """The raw bytes of ``data`` (bytes-like or C-contiguous array of plain data), no copy.
+
+    Only plain data: the bytes of an object array are pointers into this process's heap, and
+    publishing them would leak addresses and mean nothing to a subscriber.
+    """
+    dtype = getattr(data, 'dtype', None)
+    if dtype is not None and getattr(dtype, 'hasobject', False):
+        raise TypeError(f'DemoBuffer.from_cpu needs {_ACCEPTED}; got a numpy array of dtype '
+                        f'{dtype} (it holds Python objects)')
     try:
         view = memoryview(data)
     except (TypeError, ValueError):
         # numpy dtypes the buffer protocol cannot express (datetime64, ...): view them as uint8.
         flags = getattr(data, 'flags', None)
-        if flags is None or not hasattr(data, 'view'):
-            raise TypeError('DemoBuffer.from_cpu needs bytes, bytearray, memoryview or a numpy '
-                            f'array, got {type(data).__name__}') from None
+        if flags is None or not hasattr(data, 'view') or dtype is None:
+            raise TypeError(f'DemoBuffer.from_cpu needs {_ACCEPTED}; got '
+                            f'{type(data).__name__}') from None
         if not flags.c_contiguous:
             raise ValueError('DemoBuffer.from_cpu needs C-contiguous data') from None
         import numpy
         view = memoryview(data.reshape(-1).view(numpy.uint8))
+    # (numpy exports structured dtypes with long formats: plain data once objects are excluded)
+    if dtype is None and not _plain_format(view.format):
+        raise TypeError(f'DemoBuffer.from_cpu needs {_ACCEPTED}; got a {type(data).__name__} '
+                        f'buffer of item format {view.format!r}')
     if not view.c_contiguous:
         raise ValueError('DemoBuffer.from_cpu needs C-contiguous data (use '
                          'numpy.ascontiguousarray first)')

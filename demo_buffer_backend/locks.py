@@ -11,6 +11,7 @@ import errno
 import fcntl
 import os
 import struct
+import time
 
 # struct flock on Linux: short l_type, short l_whence, off_t l_start, off_t l_len, pid_t l_pid
 # (native alignment pads after l_whence and at the end). l_pid must be 0 for OFD locks.
@@ -18,7 +19,6 @@ _FLOCK = struct.Struct('hhqqi4x')
 
 _F_OFD_GETLK = getattr(fcntl, 'F_OFD_GETLK', 36)
 _F_OFD_SETLK = getattr(fcntl, 'F_OFD_SETLK', 37)
-_F_OFD_SETLKW = getattr(fcntl, 'F_OFD_SETLKW', 38)
 
 
 def _flock(lock_type: int, byte: int) -> bytes:
@@ -37,16 +37,26 @@ def try_lock(fd: int, byte: int, *, exclusive: bool) -> bool:
     return True
 
 
-def lock_wait(fd: int, byte: int, *, exclusive: bool) -> None:
-    """Take a lock on one byte, waiting for conflicting holders. Use only for locks that every
-    holder keeps for a few instructions (a dead holder's lock is dropped by the kernel)."""
+def lock_within(fd: int, byte: int, *, exclusive: bool, timeout: float) -> bool:
+    """Take a lock on one byte, waiting at most ``timeout`` seconds for conflicting holders;
+    False when it could not be had in time.
+
+    Never ``F_OFD_SETLKW``: that waits without bound, and any process of the same user can hold
+    the byte for as long as it likes. Polls with a short backoff instead (holders keep these
+    locks for a few instructions; a dead holder's lock is dropped by the kernel).
+    """
+    if try_lock(fd, byte, exclusive=exclusive):
+        return True
+    deadline = time.monotonic() + timeout
+    pause = 0.00005
     while True:
-        try:
-            fcntl.fcntl(fd, _F_OFD_SETLKW,
-                        _flock(fcntl.F_WRLCK if exclusive else fcntl.F_RDLCK, byte))
-            return
-        except InterruptedError:  # pragma: no cover - PEP 475 retries, kept for safety
-            continue
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        time.sleep(min(pause, remaining))
+        pause = min(pause * 2, 0.002)
+        if try_lock(fd, byte, exclusive=exclusive):
+            return True
 
 
 def unlock(fd: int, byte: int) -> None:

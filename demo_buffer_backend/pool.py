@@ -16,19 +16,66 @@ free slots of the wrong size are evicted, then slots whose last descriptor was c
 generation), and only then does the allocation fall back to private memory (the message then
 travels as CPU bytes).
 
+Fairness: what one subscriber does costs only that subscriber. Each compatible peer endpoint has
+a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send order:
+
+- *KEEP_LAST depth N* (``EndpointInfo.history_depth``): a descriptor followed by N newer
+  messages to the same peer has left its reader history and can no longer be taken by it, so it
+  stops pinning its slot (``released_window``);
+- *share*: a peer pins at most ``max_inflight_per_peer`` slots (default a quarter of
+  ``max_slots``; also the bound for KEEP_ALL and unknown depths). Descriptors past its share are
+  *soft*: sent while the pool has room, but at the pool's limits their slots are the first
+  reclaimed, before the pool falls back to CPU bytes for everyone (``over_share``; a late take of
+  such a reclaimed slot is rejected as stale and costs only that peer);
+- *in order*: a peer takes its channel in order, so descriptors older than one it took were
+  dropped by it (best effort, or rejected) and stop pinning (``released_skipped``; only when
+  the ledger sees one channel, see below);
+- *not taking*: a peer that has had descriptors waiting for ``IDLE_SECONDS`` without taking any
+  (stalled, stopped, or never taking) is served CPU bytes, plus one probe descriptor every
+  ``PROBE_SECONDS``; its first observed take makes it a normal peer again (``peers_idle``);
+- *dead or foreign*: a peer whose presence file is gone, or is not one this user created
+  (another uid that claims our shm domain cannot open the segments), gets CPU bytes and pins
+  nothing (``cpu_dead_peer``).
+
+Whatever a peer still pins is bounded by its share and becomes reclaimable under pressure after
+``reclaim_timeout``. Ledgers are per (peer, local publisher) when ``EndpointInfo.local_gid``
+names the publisher: the KEEP_LAST window and the in-order rule need the messages of one
+channel, so they are applied only then. Takes are recorded per subscriber *process* (the takers table), so the
+subscriptions of one process are told apart only by their own ledgers: a descriptor counts as
+taken when that process took as many of the slot's descriptors as it was sent. A process whose
+subscriptions take at different paces is paced by its slowest, within each one's share.
+
+The publisher hears of all this only as ``None`` from ``create_descriptor_with_endpoint``: that
+peer gets the message as CPU bytes. Counters of each rule are in :func:`stats`, per-peer state in
+``DemoBackend.peer_ledgers()``.
+
+Housekeeping: every process that uses the backend runs one daemon thread (no Python callbacks
+into rclpy, one ``listdir`` of /dev/shm and a few syscalls per file every
+``HOUSEKEEPING_SECONDS``) that removes segments and presence files of dead owners and closes
+unreferenced mappings of removed segments, so a SIGKILLed publisher's memory is returned within
+seconds while any user of the backend lives. Unlinking never unmaps: views a live process holds
+stay valid.
+
 Subscriber side: segments are mapped once and cached by name. Per segment and process, the
 number of live views is counted; the shared OFD lock on the hold byte is taken on 0 -> 1 and
-dropped on 1 -> 0. A descriptor is accepted only after that lock is held and its generation and
-size match the header; then ``taken`` is incremented under the mutex byte.
+dropped on 1 -> 0. A segment is mapped only if it looks exactly as the backend creates them
+(regular file opened without following symlinks, our uid, mode 0600, header with our magic,
+layout and the owner pid of its name). A descriptor is accepted only after that lock is held and
+its generation and size match the header; then ``taken`` is incremented under the mutex byte,
+waited for at most ``MUTEX_WAIT_SECONDS`` (past that the view is delivered anyway, the take
+unrecorded: ``take_unrecorded``; the publisher then sees it as untaken, which costs only this
+subscriber).
 
 All of it is guarded by one lock. Releases triggered by garbage collection (a Buffer and its views
 going away) never wait for that lock: they are queued and run by whoever holds or next takes it.
 """
 import atexit
+import collections
+import errno
 import os
 import threading
 import time
-from typing import Dict, List, Optional, Tuple
+from typing import Deque, Dict, List, NamedTuple, Optional, Tuple
 
 from rclpy.logging import get_logger
 
@@ -43,6 +90,17 @@ DEFAULT_RECLAIM_TIMEOUT = 5.0
 ENV_MAX_POOL_BYTES = 'RBPY_DEMO_MAX_POOL_BYTES'
 ENV_MAX_SLOTS = 'RBPY_DEMO_MAX_SLOTS'
 ENV_RECLAIM_TIMEOUT = 'RBPY_DEMO_RECLAIM_TIMEOUT'
+#: Per-peer share of in-flight descriptors; 0 (the default) means ``max(1, max_slots // 4)``.
+ENV_MAX_INFLIGHT_PER_PEER = 'RBPY_DEMO_MAX_INFLIGHT_PER_PEER'
+
+#: A peer with descriptors waiting this long and no take observed meanwhile is "not taking".
+IDLE_SECONDS = 2.0
+#: A peer that is not taking gets one descriptor (a probe) at most this often.
+PROBE_SECONDS = 1.0
+#: Period of the housekeeping thread (reclaiming dead owners' segments and presence files).
+HOUSEKEEPING_SECONDS = 2.0
+#: Longest wait for a segment's mutex byte (its holders keep it for a few instructions).
+MUTEX_WAIT_SECONDS = 0.02
 
 #: Subscriber-side mappings kept open at most (unreferenced ones beyond this are closed).
 MAX_MAPPINGS = 256
@@ -75,28 +133,40 @@ class _Limits:
         self.max_pool_bytes = _env_number(ENV_MAX_POOL_BYTES, DEFAULT_MAX_POOL_BYTES, int)
         self.max_slots = _env_number(ENV_MAX_SLOTS, DEFAULT_MAX_SLOTS, int)
         self.reclaim_timeout = _env_number(ENV_RECLAIM_TIMEOUT, DEFAULT_RECLAIM_TIMEOUT, float)
+        self.max_inflight_per_peer = _env_number(ENV_MAX_INFLIGHT_PER_PEER, 0, int)
+
+    def peer_share(self) -> int:
+        """In-flight descriptors one peer may have (its share of the pool)."""
+        return self.max_inflight_per_peer or max(1, self.max_slots // 4)
 
     def as_dict(self) -> dict:
         return {'max_pool_bytes': self.max_pool_bytes, 'max_slots': self.max_slots,
-                'reclaim_timeout': self.reclaim_timeout}
+                'reclaim_timeout': self.reclaim_timeout,
+                'max_inflight_per_peer': self.max_inflight_per_peer}
 
 
 _limits = _Limits()
 
 
 def configure(*, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] = None,
-              reclaim_timeout: Optional[float] = None) -> dict:
+              reclaim_timeout: Optional[float] = None,
+              max_inflight_per_peer: Optional[int] = None) -> dict:
     """Set the process-wide pool limits (``None`` keeps a value); return the limits now in force.
 
     :param max_pool_bytes: Total data bytes of all slots of this process.
     :param max_slots: Number of slots (segments) of this process.
     :param reclaim_timeout: Seconds after which, at the limits, a slot whose descriptors were never
         all taken (a subscriber that dropped or never read the message) may be reused.
+    :param max_inflight_per_peer: Descriptors one peer may have in flight (sent, not taken)
+        before it gets CPU bytes; 0 means a quarter of ``max_slots`` (at least 1).
     """
     for name, value in (('max_pool_bytes', max_pool_bytes), ('max_slots', max_slots),
-                        ('reclaim_timeout', reclaim_timeout)):
+                        ('reclaim_timeout', reclaim_timeout),
+                        ('max_inflight_per_peer', max_inflight_per_peer)):
         if value is not None and (isinstance(value, bool) or not value >= 0):
             raise ValueError(f'{name} must be a non-negative number, got {value!r}')
+    if max_inflight_per_peer is not None:
+        _limits.max_inflight_per_peer = int(max_inflight_per_peer)
     if max_pool_bytes is not None:
         _limits.max_pool_bytes = int(max_pool_bytes)
     if max_slots is not None:
@@ -110,7 +180,7 @@ class _Slot:
     """A publisher-side slot: one segment this process created and owns."""
 
     __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'pins', 'generation',
-                 'last_used', 'closed', 'recipients')
+                 'last_used', 'closed', 'recipients', 'released', 'soft')
 
     def __init__(self, name, fd, header, data, capacity):
         self.name = name
@@ -125,6 +195,10 @@ class _Slot:
         self.closed = False
         #: Descriptors of the current generation per recipient token (None: a peer without one).
         self.recipients: Dict[Optional[str], int] = {}
+        #: Of those, descriptors that no longer protect the slot (see PeerLedger), per token.
+        self.released: Dict[Optional[str], int] = {}
+        #: Of the others, descriptors past their peer's share (reclaimable at the limits).
+        self.soft: Dict[Optional[str], int] = {}
 
 
 class Pin:
@@ -187,10 +261,55 @@ class Hold:
             pass
 
 
+class _InFlight(NamedTuple):
+    """One descriptor a peer has not been seen to take."""
+
+    slot: '_Slot'
+    generation: int
+    seq: int  #: the peer's message number it was sent with
+    sent_ns: int
+    soft: bool  #: past the peer's share when sent
+
+
+class PeerLedger:
+    """Per-peer accounting of descriptors in flight (see the module docstring, "Fairness").
+
+    One per compatible peer endpoint, owned by the backend, used under the state's lock.
+    ``depth``: the peer's KEEP_LAST history depth, 0 for KEEP_ALL or unknown (or when the
+    ledger may see the messages of several channels: no ``local_gid``).
+    """
+
+    __slots__ = ('token', 'depth', 'per_channel', 'seq', 'inflight', 'watch',
+                 'pending_since_ns', 'idle', 'probe_ns')
+
+    def __init__(self, token: Optional[str], depth: int = 0, per_channel: bool = True) -> None:
+        self.token = token
+        self.depth = depth
+        #: Whether one channel's messages alone go through this ledger (the publisher is
+        #: named): only then are takes in order, so that what precedes a take was dropped.
+        self.per_channel = per_channel
+        self.seq = 0  #: messages sent to the peer through the backend (descriptor or CPU)
+        self.inflight: Deque[_InFlight] = collections.deque()
+        #: Descriptors released unseen (by the window): still watched for takes, which show
+        #: that the peer is taking.
+        self.watch: Deque[_InFlight] = collections.deque(maxlen=8)
+        self.pending_since_ns: Optional[int] = None  #: oldest descriptor sent since a take
+        self.idle = False
+        self.probe_ns = 0
+
+    def summary(self) -> dict:
+        return {'token': self.token, 'depth': self.depth, 'messages': self.seq,
+                'in_flight': len(self.inflight),
+                'over_share': sum(1 for e in self.inflight if e.soft), 'not_taking': self.idle}
+
+
 _COUNTERS = ('segments_created', 'segments_removed', 'fallbacks', 'descriptors_created',
              'descriptors_declined', 'taken', 'rejected', 'stale', 'reclaimed', 'scavenged',
              'mappings_opened', 'mappings_closed', 'released_dead_recipients',
-             'liveness_checks')
+             'liveness_checks', 'released_window', 'released_skipped', 'released_idle',
+             'over_share', 'cpu_not_taking', 'cpu_dead_peer', 'probes', 'peers_idle',
+             'take_unrecorded', 'housekeeping_runs', 'untrusted_segments', 'fallbacks_held',
+             'fallbacks_too_large', 'fallbacks_enospc', 'fallbacks_shm_error')
 
 
 class _Locked:
@@ -222,10 +341,12 @@ class State:
         self.closed = False
         self.started = False
         self.last_sweep = 0.0
-        self.warned_fallback = False
+        self.warned_fallback: set = set()
+        self.grow_failure: Optional[str] = None
         self.presence: Optional[presence.Presence] = None
         #: recipient token -> (alive, monotonic ns until which the answer holds)
         self.liveness: Dict[str, Tuple[bool, int]] = {}
+        self.stop_housekeeping = threading.Event()
 
     # --- deferred releases -----------------------------------------------------------------
     def _defer(self, func, obj) -> None:
@@ -262,8 +383,38 @@ class State:
             return
         self.started = True
         self.counters['scavenged'] += shm.scavenge(skip=self.slots)
+        threading.Thread(target=self._housekeeping, name='demo_buffer_backend housekeeping',
+                         daemon=True).start()
         if _token_advertised():
             self._ensure_presence()  # back after a shutdown: the advertised token stays valid
+
+    def _housekeeping(self) -> None:
+        """The housekeeping thread: reclaim dead owners' files every HOUSEKEEPING_SECONDS,
+        whether or not messages arrive (a subscriber that only maps a dead publisher's segments
+        must not keep them in /dev/shm). Ends with the state (shutdown, fork)."""
+        while not self.stop_housekeeping.wait(HOUSEKEEPING_SECONDS):
+            if self.closed or self.pid != os.getpid():
+                return
+            try:
+                self.housekeep()
+            except Exception as exc:  # pragma: no cover - never let the thread die silently
+                _logger.error(f'demo backend housekeeping failed: {exc!r}',
+                              throttle_duration_sec=60.0)
+
+    def housekeep(self) -> None:
+        """Remove segments and presence files of dead owners, close unreferenced mappings of
+        removed segments. The directory scan runs without the state's lock (our own files are
+        skipped, and files we create meanwhile carry our owner lock)."""
+        with self.locked:
+            if self.closed:
+                return
+            skip = set(self.slots)
+            self.counters['housekeeping_runs'] += 1
+        removed = shm.scavenge(skip=skip)
+        with self.locked:
+            self.counters['scavenged'] += removed
+            if not self.closed:
+                self._sweep()
 
     def _ensure_presence(self) -> Optional[str]:
         if self.presence is None:
@@ -296,6 +447,7 @@ class State:
     def shutdown(self) -> None:
         """Close every mapping (removing segments whose owner is gone) and remove every segment
         this process created. Views still alive keep their memory but lose their protection."""
+        self.stop_housekeeping.set()
         with self.locked:
             self.closed = True
             for mapping in list(self.mappings.values()):
@@ -314,6 +466,7 @@ class State:
     def forget_after_fork(self) -> None:
         """In a forked child: drop the parent's resources without touching its segments."""
         self.closed = True
+        self.stop_housekeeping = threading.Event()  # the parent's thread is not in the child
         for item in list(self.slots.values()) + list(self.mappings.values()):
             item.closed = True
             try:
@@ -334,52 +487,70 @@ class State:
                 return None
             self._start()
             capacity = shm.round_capacity(nbytes)
+            self.grow_failure = None
             slot = (self._reuse(nbytes, stale_ok=False)
                     or self._grow(nbytes, capacity, stale_ok=False)
                     or self._reuse(nbytes, stale_ok=True)
                     or self._grow(nbytes, capacity, stale_ok=True))
             if slot is None:
                 self.counters['fallbacks'] += 1
-                if not self.warned_fallback:
-                    self.warned_fallback = True
+                cause = self.grow_failure or 'held'
+                self.counters[f'fallbacks_{cause}'] += 1
+                if cause not in self.warned_fallback:
+                    self.warned_fallback.add(cause)
                     _logger.warning(
-                        f'demo buffer pool exhausted ({len(self.slots)} slots, {self.pool_bytes} '
-                        f'bytes; limits {_limits.as_dict()}): buffers fall back to private '
-                        'memory and are sent as CPU bytes while subscribers hold the slots '
-                        '(logged once, see demo_buffer_backend.stats()["fallbacks"])')
+                        f'demo buffer pool: no shared memory for {nbytes} bytes '
+                        f'({len(self.slots)} slots, {self.pool_bytes} bytes in use; limits '
+                        f'{_limits.as_dict()}): {self._fallback_reason(cause, capacity)}; such '
+                        'buffers fall back to private memory and are sent as CPU bytes (logged '
+                        f'once per cause, see demo_buffer_backend.stats()["fallbacks_{cause}"])')
                 return None
             slot.pins += 1
             slot.last_used = time.monotonic_ns()
             return slot.view[:nbytes], Pin(self, slot, nbytes)
+
+    def _fallback_reason(self, cause: str, capacity: int) -> str:
+        if cause == 'too_large':
+            return (f'the request ({capacity} bytes in whole pages) is larger than max_pool_bytes '
+                    f'({_limits.max_pool_bytes}) or max_slots is 0')
+        if cause == 'enospc':
+            return (f'/dev/shm has no room for another {capacity}-byte segment (ENOSPC: the '
+                    'tmpfs is full or its size limit is reached)')
+        if cause == 'shm_error':
+            return 'creating a segment failed (see the warning before)'
+        held = sum(1 for s in self.slots.values() if s.pins)
+        return (f'every slot is in use: {held} pinned by buffers this process still holds, the '
+                'others held by subscribers (views, or descriptors in flight within each '
+                "peer's share)")
 
     @staticmethod
     def _fits(slot: _Slot, nbytes: int) -> bool:
         return nbytes <= slot.capacity <= 2 * max(nbytes, shm.PAGE_SIZE)
 
     def _maybe_free(self, slot: _Slot, stale_ok: bool, now_ns: int) -> bool:
-        """Cheap pre-check (no syscall) of whether ``slot`` may be claimed."""
+        """Cheap pre-check (no syscall but cached liveness) of whether ``slot`` may be claimed."""
         if slot.pins:
             return False
-        if shm.read_u64(slot.header, shm.OFF_TAKEN) >= shm.read_u64(slot.header, shm.OFF_SENT):
-            return True
-        if self._untaken_all_dead(slot, now_ns):
+        if self._pinning(slot, now_ns) == 0:
             return True
         if not stale_ok:
             return False
+        if self._pinning(slot, now_ns, soft_ok=True) == 0:
+            return True  # only descriptors past their peers' shares
         last = shm.read_u64(slot.header, shm.OFF_LAST_PUBLISH)
         return now_ns - last >= _limits.reclaim_timeout * 1e9
 
     def _lock_free(self, slot: _Slot, stale_ok: bool) -> Optional[bool]:
         """Take the exclusive hold lock of a free slot. Returns None when the slot is not free,
-        else whether it is reclaimed (descriptors for live recipients never taken). The caller
+        else whether it is reclaimed (descriptors that still protect it never taken). The caller
         unlocks."""
         if not locks.try_lock(slot.fd, shm.HOLD_BYTE, exclusive=True):
             return None  # some process holds views of it
         # Takers increment `taken` and the takers table only while holding the shared lock:
         # both are stable now.
-        untaken = shm.read_u64(slot.header, shm.OFF_TAKEN) < \
-            shm.read_u64(slot.header, shm.OFF_SENT)
-        if untaken and self._untaken_all_dead(slot, time.monotonic_ns()):
+        header = slot.header
+        untaken = shm.read_u64(header, shm.OFF_TAKEN) < shm.read_u64(header, shm.OFF_SENT)
+        if untaken and self._pinning(slot, time.monotonic_ns()) == 0:
             self.counters['released_dead_recipients'] += 1
             untaken = False
         if untaken and not stale_ok:
@@ -387,23 +558,44 @@ class State:
             return None
         return untaken
 
-    def _untaken_all_dead(self, slot: _Slot, now_ns: int) -> bool:
-        """Whether every descriptor of the slot's generation not yet taken was addressed to a
-        recipient process that is dead: ``taken - taken_by_dead >= sent - sent_to_dead``."""
-        dead_sent = 0
-        dead_ids = set()
-        for token, count in slot.recipients.items():
-            if token is not None and not self._alive(token, now_ns):
-                dead_sent += count
-                dead_ids.add(presence.token_id(token))
-        if not dead_sent:
-            return False
+    def _pinning(self, slot: _Slot, now_ns: int, soft_ok: bool = False) -> int:
+        """Descriptors of the slot's generation that still protect it: sent to a live
+        recipient, neither taken by its process nor released by its ledger (with ``soft_ok``,
+        nor past their peer's share).
+
+        Per recipient token ``t``: ``sent_t - released_t - taken_t`` (takes from the takers
+        table; a peer without a token is credited the takes nobody in the table made). When the
+        table overflowed, only the aggregate ``sent - taken`` can be trusted.
+        """
         header = slot.header
-        dead_taken = shm.taken_by(header, dead_ids)
-        if dead_taken is None:
-            return False  # the takers table overflowed: cannot tell
-        return (shm.read_u64(header, shm.OFF_TAKEN) - dead_taken
-                >= shm.read_u64(header, shm.OFF_SENT) - dead_sent)
+        sent = shm.read_u64(header, shm.OFF_SENT)
+        taken = shm.read_u64(header, shm.OFF_TAKEN)
+        if taken >= sent:
+            return 0
+        table = shm.takers(header)
+        if table is None:
+            return sent - taken
+        pinning = 0
+        for token, count in slot.recipients.items():
+            if token is None:
+                by = taken - sum(table.values())
+            elif not self._alive(token, now_ns):
+                continue
+            else:
+                by = table.get(presence.token_id(token), 0)
+            soft = slot.soft.get(token, 0) if soft_ok else 0
+            pinning += max(0, count - slot.released.get(token, 0) - soft - by)
+        return pinning
+
+    def _taken_by(self, slot: _Slot, token: Optional[str]) -> int:
+        """Takes of the slot's current generation by ``token``'s process (0 when unknown)."""
+        header = slot.header
+        table = shm.takers(header)
+        if table is None:
+            return 0
+        if token is None:
+            return shm.read_u64(header, shm.OFF_TAKEN) - sum(table.values())
+        return table.get(presence.token_id(token), 0)
 
     def _alive(self, token: str, now_ns: int) -> bool:
         known = self.liveness.get(token)
@@ -448,6 +640,8 @@ class State:
         shm.reset_takers(header)
         slot.generation = generation
         slot.recipients.clear()
+        slot.released.clear()
+        slot.soft.clear()
 
     def _reuse(self, nbytes: int, stale_ok: bool) -> Optional[_Slot]:
         now = time.monotonic_ns()
@@ -461,6 +655,7 @@ class State:
 
     def _grow(self, nbytes: int, capacity: int, stale_ok: bool) -> Optional[_Slot]:
         if capacity > _limits.max_pool_bytes or _limits.max_slots < 1:
+            self.grow_failure = 'too_large'
             return None
         now = time.monotonic_ns()
         while (len(self.slots) + 1 > _limits.max_slots
@@ -480,8 +675,12 @@ class State:
         try:
             name, fd, header, data = shm.create(capacity)
         except OSError as exc:
-            _logger.warning(f'cannot create a {capacity}-byte demo shm segment: {exc}',
-                            throttle_duration_sec=10.0)
+            if exc.errno in (errno.ENOSPC, errno.ENOMEM, errno.EFBIG):
+                self.grow_failure = 'enospc'
+            else:
+                self.grow_failure = 'shm_error'
+                _logger.warning(f'cannot create a {capacity}-byte demo shm segment: {exc}',
+                                throttle_duration_sec=10.0)
             return None
         slot = _Slot(name, fd, header, data, capacity)
         self._set_generation(slot, 1, nbytes)
@@ -503,25 +702,129 @@ class State:
                 pass  # a view is still exported: the mapping goes when it does
         os.close(slot.fd)
 
-    def describe(self, pin: Pin, recipient: Optional[str] = None) -> Optional[bytes]:
+    def describe(self, pin: Pin, recipient: Optional[str] = None,
+                 ledger: Optional[PeerLedger] = None) -> Optional[bytes]:
         """Record one more descriptor of ``pin``'s slot, addressed to the process of presence
-        token ``recipient`` (None: unknown, never taken for dead), and return it (None when
-        stale)."""
+        token ``recipient`` (None: unknown, never taken for dead), and return it; None when the
+        pin is stale, or when ``ledger`` (the peer's, which then gives the token) says that this
+        peer gets CPU bytes for this message (see the module docstring, "Fairness")."""
         with self.locked:
             slot = pin.slot
             if pin.state is not self or slot.closed or slot.generation != pin.generation:
                 self.counters['descriptors_declined'] += 1
                 return None
+            now = time.monotonic_ns()
+            soft = False
+            if ledger is not None:
+                recipient = ledger.token
+                admitted = self._admit(ledger, now)
+                if admitted is None:
+                    self.counters['descriptors_declined'] += 1
+                    return None
+                soft = admitted == 'soft'
+                if soft:
+                    slot.soft[recipient] = slot.soft.get(recipient, 0) + 1
             header = slot.header
             shm.write_u64(header, shm.OFF_SENT, shm.read_u64(header, shm.OFF_SENT) + 1)
             slot.recipients[recipient] = slot.recipients.get(recipient, 0) + 1
-            shm.write_u64(header, shm.OFF_LAST_PUBLISH, time.monotonic_ns())
-            slot.last_used = time.monotonic_ns()
+            shm.write_u64(header, shm.OFF_LAST_PUBLISH, now)
+            slot.last_used = now
+            if ledger is not None:
+                ledger.inflight.append(_InFlight(slot, slot.generation, ledger.seq, now, soft))
+                if ledger.pending_since_ns is None:
+                    ledger.pending_since_ns = now
             self.counters['descriptors_created'] += 1
             if pin.packed is None:
                 pin.packed = desc_codec.pack(desc_codec.Descriptor(
                     slot.name, self.pid, 0, pin.size, pin.generation))
             return pin.packed
+
+    def _admit(self, ledger: PeerLedger, now: int) -> Optional[str]:
+        """Count one message to the ledger's peer; None when it gets CPU bytes, else 'hard' or
+        'soft' (a descriptor past its share)."""
+        ledger.seq += 1
+        token = ledger.token
+        if token is not None and not self._alive(token, now):
+            self.counters['cpu_dead_peer'] += 1
+            return None
+        self._settle(ledger, now)
+        if not ledger.idle and ledger.pending_since_ns is not None and \
+                now - ledger.pending_since_ns >= IDLE_SECONDS * 1e9:
+            ledger.idle = True
+            self.counters['peers_idle'] += 1
+            _logger.info(f'demo peer {token or "(no token)"} took none of its descriptors for '
+                         f'{IDLE_SECONDS:g} s: it gets CPU bytes (and a probe descriptor every '
+                         f'{PROBE_SECONDS:g} s) until it takes again', throttle_duration_sec=10.0)
+        share = _limits.peer_share()
+        if ledger.idle:
+            if now - ledger.probe_ns < PROBE_SECONDS * 1e9:
+                self.counters['cpu_not_taking'] += 1
+                return None
+            # A probe replaces its oldest descriptor: a peer that never takes keeps rotating
+            # through its share, one that recovers finds a fresh descriptor in its history.
+            while ledger.inflight and len(ledger.inflight) >= share:
+                self._release_entry(ledger.inflight.popleft(), token, 'released_idle')
+            ledger.probe_ns = now
+            self.counters['probes'] += 1
+            return 'hard'
+        if sum(1 for entry in ledger.inflight if not entry.soft) >= share:
+            self.counters['over_share'] += 1
+            return 'soft'
+        return 'hard'
+
+    def _settle(self, ledger: PeerLedger, now: int) -> None:
+        """Bring the peer's in-flight list up to date: drop what it took or what was reclaimed,
+        release what it can no longer take (beyond its KEEP_LAST window, or skipped)."""
+        token = ledger.token
+        took = False
+        for entry in ledger.watch:  # released unseen: a take still shows it is taking
+            if entry.slot.generation == entry.generation and not entry.slot.closed and \
+                    self._taken_by(entry.slot, token):
+                took = True
+        if took:
+            ledger.watch.clear()
+        kept: List[_InFlight] = []
+        for entry in ledger.inflight:
+            slot = entry.slot
+            if slot.closed or slot.generation != entry.generation:
+                continue  # reclaimed or removed: nothing left to protect
+            if self._taken_by(slot, token) + slot.released.get(token, 0) >= \
+                    slot.recipients.get(token, 0):
+                took = True
+                self._unsoft(entry, token)
+                if ledger.per_channel:
+                    # Taken in order: what it had not taken before this one, it dropped.
+                    for skipped in kept:
+                        self._release_entry(skipped, token, 'released_skipped')
+                    kept = []
+                continue
+            kept.append(entry)
+        if ledger.depth:
+            while kept and ledger.seq - kept[0].seq >= ledger.depth:
+                entry = kept.pop(0)
+                self._release_entry(entry, token, 'released_window')
+                ledger.watch.append(entry)
+        ledger.inflight = collections.deque(kept)
+        if took:
+            ledger.pending_since_ns = kept[0].sent_ns if kept else None
+            ledger.idle = False
+        elif not kept and ledger.pending_since_ns is not None and not ledger.watch:
+            ledger.pending_since_ns = None
+
+    def _release_entry(self, entry: _InFlight, token: Optional[str], counter: str) -> None:
+        """The peer can no longer take ``entry``: it stops protecting its slot."""
+        slot = entry.slot
+        if slot.closed or slot.generation != entry.generation:
+            return
+        self._unsoft(entry, token)
+        slot.released[token] = slot.released.get(token, 0) + 1
+        self.counters[counter] += 1
+
+    @staticmethod
+    def _unsoft(entry: _InFlight, token: Optional[str]) -> None:
+        if entry.soft and entry.slot.generation == entry.generation:
+            slot = entry.slot
+            slot.soft[token] = max(0, slot.soft.get(token, 0) - 1)
 
     def decline(self) -> None:
         with self.locked:
@@ -581,12 +884,22 @@ class State:
                 raise ValueError(f'demo descriptor names bytes [{d.offset}, {d.offset + d.size}) '
                                  f'of {d.name!r} but its publisher recorded [{offset}, '
                                  f'{offset + size}) for generation {generation}')
-            locks.lock_wait(mapping.fd, shm.MUTEX_BYTE, exclusive=True)
-            try:
-                shm.write_u64(header, shm.OFF_TAKEN, shm.read_u64(header, shm.OFF_TAKEN) + 1)
-                shm.record_taker(header, presence.token_id(own_token()))
-            finally:
-                locks.unlock(mapping.fd, shm.MUTEX_BYTE)
+            if locks.lock_within(mapping.fd, shm.MUTEX_BYTE, exclusive=True,
+                                 timeout=MUTEX_WAIT_SECONDS):
+                try:
+                    shm.write_u64(header, shm.OFF_TAKEN, shm.read_u64(header, shm.OFF_TAKEN) + 1)
+                    shm.record_taker(header, presence.token_id(own_token()))
+                finally:
+                    locks.unlock(mapping.fd, shm.MUTEX_BYTE)
+            else:
+                # Someone keeps the mutex byte (a stopped or hostile process of our user). The
+                # view is valid (our hold lock is in place, the generation checked): deliver it,
+                # unrecorded; its publisher sees this peer as not taking, which costs only us.
+                self.counters['take_unrecorded'] += 1
+                _logger.warning(f'demo segment {d.name!r}: its mutex byte stayed locked for '
+                                f'{MUTEX_WAIT_SECONDS * 1000:g} ms; the message is delivered but '
+                                'its take is not recorded (see demo_buffer_backend.stats()'
+                                '["take_unrecorded"])', throttle_duration_sec=5.0)
             hold = Hold(self, mapping, generation)
             ok = True
         finally:
@@ -617,14 +930,22 @@ class State:
             raise ValueError(f'cannot open demo segment {name!r}: {exc}') from None
         header = data = None
         try:
-            if st.st_uid != os.geteuid():
-                raise ValueError(f'demo segment {name!r} belongs to uid {st.st_uid}, not to us')
+            problem = shm.untrusted(st)
+            if problem:
+                self.counters['untrusted_segments'] += 1
+                raise ValueError(f'demo segment {name!r} is not one the demo backend creates: '
+                                 f'{problem}')
             if st.st_size < shm.HEADER_SIZE + shm.PAGE_SIZE:
                 raise ValueError(f'{name!r} ({st.st_size} bytes) is too small for a demo segment')
             header = shm.map_header(fd)
             fields = shm.read_header(header)
             if fields.magic != shm.MAGIC or fields.header_size != shm.HEADER_SIZE:
                 raise ValueError(f'{name!r} is not an initialized demo segment')
+            owner = int(shm.NAME_PATTERN.match(name).group(1))
+            if fields.owner_pid != owner:
+                self.counters['untrusted_segments'] += 1
+                raise ValueError(f'demo segment {name!r} records owner pid {fields.owner_pid}, '
+                                 f'its name says {owner}')
             if fields.capacity != st.st_size - shm.HEADER_SIZE:
                 raise ValueError(f'demo segment {name!r} records capacity {fields.capacity} but '
                                  f'holds {st.st_size - shm.HEADER_SIZE} data bytes')
@@ -696,6 +1017,7 @@ class State:
                 views_held=sum(m.refs for m in self.mappings.values()),
                 presence=self.presence.token if self.presence is not None else None,
                 recipients_dead=sorted(t for t, (a, _) in self.liveness.items() if not a),
+                peer_share=_limits.peer_share(),
                 **_limits.as_dict())
             return result
 

@@ -17,7 +17,6 @@ import errno
 import os
 import re
 import secrets
-import stat
 import time
 from typing import Optional
 
@@ -94,23 +93,29 @@ class Presence:
 
 
 def alive(token: str) -> bool:
-    """Whether the process of ``token`` still holds its presence lock (three syscalls).
+    """Whether the process of ``token`` is a live peer of our shm domain: it still holds the
+    lock of a presence file that looks as this backend creates them (three syscalls).
 
     Missing file: gone (it exists before its token is ever advertised, and is removed only at
-    shutdown or once found dead). When in doubt (cannot open it, a file being created) the answer
-    is True, which only keeps the protection of the bytes. A dead one's file is removed here.
+    shutdown or once found dead). A file of another uid, a symlink, or one with a mode other than
+    0600: a process that claims our shm domain but cannot open our segments (another local user
+    advertising our metadata), which is no live peer either. When in doubt (a file being created,
+    an unexpected error) the answer is True, which only keeps the protection of the bytes. A dead
+    one's file is removed here.
     """
     path = path_of(token)
     try:
         fd = os.open(path, _OPEN_FLAGS)
     except FileNotFoundError:
         return False
-    except OSError:
+    except OSError as exc:
+        if exc.errno in (errno.EACCES, errno.EPERM, errno.ELOOP):
+            return False  # not ours (another uid, or a symlink): a peer that cannot reach us
         return True
     try:
         st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_uid != os.geteuid():
-            return True
+        if shm.untrusted(st):
+            return False
         finished = os.pread(fd, len(shm.PRESENCE_MAGIC), 0) == shm.PRESENCE_MAGIC
         if locks.is_locked_by_other(fd, shm.OWNER_BYTE):
             return True

@@ -28,7 +28,7 @@ import secrets
 import stat
 import struct
 import time
-from typing import Iterable, NamedTuple, Optional, Tuple
+from typing import Dict, Iterable, NamedTuple, Optional, Tuple
 
 from demo_buffer_backend import locks
 
@@ -152,6 +152,17 @@ def taken_by(header: mmap.mmap, idents) -> Optional[int]:
     return total
 
 
+def takers(header: mmap.mmap) -> Optional[Dict[int, int]]:
+    """The takers table, ``{taker id: descriptors taken}``; None when it is incomplete."""
+    count = read_u64(header, OFF_TAKERS_COUNT)
+    if read_u64(header, OFF_TAKERS_OVERFLOW) or count > MAX_TAKERS:
+        return None
+    table: Dict[int, int] = {}
+    for ident, taken in _TAKER.iter_unpack(header[OFF_TAKERS:OFF_TAKERS + count * _TAKER.size]):
+        table[ident] = table.get(ident, 0) + taken
+    return table
+
+
 def round_capacity(nbytes: int) -> int:
     """Data capacity for a payload of ``nbytes``: whole pages, at least one."""
     return max(PAGE_SIZE, -(-nbytes // PAGE_SIZE) * PAGE_SIZE)
@@ -167,10 +178,10 @@ def create(capacity: int) -> Tuple[str, int, mmap.mmap, mmap.mmap]:
     """
     name = new_name()
     path = path_of(name)
-    fd = os.open(path, _OPEN_FLAGS | os.O_CREAT | os.O_EXCL, 0o600)
+    fd = os.open(path, _OPEN_FLAGS | os.O_CREAT | os.O_EXCL, FILE_MODE)
     header = data = None
     try:
-        os.fchmod(fd, 0o600)  # whatever the umask
+        os.fchmod(fd, FILE_MODE)  # whatever the umask
         if not locks.try_lock(fd, OWNER_BYTE, exclusive=True):
             raise OSError(errno.EBUSY, f'cannot take the owner lock of new segment {name}')
         try:
@@ -209,6 +220,22 @@ def open_existing(name: str) -> Tuple[int, os.stat_result]:
         raise
 
 
+#: The mode every segment and presence file is created with (fchmod'ed, whatever the umask).
+FILE_MODE = 0o600
+
+
+def untrusted(st: os.stat_result) -> Optional[str]:
+    """Why a file with status ``st`` (opened with O_NOFOLLOW) is not one this backend creates,
+    or None: a regular file of our effective uid with mode exactly 0600."""
+    if not stat.S_ISREG(st.st_mode):
+        return 'not a regular file'
+    if st.st_uid != os.geteuid():
+        return f'owned by uid {st.st_uid}, not by us ({os.geteuid()})'
+    if stat.S_IMODE(st.st_mode) != FILE_MODE:
+        return f'mode {stat.S_IMODE(st.st_mode):04o}, not {FILE_MODE:04o}'
+    return None
+
+
 def map_header(fd: int) -> mmap.mmap:
     return mmap.mmap(fd, HEADER_SIZE, flags=mmap.MAP_SHARED,
                      prot=mmap.PROT_READ | mmap.PROT_WRITE)
@@ -240,7 +267,8 @@ def scavenge(skip: Iterable[str] = ()) -> int:
     owner had taken the lock, so it is dead now) or it is older than UNFINISHED_SEGMENT_AGE (its
     creator died between creating the file and taking the lock). The magic is read *before* the
     lock is tested: a creator takes the lock before writing the magic, so a magic seen before an
-    absent lock means the owner is really gone (not that it is just being created).
+    absent lock means the owner is really gone (not that it is just being created). Files that do
+    not look like ours (:func:`untrusted`) are left alone.
     """
     skip = set(skip)
     removed = 0
@@ -256,6 +284,8 @@ def scavenge(skip: Iterable[str] = ()) -> int:
         except OSError:
             continue  # gone meanwhile, or not ours to open
         try:
+            if untrusted(st):
+                continue  # not created by this backend: not ours to judge
             finished = os.pread(fd, len(MAGIC), 0) in (MAGIC, PRESENCE_MAGIC)
             if owner_alive(fd):
                 continue

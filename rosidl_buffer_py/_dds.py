@@ -8,7 +8,10 @@ raw pointer int; see ``src/native/README.md`` for lifetimes and threading.
 Everything raises :class:`UnsupportedRmwError` when the entity is not rmw_fastrtps_cpp's
 (callers then fall back to plain rclpy) and :class:`DdsError` when a middleware call fails.
 """
-from typing import Any, List, NamedTuple, Optional, Tuple
+import os
+import re
+from pathlib import Path
+from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from rosidl_buffer_py import _native
 
@@ -48,10 +51,125 @@ class EndpointEvent(NamedTuple):
     local: bool           #: True when the endpoint belongs to the queried node's participant
 
 
-def is_supported() -> bool:
-    """Whether the rmw implementation rclpy loaded is the one this layer supports."""
+#: Package -> version this extension was compiled against (rmw_fastrtps_cpp and
+#: rmw_fastrtps_shared_cpp from their package.xml, fastrtps = Fast DDS from its config.h).
+BUILT_AGAINST: Dict[str, str] = dict(_native.BUILT_AGAINST)
+
+#: Library file name (as mapped into the process) -> the package it belongs to.
+_LIBRARIES = (
+    ('rmw_fastrtps_cpp', re.compile(r'^librmw_fastrtps_cpp\.so(\.|$)')),
+    ('rmw_fastrtps_shared_cpp', re.compile(r'^librmw_fastrtps_shared_cpp\.so(\.|$)')),
+    ('fastrtps', re.compile(r'^libfastrtps\.so(\.|$)')),
+)
+
+
+class AbiStatus(NamedTuple):
+    """Whether the running rmw_fastrtps libraries are those the extension was built against."""
+
+    ok: bool
+    reason: str                               #: '' when ok
+    built: Dict[str, str]                     #: package -> version compiled against
+    running: Dict[str, List[Tuple[str, str]]]  #: package -> [(library path, version)]
+
+
+def _loaded_libraries() -> Dict[str, List[str]]:
+    """Paths of the rmw_fastrtps libraries mapped into this process (from /proc/self/maps)."""
+    found: Dict[str, List[str]] = {package: [] for package, _ in _LIBRARIES}
+    try:
+        with open('/proc/self/maps') as maps:
+            lines = maps.read().splitlines()
+    except OSError:
+        return found
+    for line in lines:
+        fields = line.split(maxsplit=5)  # address perms offset dev inode [path]
+        path = fields[5].strip() if len(fields) == 6 else ''
+        if not path.startswith('/'):
+            continue
+        name = os.path.basename(path)
+        for package, pattern in _LIBRARIES:
+            if pattern.match(name) and path not in found[package]:
+                found[package].append(path)
+    return found
+
+
+def _version_of(package: str, library: str) -> str:
+    """The version of the package a loaded library file belongs to, read from the files its
+    install prefix holds next to it: ``share/<package>/package.xml`` for the rmw packages,
+    ``share/fastrtps/cmake/fastrtps-config-version.cmake`` for Fast DDS ('unknown' when they
+    cannot be read)."""
+    prefix = Path(library).parent.parent
+    try:
+        if package == 'fastrtps':
+            text = (prefix / 'share' / 'fastrtps' / 'cmake' /
+                    'fastrtps-config-version.cmake').read_text()
+            match = re.search(r'set\(PACKAGE_VERSION "([^"]+)"\)', text)
+        else:
+            text = (prefix / 'share' / package / 'package.xml').read_text()
+            match = re.search(r'<version>\s*([^<\s]+)\s*</version>', text)
+    except OSError:
+        match = None
+    return match.group(1) if match else 'unknown'
+
+
+def check_abi() -> AbiStatus:
+    """Compare the running rmw_fastrtps_cpp, rmw_fastrtps_shared_cpp and Fast DDS with
+    :data:`BUILT_AGAINST`; allow the native layer's private-layout accesses only when equal.
+
+    Run at import; :func:`abi_status` gives the result. Versions are read at run time from the
+    install prefix of each library mapped into the process (the one the dynamic linker and rmw
+    loaded). An unknown version counts as a mismatch: the layouts would be guessed.
+    """
+    global _abi
+    running: Dict[str, List[Tuple[str, str]]] = {}
+    problems = []
+    for package, paths in _loaded_libraries().items():
+        running[package] = [(path, _version_of(package, path)) for path in paths]
+        built = BUILT_AGAINST.get(package, 'unknown')
+        if not paths:
+            problems.append(f'{package} is not loaded')
+        for path, version in running[package]:
+            if version != built or built == 'unknown':
+                problems.append(f'{package} {version} at {path} (built against {built})')
+    reason = '; '.join(problems)
+    _abi = AbiStatus(not problems, reason, dict(BUILT_AGAINST), running)
+    _native.set_private_layout_verified(_abi.ok)
+    if not _abi.ok and reason not in _warned_abi:
+        _warned_abi.add(reason)
+        from rclpy.logging import get_logger
+        get_logger('rosidl_buffer_py').warning(
+            'the rmw_fastrtps libraries of this process differ from those the native extension '
+            f'of rosidl_buffer_py was built against ({reason}); it reads their private memory '
+            'layout, so it stays off: buffer-aware publishers and subscriptions are plain rclpy '
+            'ones (CPU bytes only). Rebuild the package against the installed ROS (./dev setup, '
+            'colcon build).')
+    return _abi
+
+
+def abi_status() -> AbiStatus:
+    """The result of the import-time :func:`check_abi`."""
+    return _abi
+
+
+def unsupported_reason() -> Optional[str]:
+    """Why :func:`is_supported` is False (None when it is True)."""
     import rclpy
-    return rclpy.get_rmw_implementation_identifier() == RMW_IMPLEMENTATION
+    rmw = rclpy.get_rmw_implementation_identifier()
+    if rmw != RMW_IMPLEMENTATION:
+        return f'{rmw} is not {RMW_IMPLEMENTATION}'
+    if not _abi.ok:
+        return f'the rmw_fastrtps libraries differ from those it was built against: {_abi.reason}'
+    return None
+
+
+def is_supported() -> bool:
+    """Whether the rmw implementation rclpy loaded is the one this layer supports, in the
+    versions it was built against (else create_publisher/create_subscription are plain rclpy)."""
+    import rclpy
+    return _abi.ok and rclpy.get_rmw_implementation_identifier() == RMW_IMPLEMENTATION
+
+
+_warned_abi: set = set()
+_abi = check_abi()
 
 
 def type_support(msg_type: Any) -> Any:

@@ -27,19 +27,41 @@ class EndpointKind(enum.Enum):
 
 @dataclass(frozen=True)
 class EndpointInfo:
-    """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t)."""
+    """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t).
+
+    Two optional fields (not in upstream) describe a *peer* more closely, for backends that
+    account per channel: ``history_depth``, the peer's QoS history as far as it bounds what it
+    can still take (``N > 0`` for KEEP_LAST depth N, ``0`` for KEEP_ALL, ``None`` when unknown),
+    and ``local_gid``, the GID of the local endpoint on whose behalf the backend is called (the
+    publisher whose channel to the peer carries the descriptor). With both, a backend may stop
+    reserving memory for a descriptor that N newer messages on that channel have pushed out of
+    the peer's reader history.
+    """
 
     gid: bytes
     topic_name: str
     endpoint_kind: EndpointKind
     node_name: str = ''
     node_namespace: str = ''
+    history_depth: Optional[int] = None
+    local_gid: Optional[bytes] = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:
             raise ValueError(f'gid must be {GID_SIZE} bytes, got {self.gid!r}')
         if not isinstance(self.endpoint_kind, EndpointKind):
             raise TypeError(f'endpoint_kind must be an EndpointKind, got {self.endpoint_kind!r}')
+        depth = self.history_depth
+        if depth is not None and (isinstance(depth, bool) or not isinstance(depth, int)
+                                  or depth < 0):
+            raise ValueError('history_depth must be None (unknown), 0 (KEEP_ALL) or a KEEP_LAST '
+                             f'depth > 0, got {depth!r}')
+        if self.local_gid is not None:
+            if not isinstance(self.local_gid, (bytes, bytearray)) or \
+                    len(self.local_gid) != GID_SIZE:
+                raise ValueError(f'local_gid must be None or {GID_SIZE} bytes, got '
+                                 f'{self.local_gid!r}')
+            object.__setattr__(self, 'local_gid', bytes(self.local_gid))
         object.__setattr__(self, 'gid', bytes(self.gid))
 
     @property

@@ -201,8 +201,16 @@ def _array_over(memory, info: EncodingInfo, height: int, width: int, step: int,
                          buffer=flat, offset=0, strides=_strides(info, step))
 
 
+def _check_image(msg, purpose: str) -> None:
+    """TypeError unless ``msg`` is a sensor_msgs/msg/Image (these helpers read its fields)."""
+    if not isinstance(msg, Image):
+        raise TypeError(f'{purpose}: expected a sensor_msgs.msg.Image, got '
+                        f'{type(msg).__name__}')
+
+
 def _message_layout(msg: Image, purpose: str) -> Tuple[EncodingInfo, int, int, int]:
     """Validated (encoding info, height, width, step) of ``msg``."""
+    _check_image(msg, purpose)
     info = encoding_info(msg.encoding)
     height = _check_uint32('msg.height', msg.height)
     width = _check_uint32('msg.width', msg.width)
@@ -362,6 +370,7 @@ def to_msg(msg: Image, array: numpy.ndarray, *, encoding: Optional[str] = None,
     Buffer is never replaced (that would change its backend): it must hold at least
     ``height * step`` bytes, and bytes past that are left untouched.
     """
+    _check_image(msg, 'to_msg')
     if not isinstance(array, numpy.ndarray):
         raise TypeError(f'to_msg: expected a numpy.ndarray, got {type(array).__name__}')
     channels = _array_channels(array)

@@ -1,4 +1,5 @@
-"""A second process for the demo backend tests (not collected by pytest).
+"""A second process for the demo backend tests (not collected by pytest), and :class:`Peer`,
+the tests' handle on it.
 
 Speaks JSON lines: one command per line on stdin, one reply per line on stdout. On start it prints
 ``{"ready": true, "pid": ..., "metadata": ...}``. Commands:
@@ -17,6 +18,8 @@ import gc
 import hashlib
 import json
 import os
+import signal
+import subprocess
 import sys
 
 import numpy
@@ -28,6 +31,43 @@ from demo_buffer_backend import DemoBackend, DemoBuffer
 
 #: The GID both sides use for "the other endpoint".
 PEER_GID = bytes(range(16))
+
+
+class Peer:
+    """This script running in another process, driven over JSON lines: ``peer('take', ...)``."""
+
+    def __init__(self):
+        self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, bufsize=1)
+        hello = self._read()
+        assert hello['ready'], hello
+        self.pid = hello['pid']
+        self.metadata = hello['metadata']
+
+    def _read(self):
+        line = self.proc.stdout.readline()
+        assert line, f'peer exited with {self.proc.poll()}'
+        return json.loads(line)
+
+    def __call__(self, cmd, **kwargs):
+        self.proc.stdin.write(json.dumps(dict(cmd=cmd, **kwargs)) + '\n')
+        self.proc.stdin.flush()
+        return self._read()
+
+    def kill9(self):
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(timeout=30)
+
+    def exit(self):
+        assert self('exit')['ok']
+        assert self.proc.wait(timeout=30) == 0
+
+    def reap(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(timeout=30)
+        for stream in (self.proc.stdin, self.proc.stdout):
+            stream.close()
 
 
 def _sha(buf) -> str:

@@ -542,3 +542,12 @@ def test_demo_backend_received_buffer_is_a_read_only_view(demo):
     copy[...] = 0
     assert view[0, 0, 0] == 250
     del view, out
+
+
+def test_a_message_that_is_not_an_image_is_a_type_error():
+    from std_msgs.msg import String
+    for call in (lambda: from_input_msg(String()), lambda: from_input_msg(String(), clone=False),
+                 lambda: from_output_msg(String()),
+                 lambda: to_msg(String(), numpy.zeros((2, 2), numpy.uint8))):
+        with pytest.raises(TypeError, match='expected a sensor_msgs.msg.Image, got String'):
+            call()

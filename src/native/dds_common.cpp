@@ -1,6 +1,7 @@
 // Shared helpers of the rmw_fastrtps layer and its registration (see dds_common.hpp).
 #include "dds_common.hpp"
 #include "dds_writer.hpp"
+#include "rmw_fastrtps_private.hpp"
 
 #include <cstring>
 
@@ -255,6 +256,58 @@ int check_identifier(const char * identifier, const char * what)
 
 }  // namespace rbpy_dds
 
+namespace
+{
+
+PyObject * set_private_layout_verified(PyObject *, PyObject * arg)
+{
+  const int verified = PyObject_IsTrue(arg);
+  if (verified < 0) {
+    return nullptr;
+  }
+  rbpy_dds::rmw_private::set_layout_verified(verified != 0);
+  Py_RETURN_NONE;
+}
+
+PyObject * private_layout_verified(PyObject *, PyObject *)
+{
+  return PyBool_FromLong(rbpy_dds::rmw_private::layout_verified());
+}
+
+PyMethodDef abi_methods[] = {
+  {"set_private_layout_verified", set_private_layout_verified, METH_O,
+    "set_private_layout_verified(verified: bool) -> None\n\n"
+    "Allow (or forbid) the accesses to rmw_fastrtps's private layout; rosidl_buffer_py._dds\n"
+    "allows them at import when the running libraries are the BUILT_AGAINST versions."},
+  {"private_layout_verified", private_layout_verified, METH_NOARGS,
+    "private_layout_verified() -> bool"},
+  {nullptr, nullptr, 0, nullptr},
+};
+
+int add_abi_api(PyObject * module)
+{
+  PyObject * built = PyDict_New();
+  if (built == nullptr) {
+    return -1;
+  }
+  for (const auto & entry : rbpy_dds::rmw_private::built_versions()) {
+    PyObject * version = PyUnicode_FromString(entry.version);
+    if (version == nullptr || PyDict_SetItemString(built, entry.package, version) < 0) {
+      Py_XDECREF(version);
+      Py_DECREF(built);
+      return -1;
+    }
+    Py_DECREF(version);
+  }
+  if (PyModule_AddObject(module, "BUILT_AGAINST", built) < 0) {
+    Py_DECREF(built);
+    return -1;
+  }
+  return PyModule_AddFunctions(module, abi_methods);
+}
+
+}  // namespace
+
 int add_dds_api(PyObject * module)
 {
   using rbpy_dds::DdsError;
@@ -289,7 +342,8 @@ int add_dds_api(PyObject * module)
   if (PyModule_AddStringConstant(module, "RMW_IMPLEMENTATION", rbpy_dds::kFastrtpsIdentifier) < 0) {
     return -1;
   }
-  if (rbpy_dds::add_dds_endpoint_functions(module) < 0 ||
+  if (add_abi_api(module) < 0 ||
+    rbpy_dds::add_dds_endpoint_functions(module) < 0 ||
     rbpy_dds::add_dds_discovery_functions(module) < 0 ||
     rbpy_dds::add_dds_channel_types(module) < 0)
   {

@@ -13,7 +13,8 @@
 //          participant_gid: bytes[16], local: bool (same participant as `node`))
 //
 // Design (see README.md): one DiscoveryTap per DomainParticipant replaces rmw_fastrtps's
-// ParticipantListener and forwards every callback to it first (the ROS graph keeps working),
+// ParticipantListener (the swap itself is in rmw_fastrtps_private.cpp, behind the version
+// guard) and forwards every callback to it first (the ROS graph keeps working),
 // then records the event in a mutex-protected queue and triggers the registered rcl guard
 // conditions. DDS threads never touch Python. A tap is never deleted: rmw's
 // destroy_participant() sets the participant's listener to nullptr before deleting anything,
@@ -30,6 +31,7 @@
 #include <vector>
 
 #include "dds_common.hpp"
+#include "rmw_fastrtps_private.hpp"
 
 #include "fastdds/dds/domain/DomainParticipant.hpp"
 #include "fastdds/dds/domain/DomainParticipantListener.hpp"
@@ -515,6 +517,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
   DiscoveryTap * tap = nullptr;
   bool failed = false;
   bool created = false;
+  std::string error;
   std::vector<PinnedHandle *> stale_pins;
   {
     GilRelease nogil;
@@ -533,10 +536,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
     } else if (install) {
       auto * original = const_cast<dds::DomainParticipantListener *>(current);
       auto * fresh = new DiscoveryTap(participant, original);
-      // Not under any lock a callback takes: set_listener waits for running callbacks.
-      if (participant->set_listener(fresh, participant->get_status_mask()) ==
-        eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
-      {
+      if (rbpy_dds::rmw_private::set_participant_listener(participant, fresh, &error)) {
         reg.taps[participant] = fresh;
         tap = fresh;
         created = true;
@@ -548,7 +548,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
   }
   release_pins(stale_pins);
   if (failed) {
-    PyErr_SetString(DdsError, "DomainParticipant::set_listener failed");
+    PyErr_Format(DdsError, "cannot install the discovery tap: %s", error.c_str());
     return nullptr;
   }
   if (installed_now) {
@@ -610,6 +610,7 @@ PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
   }
   bool removed = false;
   bool failed = false;
+  std::string error;
   std::vector<PinnedHandle *> pins;
   {
     GilRelease nogil;
@@ -619,8 +620,8 @@ PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
     if (it != reg.taps.end()) {
       DiscoveryTap * tap = it->second;
       if (participant->get_listener() == tap) {
-        failed = participant->set_listener(tap->original(), participant->get_status_mask()) !=
-          eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK;
+        failed = !rbpy_dds::rmw_private::set_participant_listener(
+          participant, tap->original(), &error);
       }
       if (!failed) {
         pins = tap->detach();  // the tap itself stays allocated: a late callback is harmless
@@ -631,7 +632,7 @@ PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
   }
   release_pins(pins);
   if (failed) {
-    PyErr_SetString(DdsError, "DomainParticipant::set_listener failed while restoring rmw's");
+    PyErr_Format(DdsError, "cannot give rmw its participant listener back: %s", error.c_str());
     return nullptr;
   }
   return PyBool_FromLong(removed);

@@ -1,0 +1,147 @@
+// Private-layout access to rmw_fastrtps (see rmw_fastrtps_private.hpp). No Python in here.
+//
+// Mirrors, for the versions in built_versions() (ROS 2 Jazzy: rmw_fastrtps 8.4.x, Fast DDS
+// 2.14.x):
+// - rmw_fastrtps_shared_cpp/include/rmw_fastrtps_shared_cpp/custom_publisher_info.hpp:
+//   CustomPublisherInfo (data_writer_, type_support_impl_, publisher_event_) behind
+//   rmw_publisher_t::data, and RMWPublisherEvent's private subscriptions_ (a
+//   std::set<GUID_t>) and subscriptions_mutex_, kept by its on_publication_matched;
+// - rmw_fastrtps_shared_cpp/src/participant.cpp (__create_participant): rmw installs its own
+//   ParticipantListener on the DomainParticipant; we replace it with a tap that forwards every
+//   callback to it (dds_discovery.cpp), and give it back on uninstall.
+// The layouts come from the headers of the prefix setup.py builds against. A patch release that
+// changes them would make these reads wrong without any error, hence the version guard: nothing
+// here runs until rosidl_buffer_py._dds found the running libraries to be the built versions.
+#include "rmw_fastrtps_private.hpp"
+
+#include <atomic>
+#include <mutex>
+#include <set>
+
+#include "fastdds/dds/domain/DomainParticipant.hpp"
+#include "fastdds/dds/domain/DomainParticipantListener.hpp"
+#include "fastdds/dds/publisher/DataWriter.hpp"
+#include "fastrtps/config.h"
+#include "rmw_fastrtps_shared_cpp/custom_publisher_info.hpp"
+
+#ifndef RBPY_BUILT_RMW_FASTRTPS_CPP
+#define RBPY_BUILT_RMW_FASTRTPS_CPP "unknown"
+#endif
+#ifndef RBPY_BUILT_RMW_FASTRTPS_SHARED_CPP
+#define RBPY_BUILT_RMW_FASTRTPS_SHARED_CPP "unknown"
+#endif
+
+namespace rbpy_dds
+{
+namespace rmw_private
+{
+
+namespace
+{
+
+std::atomic<bool> g_verified{false};
+
+const char kNotVerified[] =
+  "rmw_fastrtps's private layout is not verified for the running libraries (see "
+  "rosidl_buffer_py._dds.abi_status())";
+
+// Read access to RMWPublisherEvent's private members: the standard's rule that explicit
+// instantiations skip access checks lets us name them.
+struct MatchedSetTag
+{
+  using type = std::set<eprosima::fastrtps::rtps::GUID_t> RMWPublisherEvent::*;
+};
+struct MatchedMutexTag
+{
+  using type = std::mutex RMWPublisherEvent::*;
+};
+MatchedSetTag::type member_of(MatchedSetTag);
+MatchedMutexTag::type member_of(MatchedMutexTag);
+
+template<typename Tag, typename Tag::type Member>
+struct ExposeMember
+{
+  friend typename Tag::type member_of(Tag) {return Member;}
+};
+template struct ExposeMember<MatchedSetTag, &RMWPublisherEvent::subscriptions_>;
+template struct ExposeMember<MatchedMutexTag, &RMWPublisherEvent::subscriptions_mutex_>;
+
+}  // namespace
+
+const std::vector<BuiltVersion> & built_versions()
+{
+  static const std::vector<BuiltVersion> versions = {
+    {"rmw_fastrtps_cpp", RBPY_BUILT_RMW_FASTRTPS_CPP},
+    {"rmw_fastrtps_shared_cpp", RBPY_BUILT_RMW_FASTRTPS_SHARED_CPP},
+    {"fastrtps", FASTRTPS_VERSION_STR},
+  };
+  return versions;
+}
+
+bool layout_verified()
+{
+  return g_verified.load();
+}
+
+void set_layout_verified(bool verified)
+{
+  g_verified.store(verified);
+}
+
+bool publisher_parts(rmw_publisher_t * publisher, PublisherParts * parts, std::string * error)
+{
+  if (!layout_verified()) {
+    *error = kNotVerified;
+    return false;
+  }
+  auto * info = static_cast<CustomPublisherInfo *>(publisher->data);
+  if (info == nullptr || info->data_writer_ == nullptr) {
+    *error = "the publisher has no DataWriter";
+    return false;
+  }
+  parts->writer = info->data_writer_;
+  parts->type_support_impl = info->type_support_impl_;
+  return true;
+}
+
+bool rmw_matched_readers(
+  rmw_publisher_t * publisher, std::vector<eprosima::fastrtps::rtps::GUID_t> * guids,
+  std::string * error)
+{
+  if (!layout_verified()) {
+    *error = kNotVerified;
+    return false;
+  }
+  auto * info = static_cast<CustomPublisherInfo *>(publisher->data);
+  if (info == nullptr || info->publisher_event_ == nullptr) {
+    *error = "the rmw publisher has no publisher event";
+    return false;
+  }
+  // The mutex is taken only by rmw's on_publication_matched, briefly and without calling out.
+  RMWPublisherEvent * event = info->publisher_event_;
+  std::lock_guard<std::mutex> lock(event->*member_of(MatchedMutexTag{}));
+  const auto & matched = event->*member_of(MatchedSetTag{});
+  guids->assign(matched.begin(), matched.end());
+  return true;
+}
+
+bool set_participant_listener(
+  eprosima::fastdds::dds::DomainParticipant * participant,
+  eprosima::fastdds::dds::DomainParticipantListener * listener, std::string * error)
+{
+  if (!layout_verified()) {
+    *error = kNotVerified;
+    return false;
+  }
+  // Not under any lock a callback takes: set_listener waits for running callbacks.
+  if (participant->set_listener(listener, participant->get_status_mask()) !=
+    eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
+  {
+    *error = "DomainParticipant::set_listener failed";
+    return false;
+  }
+  return true;
+}
+
+}  // namespace rmw_private
+}  // namespace rbpy_dds

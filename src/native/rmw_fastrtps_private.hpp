@@ -1,0 +1,71 @@
+// Every access of rosidl_buffer_py._native to rmw_fastrtps's private memory layout, and the one
+// place that replaces an object rmw owns (its participant listener). See the .cpp for what each
+// mirrors. Plain C++, no Python; all of it refuses to run until the Python side has verified
+// that the running rmw_fastrtps_cpp, rmw_fastrtps_shared_cpp and Fast DDS are the versions this
+// extension was built against (set_layout_verified, called by rosidl_buffer_py._dds at import).
+#ifndef ROSIDL_BUFFER_PY_NATIVE__RMW_FASTRTPS_PRIVATE_HPP_
+#define ROSIDL_BUFFER_PY_NATIVE__RMW_FASTRTPS_PRIVATE_HPP_
+
+#include <string>
+#include <vector>
+
+#include "fastdds/rtps/common/Guid.h"
+#include "rmw/types.h"
+
+namespace eprosima
+{
+namespace fastdds
+{
+namespace dds
+{
+class DataWriter;
+class DomainParticipant;
+class DomainParticipantListener;
+}  // namespace dds
+}  // namespace fastdds
+}  // namespace eprosima
+
+namespace rbpy_dds
+{
+namespace rmw_private
+{
+
+/// Versions this extension was compiled against: (package, version) pairs for
+/// rmw_fastrtps_cpp, rmw_fastrtps_shared_cpp (from their package.xml, passed by setup.py) and
+/// fastrtps (Fast DDS, from its config.h).
+struct BuiltVersion
+{
+  const char * package;
+  const char * version;
+};
+const std::vector<BuiltVersion> & built_versions();
+
+/// Whether the running libraries were verified to be those versions (default false).
+bool layout_verified();
+void set_layout_verified(bool verified);
+
+/// The DataWriter and type support of an rmw_fastrtps_cpp publisher (identifier already
+/// checked), read from rmw's CustomPublisherInfo. False with *error when not verified or absent.
+struct PublisherParts
+{
+  eprosima::fastdds::dds::DataWriter * writer = nullptr;
+  const void * type_support_impl = nullptr;
+};
+bool publisher_parts(rmw_publisher_t * publisher, PublisherParts * parts, std::string * error);
+
+/// rmw's own set of the readers matched with the publisher (the one behind
+/// rmw_publisher_count_matched_subscriptions), copied under its mutex.
+bool rmw_matched_readers(
+  rmw_publisher_t * publisher, std::vector<eprosima::fastrtps::rtps::GUID_t> * guids,
+  std::string * error);
+
+/// Set the participant's listener (our discovery tap, or rmw's own back), keeping its status
+/// mask. False with *error when not verified or when Fast DDS refuses.
+bool set_participant_listener(
+  eprosima::fastdds::dds::DomainParticipant * participant,
+  eprosima::fastdds::dds::DomainParticipantListener * listener, std::string * error);
+
+}  // namespace rmw_private
+}  // namespace rbpy_dds
+
+#endif  // ROSIDL_BUFFER_PY_NATIVE__RMW_FASTRTPS_PRIVATE_HPP_
