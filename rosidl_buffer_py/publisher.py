@@ -17,6 +17,7 @@ subscription delivers every message once and in publish order without waiting on
 :mod:`rosidl_buffer_py.subscription`).
 """
 import copy
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
@@ -438,6 +439,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         return entities
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
+        # backends account per channel: which local publisher serves this peer
+        info = dataclasses.replace(info, local_gid=self._gid)
         record = _SubscriptionPeer(info=info, backends=backends)
         record.channel_topic = channel_topic(self._topic_name, self._gid, info.gid)
         record.channel = _dds.create_channel_publisher(

@@ -62,6 +62,8 @@ C_DESERIALIZE_MAX_BYTES = 64 * 1024
 #: A route fence is a small descriptor-encoded message: longer samples are not searched for one.
 _FENCE_MAX_BYTES = 64 * 1024
 _FENCE_NAME = FENCE_BACKEND.encode()
+#: A GID is the DDS GUID: a 12-byte participant prefix, then the 4-byte entity id.
+_GUID_PREFIX = 12
 
 
 class _Taken(NamedTuple):
@@ -345,7 +347,18 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         return None if taken is None else _Taken(*taken)
 
     def _accept_channel(self, taken: _Taken, peer: _PublisherPeer, stream: _Stream):
-        """The message of a channel sample, or None (a fence, a duplicate, or it must wait)."""
+        """The message of a channel sample, or None (a fence, a duplicate, a sample of a writer
+        that is not the peer's, or it must wait)."""
+        if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
+            # the channel's writer is created by the publisher's participant: anyone else on
+            # its topic is an impostor (any process can create a writer on any topic)
+            self._counts['rejected'] += 1
+            _logger.warning(
+                f'rejected a message on the channel {peer.channel_topic} from writer '
+                f'{taken.publisher_gid.hex()}, which is not of publisher {peer.info.gid_hex}\'s '
+                f'participant ({self._counts["rejected"]} rejected so far)',
+                throttle_duration_sec=5.0)
+            return None
         ts = taken.timestamp
         if type(taken.raw) is not self.msg_type:
             fence = self._fence_of(taken.raw)

@@ -41,7 +41,9 @@ def qos_of(qos_profile: Union[QoSProfile, int]) -> QoSProfile:
 
 
 def warn_unsupported_rmw(what: str, topic: str) -> None:
-    """Say once per process that this middleware gets plain rclpy pub/sub (CPU only)."""
+    """Say once per process why buffer-aware endpoints are plain rclpy pub/sub (CPU only): another
+    middleware, or rmw_fastrtps libraries other than those the extension was built against
+    (``_dds`` has already logged which)."""
     import rclpy
     from rosidl_buffer_py import _dds
     rmw = rclpy.get_rmw_implementation_identifier()
@@ -49,6 +51,8 @@ def warn_unsupported_rmw(what: str, topic: str) -> None:
         if rmw in _warned:
             return
         _warned.add(rmw)
+    if rmw == _dds.RMW_IMPLEMENTATION:
+        return  # the ABI check warned once, naming the versions
     _logger.warning(f'{rmw} is not supported by rosidl_buffer_py (needs '
                     f'{_dds.RMW_IMPLEMENTATION}): the {what} on {topic} and every other one '
                     'use plain rclpy pub/sub on the main topic, CPU bytes only')

@@ -308,3 +308,36 @@ def test_other_rmw_falls_back_to_plain_rclpy(context, monkeypatch, capfd):
     err = capfd.readouterr().err
     assert err.count('rmw_other_cpp is not supported by rosidl_buffer_py') == 1, err
     node.destroy_node()
+
+
+def test_a_rogue_writer_on_a_channel_is_rejected(context):
+    """Any participant can create a writer on a channel's topic; the subscription accepts
+    channel data only from the discovered publisher's participant, rejects and counts the
+    rest, and keeps delivering the real publisher's messages."""
+    node = rclpy.create_node('victim', context=context)
+    got = []
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/rogue_image', RELIABLE)
+    sub = rosidl_buffer_py.create_subscription(
+        node, Image, '/rogue_image', lambda m: got.append(check_frame(m).counter), RELIABLE,
+        acceptable_buffer_backends='any')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    channel = sub.buffer_peers()[0]['channel_topic']
+    rogue_context = rclpy.Context()
+    rclpy.init(context=rogue_context)
+    try:
+        rogue_node = rclpy.create_node('rogue', context=rogue_context)
+        rogue = _dds.create_channel_publisher(rogue_node, Image, channel, RELIABLE)
+        assert _spin_until(executor, lambda: rogue.matched_count() == 1)
+        for counter in range(100, 105):
+            rogue.publish(codec.encode(_frame(counter)), time.time_ns())
+        for counter in range(3):
+            pub.publish(_frame(counter, 'demo'))
+        assert _spin_until(executor, lambda: len(got) == 3 and sub.statistics()['rejected'] == 5)
+        assert got == [0, 1, 2]
+        rogue.destroy()
+        rogue_node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=rogue_context)
+    node.destroy_node()
