@@ -14,6 +14,7 @@ from typing import Callable, NamedTuple, Set
 
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
+from rclpy.logging import get_logger
 
 
 class DeadlineMissedInfo(NamedTuple):
@@ -81,6 +82,22 @@ def once_per_peer(callback: Callable, incompatible_peers: Callable[[], Set[bytes
             new = {b''}  # the graph does not list the peer yet: report it, once
         reported.update(new)
         total += len(new)
+        _note_stock_peers_may_count_twice()
         callback(IncompatibleQoSInfo(total, len(new), info.last_policy_kind))
 
     return on_event
+
+
+_noted = False
+
+
+def _note_stock_peers_may_count_twice() -> None:
+    """Say once per process what differs from stock about incompatible QoS (see README)."""
+    global _noted
+    if not _noted:
+        _noted = True
+        get_logger('rosidl_buffer_py').warning(
+            'incompatible QoS with a buffer-aware endpoint: a plain rclpy/rclcpp peer may '
+            'report it twice (a buffer-aware endpoint publishes its USER_DATA advertisement '
+            'right after creation, a second discovery event); buffer-aware endpoints report it '
+            'once per peer, as stock does')
