@@ -38,7 +38,7 @@ from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.channel import FENCE_BACKEND, channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
-from rosidl_buffer_py.message_support import enable_buffer_fields
+from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.transport import (
     BufferEndpoint, incompatible_qos_once_per_peer, qos_of, track_endpoint,
@@ -102,14 +102,18 @@ class _Encoder:
     descriptor form once per distinct descriptor.
     """
 
-    __slots__ = ('msg', 'payload', 'cpu_message', 'vendor', '_cpu', '_described')
+    __slots__ = ('msg', 'payload', 'cpu_message', 'host_buffer', 'vendor', '_cpu', '_described')
 
-    def __init__(self, msg, serialized, payload) -> None:
+    def __init__(self, msg, serialized, payload, fields: Tuple[str, ...]) -> None:
         self.msg = msg
         self.payload = payload
-        self.cpu_message = serialized is None and not isinstance(payload, Buffer)
-        self.vendor = (payload.backend_type
-                       if isinstance(payload, Buffer) and not payload.is_cpu else None)
+        buffer = isinstance(payload, Buffer)
+        self.cpu_message = serialized is None and not buffer
+        #: a message whose payload is a Buffer in host memory: its CPU form is the message
+        #: itself, converted through the buffer protocol (other payload fields: plain data)
+        self.host_buffer = (buffer and payload.host_addressable and
+                            sum(isinstance(getattr(msg, f), Buffer) for f in fields) == 1)
+        self.vendor = payload.backend_type if buffer and not payload.is_cpu else None
         self._cpu = serialized
         self._described: Dict[bytes, bytearray] = {}
 
@@ -137,6 +141,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                  event_callbacks: PublisherEventCallbacks, callback_group, node) -> None:
         self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
+        self._buffer_fields = buffer_fields(msg_type)
         self._transport = _dds.is_supported()
         deadline_callback = None
         if self._transport and event_callbacks.deadline and finite(qos_profile.deadline):
@@ -258,7 +263,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             self._discovery.process()
             self._reannounce_if_unmatched()
         payload = None if serialized is not None else getattr(msg, self._field)
-        encoder = _Encoder(msg, serialized, payload)
+        encoder = _Encoder(msg, serialized, payload, self._buffer_fields)
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
@@ -300,21 +305,33 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 peer.backend_in_use = CPU_BACKEND
             return
         vendor = encoder.vendor
+        cpu_targets = []
         for peer in peers:
-            data = None
             if vendor is not None and vendor in peer.compatible:
                 descriptor = self._describe(vendor, encoder.payload, peer)
                 if descriptor is not None:
-                    data = encoder.with_descriptor(vendor, descriptor)
+                    peer.channel.publish(encoder.with_descriptor(vendor, descriptor), timestamp)
                     peer.sent_descriptor += 1
                     peer.backend_in_use = vendor
-            if data is None:
-                data = encoder.cpu_bytes()
-                peer.sent_cpu += 1
-                peer.backend_in_use = CPU_BACKEND
-            peer.channel.publish(data, timestamp)
+                    continue
+            cpu_targets.append(peer.channel)
+            peer.sent_cpu += 1
+            peer.backend_in_use = CPU_BACKEND
         if main:
-            _dds.publish_serialized(self, encoder.cpu_bytes(), timestamp)
+            cpu_targets.append(self)
+        if not cpu_targets:
+            return
+        if encoder.host_buffer:
+            # a Buffer in host memory: converted to C through its buffer protocol and
+            # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
+            _dds.write_message(encoder.msg, timestamp, cpu_targets)
+            return
+        data = encoder.cpu_bytes()
+        for target in cpu_targets:
+            if target is self:
+                _dds.publish_serialized(self, data, timestamp)
+            else:
+                target.publish(data, timestamp)
 
     def _write_fence(self, peer: _SubscriptionPeer, msg, timestamp: int) -> None:
         """Tell a subscription just switched to its channel which main-topic message came last.
