@@ -23,16 +23,16 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
   messages to the same peer has left its reader history and can no longer be taken by it, so it
   stops pinning its slot (``released_window``);
 - *share*: a peer pins at most ``max_inflight_per_peer`` slots (default a quarter of
-  ``max_slots``; also the bound for KEEP_ALL and unknown depths). Descriptors past its share are
-  *soft*: sent while the pool has room, but at the pool's limits their slots are the first
-  reclaimed, before the pool falls back to CPU bytes for everyone (``over_share``; a late take of
-  such a reclaimed slot is rejected as stale and costs only that peer);
+  ``max_slots``; also the bound for KEEP_ALL and unknown depths). Past its share that peer alone
+  gets CPU bytes (``over_share``): its descriptors in flight stay valid, so a slow subscriber
+  loses nothing that a stock one would get, and the others keep the rest of the pool;
 - *in order*: a peer takes its channel in order, so descriptors older than one it took were
   dropped by it (best effort, or rejected) and stop pinning (``released_skipped``; only when
   the ledger sees one channel, see below);
 - *not taking*: a peer that has had descriptors waiting for ``IDLE_SECONDS`` without taking any
-  (stalled, stopped, or never taking) is served CPU bytes, plus one probe descriptor every
-  ``PROBE_SECONDS``; its first observed take makes it a normal peer again (``peers_idle``);
+  (stalled, stopped, or never taking) is served CPU bytes, plus, within its share, one probe
+  descriptor every ``PROBE_SECONDS``; its first observed take makes it a normal peer again
+  (``peers_idle``). What it has in flight stays valid for when it resumes;
 - *dead or foreign*: a peer whose presence file is gone, or is not one this user created
   (another uid that claims our shm domain cannot open the segments), gets CPU bytes and pins
   nothing (``cpu_dead_peer``).
@@ -180,7 +180,7 @@ class _Slot:
     """A publisher-side slot: one segment this process created and owns."""
 
     __slots__ = ('name', 'fd', 'header', 'data', 'view', 'capacity', 'pins', 'generation',
-                 'last_used', 'closed', 'recipients', 'released', 'soft')
+                 'last_used', 'closed', 'recipients', 'released')
 
     def __init__(self, name, fd, header, data, capacity):
         self.name = name
@@ -197,8 +197,6 @@ class _Slot:
         self.recipients: Dict[Optional[str], int] = {}
         #: Of those, descriptors that no longer protect the slot (see PeerLedger), per token.
         self.released: Dict[Optional[str], int] = {}
-        #: Of the others, descriptors past their peer's share (reclaimable at the limits).
-        self.soft: Dict[Optional[str], int] = {}
 
 
 class Pin:
@@ -268,7 +266,6 @@ class _InFlight(NamedTuple):
     generation: int
     seq: int  #: the peer's message number it was sent with
     sent_ns: int
-    soft: bool  #: past the peer's share when sent
 
 
 class PeerLedger:
@@ -299,8 +296,7 @@ class PeerLedger:
 
     def summary(self) -> dict:
         return {'token': self.token, 'depth': self.depth, 'messages': self.seq,
-                'in_flight': len(self.inflight),
-                'over_share': sum(1 for e in self.inflight if e.soft), 'not_taking': self.idle}
+                'in_flight': len(self.inflight), 'not_taking': self.idle}
 
 
 _COUNTERS = ('segments_created', 'segments_removed', 'fallbacks', 'descriptors_created',
@@ -535,8 +531,6 @@ class State:
             return True
         if not stale_ok:
             return False
-        if self._pinning(slot, now_ns, soft_ok=True) == 0:
-            return True  # only descriptors past their peers' shares
         last = shm.read_u64(slot.header, shm.OFF_LAST_PUBLISH)
         return now_ns - last >= _limits.reclaim_timeout * 1e9
 
@@ -558,10 +552,9 @@ class State:
             return None
         return untaken
 
-    def _pinning(self, slot: _Slot, now_ns: int, soft_ok: bool = False) -> int:
+    def _pinning(self, slot: _Slot, now_ns: int) -> int:
         """Descriptors of the slot's generation that still protect it: sent to a live
-        recipient, neither taken by its process nor released by its ledger (with ``soft_ok``,
-        nor past their peer's share).
+        recipient, neither taken by its process nor released by its ledger.
 
         Per recipient token ``t``: ``sent_t - released_t - taken_t`` (takes from the takers
         table; a peer without a token is credited the takes nobody in the table made). When the
@@ -583,8 +576,7 @@ class State:
                 continue
             else:
                 by = table.get(presence.token_id(token), 0)
-            soft = slot.soft.get(token, 0) if soft_ok else 0
-            pinning += max(0, count - slot.released.get(token, 0) - soft - by)
+            pinning += max(0, count - slot.released.get(token, 0) - by)
         return pinning
 
     def _taken_by(self, slot: _Slot, token: Optional[str]) -> int:
@@ -641,7 +633,6 @@ class State:
         slot.generation = generation
         slot.recipients.clear()
         slot.released.clear()
-        slot.soft.clear()
 
     def _reuse(self, nbytes: int, stale_ok: bool) -> Optional[_Slot]:
         now = time.monotonic_ns()
@@ -714,23 +705,18 @@ class State:
                 self.counters['descriptors_declined'] += 1
                 return None
             now = time.monotonic_ns()
-            soft = False
             if ledger is not None:
                 recipient = ledger.token
-                admitted = self._admit(ledger, now)
-                if admitted is None:
+                if not self._admit(ledger, now):
                     self.counters['descriptors_declined'] += 1
                     return None
-                soft = admitted == 'soft'
-                if soft:
-                    slot.soft[recipient] = slot.soft.get(recipient, 0) + 1
             header = slot.header
             shm.write_u64(header, shm.OFF_SENT, shm.read_u64(header, shm.OFF_SENT) + 1)
             slot.recipients[recipient] = slot.recipients.get(recipient, 0) + 1
             shm.write_u64(header, shm.OFF_LAST_PUBLISH, now)
             slot.last_used = now
             if ledger is not None:
-                ledger.inflight.append(_InFlight(slot, slot.generation, ledger.seq, now, soft))
+                ledger.inflight.append(_InFlight(slot, slot.generation, ledger.seq, now))
                 if ledger.pending_since_ns is None:
                     ledger.pending_since_ns = now
             self.counters['descriptors_created'] += 1
@@ -739,14 +725,13 @@ class State:
                     slot.name, self.pid, 0, pin.size, pin.generation))
             return pin.packed
 
-    def _admit(self, ledger: PeerLedger, now: int) -> Optional[str]:
-        """Count one message to the ledger's peer; None when it gets CPU bytes, else 'hard' or
-        'soft' (a descriptor past its share)."""
+    def _admit(self, ledger: PeerLedger, now: int) -> bool:
+        """Count one message to the ledger's peer; False when it gets CPU bytes."""
         ledger.seq += 1
         token = ledger.token
         if token is not None and not self._alive(token, now):
             self.counters['cpu_dead_peer'] += 1
-            return None
+            return False
         self._settle(ledger, now)
         if not ledger.idle and ledger.pending_since_ns is not None and \
                 now - ledger.pending_since_ns >= IDLE_SECONDS * 1e9:
@@ -759,18 +744,22 @@ class State:
         if ledger.idle:
             if now - ledger.probe_ns < PROBE_SECONDS * 1e9:
                 self.counters['cpu_not_taking'] += 1
-                return None
-            # A probe replaces its oldest descriptor: a peer that never takes keeps rotating
-            # through its share, one that recovers finds a fresh descriptor in its history.
-            while ledger.inflight and len(ledger.inflight) >= share:
-                self._release_entry(ledger.inflight.popleft(), token, 'released_idle')
+                return False
+            # Its descriptors in flight stay valid: a stalled peer that resumes takes them, as
+            # a stock subscriber would take its backlog. Within its share it gets a probe, whose
+            # take shows it is back; at its share, CPU bytes (its pins are its own share).
+            if len(ledger.inflight) >= share:
+                self.counters['cpu_not_taking'] += 1
+                return False
             ledger.probe_ns = now
             self.counters['probes'] += 1
-            return 'hard'
-        if sum(1 for entry in ledger.inflight if not entry.soft) >= share:
+            return True
+        if len(ledger.inflight) >= share:
+            # past its share the peer alone gets CPU bytes: its descriptors in flight stay
+            # valid (no message is lost, as with stock), and it pins no more than its share
             self.counters['over_share'] += 1
-            return 'soft'
-        return 'hard'
+            return False
+        return True
 
     def _settle(self, ledger: PeerLedger, now: int) -> None:
         """Bring the peer's in-flight list up to date: drop what it took or what was reclaimed,
@@ -791,7 +780,6 @@ class State:
             if self._taken_by(slot, token) + slot.released.get(token, 0) >= \
                     slot.recipients.get(token, 0):
                 took = True
-                self._unsoft(entry, token)
                 if ledger.per_channel:
                     # Taken in order: what it had not taken before this one, it dropped.
                     for skipped in kept:
@@ -816,15 +804,8 @@ class State:
         slot = entry.slot
         if slot.closed or slot.generation != entry.generation:
             return
-        self._unsoft(entry, token)
         slot.released[token] = slot.released.get(token, 0) + 1
         self.counters[counter] += 1
-
-    @staticmethod
-    def _unsoft(entry: _InFlight, token: Optional[str]) -> None:
-        if entry.soft and entry.slot.generation == entry.generation:
-            slot = entry.slot
-            slot.soft[token] = max(0, slot.soft.get(token, 0) - 1)
 
     def decline(self) -> None:
         with self.locked:

@@ -796,9 +796,9 @@ def test_keep_last_window_stops_pinning_what_the_peer_can_no_longer_take(backend
 
 
 def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers):
-    """A KEEP_ALL peer (another live process) that never takes keeps its share pinned; what it
-    was sent past its share is reclaimed at the pool's limits, so a peer that takes gets every
-    frame zero-copy and the pool never falls back."""
+    """A KEEP_ALL peer (another live process) that never takes keeps its share pinned and gets
+    CPU bytes past it (what it was sent stays valid: nothing a stock subscriber would get is
+    lost); a peer that takes gets every frame zero-copy and the pool never falls back."""
     demo_buffer_backend.configure(max_slots=4, max_inflight_per_peer=1, reclaim_timeout=3600)
     stuck = _discovered(backend, b'\x31' * 16, depth=0, metadata=peers().metadata)
     healthy = _discovered(backend, b'\x32' * 16, depth=0)
@@ -815,10 +815,10 @@ def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers)
             bytes([i]) * 3000
     stats = demo_buffer_backend.stats()
     assert stats['over_share'] == 29 and stats['fallbacks'] == 0, stats
-    assert stats['slots'] == 4 and stats['reclaimed'] >= 20, stats
+    assert stats['reclaimed'] == 0, stats
+    assert [d is not None for _, _, d in to_stuck] == [True] + [False] * 29
     # its share (the first frame) is still protected: never reclaimed
     name, generation, first = to_stuck[0]
-    assert first is not None
     assert pool.get_state().slots[name].generation == generation
 
 
