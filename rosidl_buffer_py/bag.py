@@ -26,7 +26,7 @@ from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
 from mcap.summary import Summary
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from rclpy.duration import Duration
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
@@ -486,6 +486,13 @@ def _open_file(path: Path) -> BagFile:
     try:
         size = path.stat().st_size
         with open(path, 'rb') as stream:
+            if stream.read(len(MCAP0_MAGIC)) != MCAP0_MAGIC:
+                raise BagError(f'{path}: not an MCAP file (it does not start with the MCAP magic)')
+            stream.seek(max(0, size - len(MCAP0_MAGIC)))
+            if size < 2 * len(MCAP0_MAGIC) or stream.read() != MCAP0_MAGIC:
+                raise BagError(f'{path}: truncated MCAP file ({size} bytes, no footer: its '
+                               'writer did not finish it)')
+            stream.seek(0)
             reader = make_reader(stream)
             summary = reader.get_summary()
             if summary is None or summary.statistics is None:
