@@ -1,5 +1,6 @@
 """The bag format pieces without DDS: definitions, QoS metadata, writer and reader, codec parts."""
 import array
+import os
 import sys
 from pathlib import Path
 
@@ -131,3 +132,38 @@ def test_reader_errors(tmp_path):
     with pytest.raises(BagError, match='not an MCAP file'):
         BagReader(tmp_path / 'text.mcap')
     assert rosidl_buffer_py.Buffer  # the package is importable alongside
+
+
+def test_large_shared_memory_payloads_go_to_the_disk_page_aligned(tmp_path):
+    """A page-aligned payload of at least DIRECT_MIN_BYTES is written with O_DIRECT after a
+    private padding record; every reader still sees the same message bytes."""
+    from demo_buffer_backend import DemoBuffer
+    from rosidl_buffer_py.bag import DIRECT_ALIGNMENT, DIRECT_MIN_BYTES, PADDING_OPCODE
+    nbytes = DIRECT_MIN_BYTES + 3 * DIRECT_ALIGNMENT + 5  # an unaligned tail too
+    bag = BagWriter(tmp_path / 'd')
+    bag.add_topic(Topic('/img', 'sensor_msgs/msg/Image', full_definition('sensor_msgs/msg/Image')))
+    sent = []
+    for i in range(3):
+        msg = Image(height=1, width=nbytes, encoding='mono8', step=nbytes)
+        msg.header.frame_id = 'x' * i  # a different head length each time
+        buffer = DemoBuffer.allocate(nbytes)
+        memoryview(buffer)[:] = bytes([i]) * nbytes  # payload starts page-aligned in memory
+        msg.data = buffer
+        bag.write('/img', 10 + i, 10 + i, codec.encode_parts(msg))
+        sent.append(bytes(codec.encode(msg)))
+        del msg, buffer
+    bag.close()
+    path = tmp_path / 'd' / 'd_0.mcap'
+    assert [m.data for _, m in BagReader(path).messages()] == sent
+    with open(path, 'rb') as stream:
+        decoded = [m for *_, m in make_reader(stream, decoder_factories=[DecoderFactory()])
+                   .iter_decoded_messages(log_time_order=False)]
+    assert [bytes(m.data[:1]) for m in decoded] == [b'\x00', b'\x01', b'\x02']
+    content = path.read_bytes()
+    direct = os.open(path, os.O_RDONLY | getattr(os, 'O_DIRECT', 0)) if hasattr(os, 'O_DIRECT') \
+        else -1
+    if direct >= 0:  # the file system supports O_DIRECT: the payloads were padded to pages
+        os.close(direct)
+        for cdr in sent:
+            assert (content.index(cdr) + len(cdr) - nbytes) % DIRECT_ALIGNMENT == 0
+        assert content.count(bytes([PADDING_OPCODE])) >= 3
