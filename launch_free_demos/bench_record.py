@@ -7,8 +7,9 @@ One run, three phases on the same file system (``--dir``, default the system tem
 2. a stock recorder records the same publisher: a plain rclpy ``raw=True`` subscription
    writing each serialized message with the mcap library's ``Writer.add_message`` into the same
    MCAP layout (unchunked, ``ros2`` profile, same schema and channel metadata);
-3. ``dd`` writes as many bytes as phase 1 did (page cache, as the recorders write), then 2 GiB
-   with ``conv=fdatasync`` (what the disk sustains).
+3. ``dd`` writes as many bytes as phase 1 did through the page cache, then ``--dd-mib`` (2 GiB)
+   with ``conv=fdatasync`` (what the disk sustains) and with ``oflag=direct bs=24M`` (how
+   ``buffer_record`` writes large shared-memory frames: O_DIRECT, see :mod:`rosidl_buffer_py.bag`).
 
 Per recorder: frames published and written, frames lost, the recorder's CPU time per written
 frame (its process CPU clock from the moment it is subscribed to the moment it is stopped),
@@ -196,20 +197,20 @@ def run_phase(name: str, command: List[str], bag: Path, args, buffer_peers: int)
             'publisher_cpu_s': pub_cpu - pub_cpu_start, 'steal': steal.fraction()}
 
 
-def dd(directory: Path, nbytes: int, sync: bool) -> Optional[float]:
+def dd(directory: Path, nbytes: int, flag: str = '', block_mib: int = 1) -> Optional[float]:
     """dd's own throughput figure in MB/s (10^6 bytes, as dd prints it)."""
     target = directory / 'dd.bin'
-    count = max(1, nbytes // (1024 * 1024))
-    command = ['dd', 'if=/dev/zero', f'of={target}', 'bs=1M', f'count={count}']
-    if sync:
-        command.append('conv=fdatasync')
+    count = max(1, nbytes // (block_mib * 1024 * 1024))
+    command = ['dd', 'if=/dev/zero', f'of={target}', f'bs={block_mib}M', f'count={count}']
+    if flag:
+        command.append(flag)
     try:
         result = subprocess.run(command, capture_output=True, text=True, timeout=900)
     finally:
         target.unlink(missing_ok=True)
         os.sync()
     match = re.search(r'copied, ([\d.]+) s', result.stderr)
-    return count * 1024 * 1024 / float(match.group(1)) / 1e6 if match else None
+    return count * block_mib * 1024 * 1024 / float(match.group(1)) / 1e6 if match else None
 
 
 def writer_costs(directory: Path, width: int, height: int, frames: int = 10) -> Dict[str, float]:
@@ -248,7 +249,7 @@ def writer_costs(directory: Path, width: int, height: int, frames: int = 10) -> 
     for i in range(frames):
         bag.write('/x', i, i, codec.encode_parts(msg))
     bag.close()
-    results['buffer_record: encode_parts + writev from shared memory'] = \
+    results['buffer_record: encode_parts, then O_DIRECT (or writev) from shared memory'] = \
         (time.process_time() - begin) / frames * 1e3
     shutil.rmtree(directory / 'writer_bag')
     os.sync()
@@ -267,6 +268,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument('--height', type=int, default=2160)
     parser.add_argument('--dir', default=tempfile.gettempdir(),
                         help='file system to record to (bags are deleted afterwards)')
+    parser.add_argument('--dd-mib', type=int, default=2048,
+                        help='MiB that dd writes with conv=fdatasync (default 2048)')
     parser.add_argument('--stock-recorder', nargs=2, metavar=('TOPIC', 'DIR'),
                         help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -296,8 +299,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'  {rows[-1]}', flush=True)
         shutil.rmtree(stock, ignore_errors=True)
         os.sync()
-        dd_buffered = dd(work, rows[0]['bytes'], sync=False)
-        dd_synced = dd(work, 2 * 1024 ** 3, sync=True)
+        dd_buffered = dd(work, rows[0]['bytes'])
+        dd_synced = dd(work, args.dd_mib * 1024 ** 2, 'conv=fdatasync')
+        dd_direct = dd(work, args.dd_mib * 1024 ** 2, 'oflag=direct', block_mib=24)
         costs = writer_costs(work, args.width, args.height)
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -324,7 +328,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'\nbuffer_record CPU per frame = {100 * ratio:.1f} % of the stock recorder\'s')
     print(f'dd to the same file system: {dd_buffered or 0:.0f} MB/s through the page cache '
           f'({rows[0]["bytes"] / 1e9:.1f} GB, as the recorders write), {dd_synced or 0:.0f} '
-          'MB/s with conv=fdatasync (2 GiB: what the disk sustains)')
+          f'MB/s with conv=fdatasync ({args.dd_mib} MiB: what the disk sustains), '
+          f'{dd_direct or 0:.0f} MB/s with oflag=direct bs=24M (as buffer_record writes frames)')
     print(f'needed for {args.rate:g} Hz: {frame_mb * args.rate:.0f} MB/s')
     print('\n| writer, one frame in this process | CPU ms per frame |\n|---|---|')
     for label, ms in costs.items():

@@ -266,3 +266,41 @@ def test_bad_inputs_get_one_line_and_status_2(recording, tmp_path):
 def test_console_scripts_installed_where_ros2_run_looks(name):
     path = LIB / name
     assert path.is_file() and os.access(path, os.X_OK), f'{path} missing: run ./dev setup'
+
+
+def _readme_block(title: str) -> str:
+    readme = (Path(__file__).resolve().parent.parent / 'README.md').read_text()
+    section = readme.split(title, 1)[1]
+    return section.split('```bash\n', 1)[1].split('```', 1)[0]
+
+
+def test_readme_recording_example_runs(tmp_path):
+    """The README's worked example, verbatim, as one script in an empty directory."""
+    block = _readme_block('### Recording and playback')
+    (tmp_path / '.venv').symlink_to(sys.prefix)
+    process = subprocess.Popen(['bash', '-e', '-c', block], cwd=tmp_path, text=True,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               start_new_session=True)
+    try:
+        out, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+    assert process.returncode == 0, err[-3000:]
+    assert 'Topic: /camera/image | Type: sensor_msgs/msg/Image | Count: 90 |' in out, out
+    played = [json.loads(line[len(REPORT_PREFIX):]) for line in out.splitlines()
+              if line.startswith(REPORT_PREFIX) and '"player"' in line]
+    assert played and played[0]['topics']['/camera/image']['in_backend'] == 90
+    assert 'Traceback' not in err
+
+
+def test_bench_record_prints_its_table(tmp_path):
+    code, out, err = _run('launch_free_demos.bench_record', '--seconds', '1', '--width', '64',
+                          '--height', '48', '--dd-mib', '8', '--dir', str(tmp_path),
+                          timeout=180)
+    assert code == 0, err[-3000:]
+    assert '| buffer_record (demo backend, zero-copy) | 30 | 30 | 0 ' in out, out
+    assert '| stock rclpy raw subscription + mcap Writer | 30 |' in out, out
+    assert 'dd to the same file system' in out
+    assert list(tmp_path.iterdir()) == []  # the bags were deleted
