@@ -10,7 +10,12 @@ record with the bag's metadata.
 
 Files are written without chunks, like rosbag2's ``fastwrite`` storage preset: a message record
 then goes to the file as it is, so :meth:`BagWriter.write` can pass the payload straight from a
-shared-memory Buffer to ``os.writev`` (the kernel's copy into the page cache is the only one).
+shared-memory Buffer to the kernel. A payload of at least :data:`DIRECT_MIN_BYTES` that is
+page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding
+record (opcode :data:`PADDING_OPCODE`, which MCAP readers skip) puts it at a page boundary of the
+file, and the disk reads it from shared memory without a copy into the page cache (that copy
+costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench-record``). Other
+messages, and file systems without ``O_DIRECT``, go through ``os.pwritev``.
 The mcap library writes every other record (header, schemas, channels, metadata, summary,
 footer); only message records are written here, and counted in the library writer's statistics.
 """

@@ -11,8 +11,9 @@ accepts every installed backend (``acceptable_buffer_backends='any'``). A buffer
 publisher then serves the recorder on its own channel, with a descriptor for shared-memory
 frames: no CPU copy on the main topic. The recorder writes the message's small fields, the
 payload's length, the payload straight from the shared-memory view and the trailing fields
-with one ``writev``: the payload is never copied into a Python object. Other types are taken
-as serialized bytes by a plain rclpy subscription and written as they came.
+(:func:`rosidl_buffer_py.codec.encode_parts`; large frames with ``O_DIRECT``, see
+:mod:`.bag`): the payload is never copied into a Python object. Other types are taken as
+serialized bytes by a plain rclpy subscription and written as they came.
 
 Messages are handed from the executor to one writer thread through a queue bounded by
 ``--max-cache-size`` bytes; a message that does not fit is dropped and counted. SIGINT (Ctrl-C)
