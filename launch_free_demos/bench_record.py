@@ -47,7 +47,7 @@ def _report(lines: List[str]) -> dict:
     return json.loads(found[-1][len(REPORT_PREFIX):]) if found else {}
 
 
-# --- the stock recorder (a plain rclpy node) -------------------------------------------------------
+# --- the stock recorder (a plain rclpy node) -----------------------------------------------------
 
 def stock_recorder(topic: str, directory: str) -> int:
     """Record ``topic`` as a stock rclpy node would: raw subscription, mcap Writer."""
@@ -96,7 +96,7 @@ def stock_recorder(topic: str, directory: str) -> int:
     return 0
 
 
-# --- phases ------------------------------------------------------------------------------------------
+# --- phases --------------------------------------------------------------------------------------
 
 class Recorder:
     """A recorder process: started, waited for until subscribed, CPU sampled, stopped."""
@@ -309,8 +309,8 @@ def main(argv: Optional[List[str]] = None) -> int:
 
     print()
     print('| recorder | frames published | frames written | frames lost | recorder CPU per '
-          'frame, ms | recorder CPU, % of a core | write MB/s (first to last message) | publisher CPU per frame, ms | '
-          'CPU steal |')
+          'frame, ms | recorder CPU, % of a core | write MB/s (first to last message) | '
+          'publisher CPU per frame, ms | CPU steal |')
     print('|---|---|---|---|---|---|---|---|---|')
     for row in rows:
         lost = row['published'] - row['written']

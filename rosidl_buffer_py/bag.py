@@ -29,7 +29,7 @@ import yaml
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Message
 from mcap.summary import Summary
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from rclpy.duration import Duration
@@ -471,7 +471,8 @@ class BagWriter:
         self._sink.writev([payload[done:], suffix])
 
     def _finish_file(self) -> None:
-        metadata = bag_metadata(self.topics.values(), [self.files[-1]], self.files[-1].topic_counts)
+        current = self.files[-1]
+        metadata = bag_metadata(list(self.topics.values()), [current], current.topic_counts)
         metadata['rosbag2_bagfile_information']['relative_file_paths'] = [self.files[-1].path]
         self._writer.add_metadata('rosbag2', {
             'serialized_metadata': yaml.safe_dump(metadata, sort_keys=False),

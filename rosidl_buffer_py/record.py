@@ -134,7 +134,7 @@ def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats
             queue.nbytes = 0
 
 
-# --- the recorder node ----------------------------------------------------------------------------
+# --- the recorder node ---------------------------------------------------------------------------
 
 class Recorder:
     """Subscribe to the selected topics as they appear and queue their messages for writing."""
@@ -264,7 +264,7 @@ class Recorder:
         return on_message
 
 
-# --- command line ---------------------------------------------------------------------------------
+# --- command line --------------------------------------------------------------------------------
 
 def _size(text: str) -> int:
     match = re.fullmatch(r'\s*(\d+)\s*([kKmMgG]i?[bB]?|[bB])?\s*', text)
