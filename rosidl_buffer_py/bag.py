@@ -21,6 +21,7 @@ footer); only message records are written here, and counted in the library write
 """
 import os
 import struct
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
@@ -347,7 +348,7 @@ def bag_metadata(topics: Sequence[Topic], files: Sequence[_FileInfo],
 class BagWriter:
     """Write a bag directory: topics, messages, splits, metadata.
 
-    Not thread-safe: one thread writes (the recorder's writer thread).
+    Thread-safe: the recorder adds topics from its executor while its writer thread writes.
 
     :param directory: The bag directory; it must not exist yet (as with ``ros2 bag record``).
     :param max_bag_size: Start a new file before a message once the current file holds at
@@ -379,6 +380,7 @@ class BagWriter:
         self._schemas: Dict[str, int] = {}
         self._sequences: Dict[str, int] = {}
         self._stats = None
+        self._lock = threading.Lock()
         self._open_next()
 
     @property
@@ -417,10 +419,11 @@ class BagWriter:
 
     def add_topic(self, topic: Topic) -> None:
         """Declare a topic (once): its schema and channel go into every file from now on."""
-        if topic.name in self.topics:
-            raise BagError(f'topic {topic.name} was already added')
-        self.topics[topic.name] = topic
-        self._register(topic)
+        with self._lock:
+            if topic.name in self.topics:
+                raise BagError(f'topic {topic.name} was already added')
+            self.topics[topic.name] = topic
+            self._register(topic)
 
     def _should_split(self, log_time: int) -> bool:
         current = self.files[-1]
@@ -436,6 +439,10 @@ class BagWriter:
 
         :return: The message's size in bytes.
         """
+        with self._lock:
+            return self._write(topic, log_time, publish_time, parts)
+
+    def _write(self, topic: str, log_time: int, publish_time: int, parts: Sequence) -> int:
         if self._should_split(log_time):
             self._finish_file()
             self._open_next()
@@ -482,15 +489,17 @@ class BagWriter:
 
     def close(self) -> None:
         """Finish the current file and write ``metadata.yaml``."""
-        if self._sink is None:
-            return
-        try:
-            self._finish_file()
-        finally:
-            self._sink = None
-            metadata = bag_metadata(list(self.topics.values()), self.files, self.topic_counts)
-            (self.directory / 'metadata.yaml').write_text(
-                yaml.safe_dump(metadata, sort_keys=False))
+        with self._lock:
+            if self._sink is None:
+                return
+            try:
+                self._finish_file()
+            finally:
+                self._sink = None
+                metadata = bag_metadata(list(self.topics.values()), self.files,
+                                        self.topic_counts)
+                (self.directory / 'metadata.yaml').write_text(
+                    yaml.safe_dump(metadata, sort_keys=False))
 
     @property
     def size(self) -> int:

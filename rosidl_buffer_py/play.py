@@ -213,7 +213,7 @@ class Player:
                 if self.stop.is_set():
                     return
                 self._publish(self.outputs[channel.topic], message.data)
-            if not self.args.loop:
+            if not self.args.loop or first_log_time is None:  # done, or nothing to loop over
                 return
 
     def linger(self, executor) -> None:
