@@ -117,6 +117,9 @@ setup(
             'legacy_image_publisher = rosidl_buffer_py.nodes.image_publisher:legacy_main',
             'legacy_image_subscriber = rosidl_buffer_py.nodes.image_subscriber:legacy_main',
             'buffer_topic_info = rosidl_buffer_py.info:main',
+            'buffer_record = rosidl_buffer_py.record:main',
+            'buffer_play = rosidl_buffer_py.play:main',
+            'buffer_bag_info = rosidl_buffer_py.bag_info:main',
         ],
     },
 )

@@ -28,7 +28,7 @@ import importlib
 import struct
 import threading
 from dataclasses import dataclass
-from typing import Any, Container, Dict, List, Optional, Tuple, Type
+from typing import Any, Container, Dict, List, NamedTuple, Optional, Tuple, Type
 
 from rclpy.serialization import deserialize_message, serialize_message
 from rosidl_parser import definition
@@ -41,10 +41,13 @@ __all__ = [
     'CodecError',
     'DESCRIPTOR_MARKER',
     'Decoded',
+    'EncodedParts',
     'UnsupportedMessageTypeError',
     'decode',
     'encode',
+    'encode_parts',
     'payload_field',
+    'split_payload',
 ]
 
 #: First ``uint32`` of a descriptor-encoded payload (upstream's ``kBufferDescriptorMarker``).
@@ -478,26 +481,29 @@ def _check_descriptor(descriptor: Any) -> Tuple[bytes, bytes]:
     return name, data
 
 
-def encode(msg: Any, descriptor: Optional[Tuple[str, bytes]] = None) -> bytearray:
-    """Serialize ``msg`` (CDR with its 4-byte encapsulation header) for the wire.
+class EncodedParts(NamedTuple):
+    """The legacy CDR bytes of a message in three pieces: ``head + payload + suffix``.
 
-    :param msg: A message whose type has a payload field (see :func:`payload_field`). The payload
-        may be ``array.array('B')``, bytes, bytearray, memoryview, a list of ints, a numpy uint8
-        array or a :class:`~rosidl_buffer_py.Buffer` (sent as its CPU bytes).
-    :param descriptor: ``None`` for CPU bytes, exactly the legacy ``uint8[]`` wire format (as
-        ``serialize_message``, with zero padding); or ``(backend_type, descriptor_bytes)`` to send
-        the marker, the backend name and the descriptor instead of the payload bytes.
-    :raises CodecError: on a payload, descriptor or field value that cannot be encoded.
+    :ivar head: Encapsulation header, the fields before the payload (zero padding) and the
+        payload's ``uint32`` length.
+    :ivar payload: The payload bytes, a flat memoryview of the message's own memory (for a
+        host-addressable Buffer: the backend's memory itself, no copy).
+    :ivar suffix: The fixed-size fields after the payload.
     """
-    msg_type = type(msg)
-    plan = _plan(msg_type)
-    payload = getattr(msg, plan.slot, None)
-    if descriptor is None:
-        view = _payload_view(payload, plan.field)
-    else:
-        backend, data = _check_descriptor(descriptor)
 
-    # Serialize the message without its payload, with rclpy's C serializer.
+    head: bytearray
+    payload: memoryview
+    suffix: bytes
+
+    @property
+    def nbytes(self) -> int:
+        """Length of the whole CDR message."""
+        return len(self.head) + self.payload.nbytes + len(self.suffix)
+
+
+def _encode_head(msg: Any, plan: _Plan) -> Tuple[bytearray, bytes, Any]:
+    """Serialize ``msg`` without its payload: (header + prefix with zero padding, suffix, u32)."""
+    msg_type = plan.msg_type
     clone = msg_type.__new__(msg_type)
     try:
         for slot in plan.slots:
@@ -519,24 +525,56 @@ def encode(msg: Any, descriptor: Optional[Tuple[str, bytes]] = None) -> bytearra
     start = (pos + 3) & -4
     if start != pos:
         pads.append((pos, start))
-    head = bytearray(body[:start])
-    for s, e in pads:
-        head[s:e] = bytes(e - s)
-    suffix = body[start + 4:start + 4 + plan.suffix_size]
-
     out = bytearray(small[:_HEADER_SIZE])
-    out += head
+    out += body[:start]
+    for s, e in pads:
+        out[_HEADER_SIZE + s:_HEADER_SIZE + e] = bytes(e - s)
+    suffix = bytes(body[start + 4:start + 4 + plan.suffix_size])
+    return out, suffix, u32
+
+
+def encode_parts(msg: Any) -> EncodedParts:
+    """The legacy CDR bytes of ``msg`` as :class:`EncodedParts`, without joining them.
+
+    ``b''.join(encode_parts(msg))`` equals ``encode(msg)``. A writer that takes a list of
+    buffers (``os.writev``, a file) writes the payload straight from the message's memory: for
+    a shared-memory Buffer, no copy of the payload is made in this process.
+
+    :raises CodecError: on a payload or field value that cannot be encoded.
+    """
+    plan = _plan(type(msg))
+    view = _payload_view(getattr(msg, plan.slot, None), plan.field)
+    head, suffix, u32 = _encode_head(msg, plan)
+    head += u32.pack(view.nbytes)
+    return EncodedParts(head, view, suffix)
+
+
+def encode(msg: Any, descriptor: Optional[Tuple[str, bytes]] = None) -> bytearray:
+    """Serialize ``msg`` (CDR with its 4-byte encapsulation header) for the wire.
+
+    :param msg: A message whose type has a payload field (see :func:`payload_field`). The payload
+        may be ``array.array('B')``, bytes, bytearray, memoryview, a list of ints, a numpy uint8
+        array or a :class:`~rosidl_buffer_py.Buffer` (sent as its CPU bytes).
+    :param descriptor: ``None`` for CPU bytes, exactly the legacy ``uint8[]`` wire format (as
+        ``serialize_message``, with zero padding); or ``(backend_type, descriptor_bytes)`` to send
+        the marker, the backend name and the descriptor instead of the payload bytes.
+    :raises CodecError: on a payload, descriptor or field value that cannot be encoded.
+    """
     if descriptor is None:
-        out += u32.pack(view.nbytes)
-        out += view
-    else:
-        out += _MARKER_BYTES
-        out += u32.pack(len(backend) + 1)
-        out += backend
-        out += b'\x00'
-        out += bytes(-(len(out) - _HEADER_SIZE) % 4)
-        out += u32.pack(len(data))
-        out += data
+        head, view, suffix = encode_parts(msg)
+        head += view
+        head += suffix
+        return head
+    plan = _plan(type(msg))
+    backend, data = _check_descriptor(descriptor)
+    out, suffix, u32 = _encode_head(msg, plan)
+    out += _MARKER_BYTES
+    out += u32.pack(len(backend) + 1)
+    out += backend
+    out += b'\x00'
+    out += bytes(-(len(out) - _HEADER_SIZE) % 4)
+    out += u32.pack(len(data))
+    out += data
     out += suffix
     return out
 
@@ -574,6 +612,30 @@ def decode(raw: Any, msg_type: Type,
     :return: A :class:`Decoded`. Legacy bytes decode to the message ``deserialize_message`` gives.
     :raises CodecError: on malformed input, an unknown backend or an oversized descriptor.
     """
+    decoded, payload = _decode(raw, msg_type, known_backends)
+    if payload.nbytes:
+        getattr(decoded.msg, _plan(msg_type).slot).frombytes(payload)
+    return decoded
+
+
+def split_payload(raw: Any, msg_type: Type) -> Tuple[Any, memoryview]:
+    """Split legacy CDR bytes of ``msg_type`` into the message and a view of its payload bytes.
+
+    The message's payload field is left empty; the view points into ``raw`` (no copy), so that
+    a caller can put the payload where it wants it (a backend's memory) with one copy.
+
+    :raises CodecError: on malformed input, or on descriptor-encoded bytes (no payload here).
+    """
+    decoded, payload = _decode(raw, msg_type, None)
+    if decoded.is_descriptor:
+        raise CodecError(f'{_plan(msg_type).field} holds a descriptor of backend '
+                         f'{decoded.backend_type!r}, not payload bytes')
+    return decoded.msg, payload
+
+
+def _decode(raw: Any, msg_type: Type,
+            known_backends: Optional[Container[str]]) -> Tuple[Decoded, memoryview]:
+    """:func:`decode` with an empty payload field, and a view of the payload bytes in ``raw``."""
     plan = _plan(msg_type)
     view = _input_view(raw)
     size = len(view)
@@ -639,8 +701,5 @@ def decode(raw: Any, msg_type: Type,
     small = b''.join((view[:head_end], _ZERO_LENGTH,
                       body[data_end:data_end + plan.suffix_size]))
     msg = _deserialize(small, msg_type)
-    payload = array.array('B')
-    if data_end > data_start:
-        payload.frombytes(body[data_start:data_end])
-    setattr(msg, plan.slot, payload)
-    return Decoded(msg, backend_type, descriptor)
+    setattr(msg, plan.slot, array.array('B'))
+    return Decoded(msg, backend_type, descriptor), body[data_start:data_end]

@@ -27,7 +27,8 @@ from rosidl_buffer_py.nodes.common import REPORT_PREFIX
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE = 'rosidl_buffer_py'
 EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
-               'legacy_image_subscriber', 'buffer_topic_info']
+               'legacy_image_subscriber', 'buffer_topic_info', 'buffer_record', 'buffer_play',
+               'buffer_bag_info']
 DEV_LIB = Path(sys.prefix) / 'lib' / PACKAGE
 
 

@@ -35,6 +35,15 @@ COVERAGE = {
     'colcon build': 'test_colcon.py',
     'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
     'colcon test-result --verbose': 'test_colcon.py',
+    # the recording example, run as one script
+    '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p '
+    'topic:=/camera/image -p count:=90 -p wait_for_subscribers:=1 &': 'test_record.py',
+    '.venv/lib/rosidl_buffer_py/buffer_record /camera/image -o camera_bag --duration 10':
+        'test_record.py',
+    '.venv/lib/rosidl_buffer_py/buffer_bag_info camera_bag': 'test_record.py',
+    '.venv/lib/rosidl_buffer_py/buffer_play camera_bag --rate 2': 'test_record.py',
+    'wait': 'test_record.py',
+    './dev bench-record': 'test_record.py',               # 1 s of small frames
 }
 
 
