@@ -16,6 +16,7 @@ table; it asserts nothing about time.
 ``python -m launch_free_demos.bench_mixed [--payload 3840x2160] [--rate 10] [--rounds 2]``
 """
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -71,6 +72,43 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
     return cpu
 
 
+def measure(width: int, height: int, rate: float, frames: int, extra: int, rounds: int,
+            graphs: List[str]) -> Dict[Tuple[str, str], List[float]]:
+    """(graph, process label) -> CPU ms per frame of each round."""
+    per_frame: Dict[Tuple[str, str], List[float]] = {}
+    serial = 0
+    for _ in range(rounds):
+        for graph in graphs:
+            totals = []
+            for count in (frames, frames + extra):
+                serial += 1
+                totals.append(run_graph(graph, width, height, count, rate,
+                                        f'/bench_mixed_{os.getpid()}/{graph}_{serial}'))
+            for label in totals[0]:
+                per_frame.setdefault((graph, label), []).append(
+                    (totals[1][label] - totals[0][label]) * 1000.0 / extra)
+    return per_frame
+
+
+def table(per_frame: Dict[Tuple[str, str], List[float]], graphs: List[str], payload: str,
+          rate: float, frames: int, extra: int, rounds: int) -> str:
+    """A markdown table of the medians (every round in parentheses), with its caption."""
+    lines = [f'CPU per frame of each process, ms (median of {rounds} rounds; each: '
+             f'({frames}+{extra} frames) - ({frames} frames), / {extra}), {payload} rgb8 at '
+             f'{rate:g} Hz, demo frames filled in place. pure: a demo publisher and a '
+             'subscriber accepting demo; mixed: the same and a plain rclpy subscriber; stock: '
+             'a stock publisher and a plain rclpy subscriber.\n',
+             '| graph | demo subscriber | plain subscriber | publisher |', '|---|---|---|---|']
+    for graph in graphs:
+        cells = []
+        for label in ('demo_sub', 'plain_sub', 'pub'):
+            values = per_frame.get((graph, label))
+            cells.append('-' if not values else f'{statistics.median(values):.2f} ('
+                         + ', '.join(f'{v:.1f}' for v in values) + ')')
+        lines.append(f'| {graph} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--payload', default='3840x2160', help='WIDTHxHEIGHT of rgb8 frames')
@@ -85,29 +123,10 @@ def main(argv=None) -> int:
     unknown = [g for g in graphs if g not in GRAPHS]
     if unknown:
         parser.error(f'unknown graph(s) {unknown}; known: {", ".join(GRAPHS)}')
-    per_frame: Dict[Tuple[str, str], List[float]] = {}
-    serial = 0
-    for _ in range(args.rounds):
-        for graph in graphs:
-            totals = []
-            for frames in (args.frames, args.frames + args.extra):
-                serial += 1
-                totals.append(run_graph(graph, width, height, frames, args.rate,
-                                        f'/bench_mixed/{graph}_{serial}'))
-            for label in totals[0]:
-                per_frame.setdefault((graph, label), []).append(
-                    (totals[1][label] - totals[0][label]) * 1000.0 / args.extra)
-    print(f'CPU per frame, ms (median of {args.rounds} rounds; each: ({args.frames}+{args.extra}'
-          f' frames) - ({args.frames} frames), / {args.extra}), {args.payload} rgb8 at '
-          f'{args.rate:g} Hz, demo frames filled in place\n')
-    print('| graph | demo subscriber | plain subscriber | publisher |\n|---|---|---|---|')
-    for graph in graphs:
-        cells = []
-        for label in ('demo_sub', 'plain_sub', 'pub'):
-            values = per_frame.get((graph, label))
-            cells.append('-' if not values else
-                         f'{statistics.median(values):.2f} ({", ".join(f"{v:.1f}" for v in values)})')
-        print(f'| {graph} | ' + ' | '.join(cells) + ' |')
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    per_frame = measure(width, height, args.rate, args.frames, args.extra, args.rounds, graphs)
+    print(table(per_frame, graphs, args.payload, args.rate, args.frames, args.extra,
+                args.rounds))
     return 0
 
 

@@ -127,12 +127,15 @@ class Mode:
     fanout_subscribers: List[int]
     memcpy_repeat: int
     latency_rounds: int = 1      # rounds of the PAIRED transports' latency runs
+    #: payloads of the mixed-graph table (launch_free_demos.bench_mixed): what a legacy
+    #: listener costs the buffer-aware subscriber beside it and the publisher
+    mixed_payloads: List[str] = field(default_factory=list)
 
 
 MODES = {
     'full': Mode('full', [p[0] for p in PAYLOADS], 30, 5.0, [p[0] for p in PAYLOADS],
                  [10.0, 30.0, 60.0, 120.0, 240.0], 2.0, ['1920x1080 rgb8', BIG], [1, 2, 4, 8],
-                 50, latency_rounds=5),
+                 50, latency_rounds=5, mixed_payloads=['1920x1080 rgb8', BIG]),
     'quick': Mode('quick', [SMALL, '1920x1080 rgb8', BIG], 8, 5.0, [BIG], [30.0, 60.0], 1.0,
                   [BIG], [1, 4], 20),
     'smoke': Mode('smoke', [SMALL, '640x480 rgb8'], 5, 5.0, ['640x480 rgb8'], [30.0], 1.0,
@@ -932,6 +935,17 @@ def main(argv=None) -> int:
                 progress(f'fan-out {t:<22} {payload:>15} x{n}: pub CPU '
                          f'{_fmt(r.pub_cpu_ms)} ms/msg, sub CPU {_fmt(r.sub_cpu_ms)} ms/msg')
 
+    from launch_free_demos import bench_mixed  # it builds on this module's MeasuredRun
+    mixed = []
+    for payload in mode.mixed_payloads:
+        _, width, height, _ = PAYLOAD[payload]
+        graphs = list(bench_mixed.GRAPHS)
+        per_frame = bench_mixed.measure(width, height, 10.0, 10, 40, 2, graphs)
+        mixed.append(bench_mixed.table(per_frame, graphs, payload.split()[0], 10.0, 10, 40, 2))
+        progress(f'mixed graph {payload}: ' + ', '.join(
+            f'{graph} {label} {statistics.median(v):.2f} ms'
+            for (graph, label), v in per_frame.items()))
+
     checks = target_checks(mode, lat, rates, fanout, memcpy, rounds)
     if _domain_lock is not None:  # a domain of our own: what its dead participants left
         remove_fastdds_leftovers(started_at, int(os.environ['ROS_DOMAIN_ID']))
@@ -945,6 +959,9 @@ def main(argv=None) -> int:
               f', {time.monotonic() - began:.0f} s. Publisher and subscribers in separate '
               f'processes on this machine; a shared machine makes every number noisy.')
     text = markdown(mode, lat, memcpy, rates, fanout, checks, header)
+    if mixed:
+        text += ('\n\n## Mixed graph: a legacy listener beside a buffer-aware subscriber\n\n'
+                 + '\n\n'.join(mixed) + '\n')
     png = os.path.join(args.out, 'benchmark.png')
     plot(png, mode, lat, memcpy, fanout)
     with open(os.path.join(args.out, 'benchmark.md'), 'w') as f:
