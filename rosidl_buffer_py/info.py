@@ -265,8 +265,15 @@ def format_text(result: dict) -> str:
     return '\n'.join(lines)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with usage errors in one line (as the image nodes report bad parameters)."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: {message} (see --help)\n')
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog='buffer_topic_info',
         description='Show the publishers, subscriptions, buffer backends and descriptor '
                     'channels of a topic (like "ros2 topic info -v").')
@@ -287,7 +294,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv if argv is None else argv)
     options = _parser().parse_args(remove_ros_args(argv)[1:])
     if options.wait < 0:
-        _parser().error('--wait must be >= 0')
+        _parser().error(f'argument --wait: {options.wait:g} is not accepted; expected >= 0')
     rclpy.init(args=argv)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it like Ctrl-C
     node = None
