@@ -38,6 +38,7 @@ COVERAGE = {
     '-p height:=1080': 'here',
     'buffer_topic_info <topic> [--json] [--wait S] [--probe]': 'test_info.py',
     'buffer_topic_info --probe': 'test_info.py',
+    '.venv/bin/python test/measure_inspector.py 20': 'here',     # with 1 run instead of 20
     'colcon build': 'test_colcon.py',
     'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
     'colcon test-result --verbose': 'test_colcon.py',
@@ -126,6 +127,14 @@ def test_readme_image_publisher_command_runs_and_stops_cleanly():
     report = json.loads(next(line for line in out.splitlines()
                              if line.startswith('REPORT '))[len('REPORT '):])
     assert report['published'] > 0 and report['params']['backend'] == 'demo'
+
+
+@dev_only
+def test_inspector_measurement_command():
+    command = [c for c in COVERAGE if 'measure_inspector' in c][0]
+    out = run(command.replace(' 20', ' 1'), 120)
+    assert out.returncode == 0, out.stdout + out.stderr[-2000:]
+    assert 'complete on the first try: 1 of 1' in out.stdout, out.stdout
 
 
 @dev_only
