@@ -42,6 +42,7 @@ COVERAGE = {
     'colcon build': 'test_colcon.py',
     'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
     'colcon test-result --verbose': 'test_colcon.py',
+    'colcon test': 'test_colcon.py',
 }
 
 
