@@ -30,11 +30,11 @@ def test_a_node_failing_at_start_up_stops_the_demo_at_once():
                                  'expected one of cpu, demo'),
             ('--encoding', 'bogus', "image_publisher: parameter encoding: 'bogus' is not "
                                     'accepted; expected mono8')):
-        started = time.monotonic()
+        # without fail-fast the demo would wait for the subscriber's timeout (--seconds + 60 s)
+        # and be killed at _finish's timeout
         process = _start(option, value, '--seconds', '30')
         out, err = _finish(process, 60)
         assert process.returncode == 1, out + err
-        assert time.monotonic() - started < 20, 'not fail-fast'  # the nodes' wait is 30 s+
         assert 'demo: demo_publisher (image_publisher) exited with status 2; its last error ' \
                'lines:' in err, err
         assert f'  {line}' in err and 'Traceback' not in err, err

@@ -145,13 +145,13 @@ def test_help_lists_every_parameter_and_bad_values_fail_in_one_line(name):
         description = out.splitlines()[out.splitlines().index(line) + 1].strip()
         assert description, (parameter, out)
     for override, message in BAD_PARAMETERS[name]:
-        started = time.monotonic()
+        # a node that checked only after waiting for peers would not end before the timeout
         code, out, err = _run([str(executable(name)), '--ros-args', '-p', override,
-                               '-p', 'wait_for_subscribers:=5'], timeout=30)
+                               '-p', 'wait_for_subscribers:=5', '-p', 'wait_timeout_sec:=600.0',
+                               '-p', 'timeout_sec:=600.0'], timeout=30)
         assert code == 2, (override, code, err)
         assert err.splitlines() == [err.strip()] and err.startswith(f'{name}: {message}'), err
         assert 'Traceback' not in err and 'REPORT' not in out, err
-        assert time.monotonic() - started < 15, override  # not after a discovery wait
     code, out, err = _run([str(executable(name)), 'stray'], timeout=30)
     assert code == 2 and 'unrecognized arguments stray' in err, err
 
