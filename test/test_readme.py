@@ -101,6 +101,24 @@ def test_dev_setup_and_demo():
 
 
 @dev_only
+def test_dev_setup_says_what_it_does_and_shows_pip_only_when_it_fails(tmp_path):
+    """One line per step; pip's own output only on failure (a venv without pip fails)."""
+    venv = tmp_path / 'venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    done = subprocess.run([str(ROOT / 'dev'), 'setup'], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120,
+                          env=dict(os.environ, ROSIDL_BUFFER_PY_VENV=str(venv)))
+    assert done.returncode != 0 and done.stdout == '', done.stdout
+    lines = done.stderr.splitlines()
+    assert lines[0] == 'dev: installing ROS 2 Jazzy from PyPI and the test tools (about a ' \
+        'minute)', lines
+    assert 'No module named pip' in done.stderr, done.stderr  # what pip (here: python) said
+    assert lines[-1].startswith(f'dev: failed (exit {done.returncode}): {venv}/bin/python -m '
+                                'pip install'), lines
+    assert not (venv / '.rosidl_buffer_py_stamp').exists()
+
+
+@dev_only
 def test_dev_bench_prints_the_table():
     bench = run('./dev bench', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
