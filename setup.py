@@ -100,7 +100,7 @@ setup(
     maintainer_email='maintainers@rosidl-buffer-py.invalid',
     description='Zero-copy uint8[] payloads for rclpy on stock ROS 2 Jazzy.',
     license='Apache-2.0',
-    python_requires='>=3.10',
+    python_requires='>=3.11',  # what ./dev requires and CI tests
     # ROS packages (ros-jazzy-*) are not install_requires: with apt ROS they are not pip
     # distributions. requirements.txt installs them from PyPI; see README.
     install_requires=[r for r in requirements('requirements.txt') if not r.startswith('ros-')],

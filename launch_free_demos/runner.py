@@ -226,16 +226,36 @@ class Run:
         self.nodes[node.label] = node
         return node
 
-    def wait(self, labels: Optional[List[str]] = None, timeout: float = 60.0) -> bool:
-        """Wait until the given (default: all) processes exited; False on timeout."""
+    def wait(self, labels: Optional[List[str]] = None, timeout: float = 60.0,
+             fail_fast: bool = False) -> bool:
+        """Wait until the given (default: all) processes exited; False on timeout.
+
+        With ``fail_fast``, also return False as soon as any process of the run exits with a
+        non-zero status (:meth:`failed` names it): a node that failed at start-up is reported
+        at once instead of when its peers time out.
+        """
         deadline = time.monotonic() + timeout
-        for label in labels or list(self.nodes):
-            process = self.nodes[label].process
-            try:
-                process.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
+        waiting = [self.nodes[label].process for label in labels or list(self.nodes)]
+        while True:
+            if fail_fast and self.failed():
                 return False
-        return True
+            if all(process.poll() is not None for process in waiting):
+                return True
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            if not fail_fast:
+                try:
+                    next(p for p in waiting if p.poll() is None).wait(remaining)
+                except subprocess.TimeoutExpired:
+                    return False
+                continue
+            time.sleep(min(0.05, remaining))
+
+    def failed(self) -> List[NodeProcess]:
+        """The processes that exited with a non-zero status, in start order."""
+        return [node for node in self.nodes.values()
+                if node.process is not None and node.process.poll() not in (None, 0)]
 
     def stop_all(self) -> None:
         for node in self.nodes.values():

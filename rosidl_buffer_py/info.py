@@ -9,10 +9,12 @@ in USER_DATA (``BUFBE:``), and the per-endpoint descriptor channels
 How it learns the advertisements: a normal rclpy node installs the discovery tap
 (``_dds.install_discovery``) right after it is created, then listens for ``--wait`` seconds
 (default 3: a new Fast DDS participant can need up to one announcement period, about 3 s, to
-discover a running one). When what it heard by then is visibly incomplete (a channel names an
-endpoint not seen yet, an endpoint is known to DDS but not yet to the ROS graph, a channel has
-only one side) it keeps listening, up to ``COMPLETION_GRACE_SECONDS`` more, and says in a note
-what was still missing if that did not suffice. Fast DDS cannot replay USER_DATA of endpoints
+discover a running one). When what it heard by then is visibly incomplete (nothing yet, a
+channel names an endpoint not seen yet, an endpoint is known to DDS but not yet to the ROS graph
+or has no node name yet, a channel has only one side) or still changing, it keeps listening, up
+to ``COMPLETION_GRACE_SECONDS`` more, and says in a note what was still missing if that did not
+suffice. A ``--wait`` shorter than the default is answered with a note that endpoints may be
+missing. Fast DDS cannot replay USER_DATA of endpoints
 discovered before the tap existed, and a node's participant starts discovering at
 ``rclpy.init``, so an endpoint found in that short gap is reported with
 ``"advertisement": "unknown"``. ``--probe`` closes the gap: it creates a
@@ -46,8 +48,16 @@ from rosidl_buffer_py.channel import CHANNEL_INFIX, dds_topic
 
 _KIND = {'writer': 'publisher', 'reader': 'subscription'}
 
+#: Default ``--wait``: a new participant can need up to one Fast DDS announcement period (about
+#: 3 s) to discover a running one.
+DEFAULT_WAIT_SECONDS = 3.0
 #: After ``--wait``, how much longer to listen while the view is visibly incomplete.
 COMPLETION_GRACE_SECONDS = 3.0
+#: The view counts as complete once nothing visibly misses and it has not changed this long.
+QUIET_SECONDS = 0.3
+#: The node name the ROS graph gives an endpoint whose node is not known yet.
+_UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
+
 #: How often the view is re-checked during that grace.
 _RECHECK_SECONDS = 0.1
 
@@ -112,18 +122,25 @@ def _channels(topic: str, node, known) -> List[dict]:
 def _missing(node, topic: str, tapped: bool, own: set) -> List[str]:
     """What discovery visibly has not delivered yet about ``topic`` (empty: consistent view).
 
-    Each buffer-aware pair names both endpoints in its channel, and every endpoint DDS reports
-    should also reach the ROS graph; a gap in either means discovery is still under way.
+    Each buffer-aware pair names both endpoints in its channel, every endpoint DDS reports
+    should also reach the ROS graph, and every endpoint of the graph should have its node's
+    name: rmw learns it from the ``ros_discovery_info`` topic, which can arrive after the
+    endpoint itself (the graph says ``_NODE_NAME_UNKNOWN_`` meanwhile). A gap in any of these
+    means discovery is still under way; so does a topic with no endpoint at all yet.
     """
     from rosidl_buffer_py import _dds
-    graph = {_gid_hex(i.endpoint_gid) for i in node.get_publishers_info_by_topic(topic)}
-    graph |= {_gid_hex(i.endpoint_gid) for i in node.get_subscriptions_info_by_topic(topic)}
-    graph -= own
+    infos = [i for i in node.get_publishers_info_by_topic(topic) +
+             node.get_subscriptions_info_by_topic(topic) if _gid_hex(i.endpoint_gid) not in own]
+    graph = {_gid_hex(i.endpoint_gid) for i in infos}
     known = _dds.list_known_endpoints(node) if tapped else []
     main = dds_topic(topic)
     dds = {_gid_hex(e.gid) for e in known
            if e.topic == main and e.kind in _KIND and not e.local} - own
+    if not graph and not dds:
+        return [f'no endpoint of {topic} discovered yet']
     missing = [f'{gid} known to DDS, not to the ROS graph' for gid in sorted(dds - graph)]
+    missing += [f'the node of {_gid_hex(i.endpoint_gid)} (not in ros_discovery_info yet)'
+                for i in infos if i.node_name.startswith(_UNKNOWN_NODE)]
     for channel in _channels(topic, node, known):
         for side in ('publisher_gid', 'subscription_gid'):
             if channel[side] not in graph:
@@ -131,6 +148,63 @@ def _missing(node, topic: str, tapped: bool, own: set) -> List[str]:
         if not (channel['writer'] and channel['reader']):
             missing.append(f"channel {channel['dds_topic']} has one side only")
     return missing
+
+
+def _snapshot(node, topic: str) -> tuple:
+    """The graph's endpoints of ``topic`` with their node names (to notice changes)."""
+    return tuple(sorted((_gid_hex(i.endpoint_gid), i.node_name) for i in
+                        node.get_publishers_info_by_topic(topic) +
+                        node.get_subscriptions_info_by_topic(topic)))
+
+
+def _listen_until_complete(node, topic: str, tapped: bool, own: set) -> List[str]:
+    """After the wait: listen while the view is visibly incomplete or still changing (each
+    participant's endpoints arrive together, but participants and their node names arrive one
+    by one), at most ``COMPLETION_GRACE_SECONDS``. Returns what is still missing."""
+    deadline = time.monotonic() + COMPLETION_GRACE_SECONDS
+    last = _snapshot(node, topic)
+    quiet_since = time.monotonic()
+    while True:
+        missing = _missing(node, topic, tapped, own)
+        now = time.monotonic()
+        if now >= deadline or (not missing and now - quiet_since >= QUIET_SECONDS):
+            return missing
+        time.sleep(_RECHECK_SECONDS)
+        current = _snapshot(node, topic)
+        if current != last:
+            last, quiet_since = current, time.monotonic()
+
+
+def _second_look(topic: str, gids: set) -> list:
+    """Discovery events of the endpoints ``gids`` of ``topic``, seen by a second participant.
+
+    The first participant starts discovering when it is created, a moment before its tap is
+    installed: an endpoint found in that gap has no advertisement. A fresh participant (its own
+    context), tapped at once, discovers the graph again; it is rarely unlucky twice. Listens at
+    most ``DEFAULT_WAIT_SECONDS`` (a discovery announcement period).
+    """
+    from rosidl_buffer_py import _dds
+    context = rclpy.Context()
+    rclpy.init(context=context, args=[])
+    try:
+        node = rclpy.create_node(
+            f'_buffer_topic_info_{os.getpid()}_2', context=context, enable_rosout=False,
+            start_parameter_services=False,
+            parameter_overrides=[Parameter('start_type_description_service', value=False)])
+        try:
+            _dds.install_discovery(node)
+            main = dds_topic(topic)
+            deadline = time.monotonic() + DEFAULT_WAIT_SECONDS
+            while True:
+                found = [e for e in _dds.list_known_endpoints(node)
+                         if e.topic == main and _gid_hex(e.gid) in gids and not e.local]
+                if len(found) == len(gids) or time.monotonic() >= deadline:
+                    return found
+                time.sleep(_RECHECK_SECONDS)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> dict:
@@ -156,11 +230,11 @@ def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> d
     if tapped:
         for entity in probes:
             own.add(_gid_hex(_dds.endpoint_gid(entity)))
-    deadline = time.monotonic() + COMPLETION_GRACE_SECONDS
-    missing = _missing(node, topic, tapped, own)
-    while missing and time.monotonic() < deadline:
-        time.sleep(_RECHECK_SECONDS)
-        missing = _missing(node, topic, tapped, own)
+    missing = _listen_until_complete(node, topic, tapped, own)
+    if wait < DEFAULT_WAIT_SECONDS:
+        notes.append(f'listened {wait:g} s, less than a Fast DDS announcement period '
+                     f'({DEFAULT_WAIT_SECONDS:g} s): endpoints of processes not discovered yet '
+                     'may be missing, as may their node names and advertisements')
     if missing:
         notes.append(f'discovery still incomplete after {COMPLETION_GRACE_SECONDS:g} s more: '
                      + '; '.join(missing))
@@ -196,6 +270,14 @@ def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> d
             node.destroy_subscription(entity)
         else:
             node.destroy_publisher(entity)
+    unknown = {gid for gid, e in endpoints.items() if e['advertisement'] == 'unknown'}
+    if unknown and tapped:
+        for event in _second_look(topic, unknown):
+            gid = _gid_hex(event.gid)
+            backends = advertisement.decode(event.user_data)
+            endpoints[gid].update(advertisement='seen', buffer_aware=backends is not None,
+                                  legacy=backends is None,
+                                  backends=dict(backends) if backends else None)
     if any(e['advertisement'] == 'unknown' for e in endpoints.values()):
         notes.append('advertisement unknown: endpoint discovered before the discovery tap was '
                      'installed' + ('' if probe else '; run with --probe to make buffer-aware '
@@ -265,14 +347,22 @@ def format_text(result: dict) -> str:
     return '\n'.join(lines)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with usage errors in one line (as the image nodes report bad parameters)."""
+
+    def error(self, message: str):
+        self.exit(2, f'{self.prog}: {message} (see --help)\n')
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog='buffer_topic_info',
         description='Show the publishers, subscriptions, buffer backends and descriptor '
                     'channels of a topic (like "ros2 topic info -v").')
     parser.add_argument('topic', help='topic name (relative names use the node namespace)')
-    parser.add_argument('--wait', type=float, default=3.0, metavar='SECONDS',
-                        help='how long to listen to discovery (default 3; up to '
+    parser.add_argument('--wait', type=float, default=DEFAULT_WAIT_SECONDS, metavar='SECONDS',
+                        help=f'how long to listen to discovery (default '
+                             f'{DEFAULT_WAIT_SECONDS:g}; shorter may miss endpoints; up to '
                              f'{COMPLETION_GRACE_SECONDS:g} s more while the view is visibly '
                              'incomplete)')
     parser.add_argument('--probe', action='store_true',
@@ -287,7 +377,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv if argv is None else argv)
     options = _parser().parse_args(remove_ros_args(argv)[1:])
     if options.wait < 0:
-        _parser().error('--wait must be >= 0')
+        _parser().error(f'argument --wait: {options.wait:g} is not accepted; expected >= 0')
     rclpy.init(args=argv)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it like Ctrl-C
     node = None
@@ -311,7 +401,9 @@ def main(argv=None) -> int:
         rclpy.try_shutdown()
     if not result['endpoints']:
         print(f'buffer_topic_info: no publishers or subscriptions on {topic} '
-              f'(listened for {options.wait:g} s)', file=sys.stderr)
+              f'(listened for {options.wait:g} s'
+              + (f'; a shorter --wait than {DEFAULT_WAIT_SECONDS:g} s may miss running ones'
+                 if options.wait < DEFAULT_WAIT_SECONDS else '') + ')', file=sys.stderr)
         return 1
     if options.json:
         print(json.dumps(result, indent=2, sort_keys=True))

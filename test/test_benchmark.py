@@ -1,15 +1,18 @@
 """The benchmark suite runs end to end and writes its table and plot (no timing asserts).
 
 Runs README's quick mode, ``./dev benchmark --quick``, in a subprocess, inside this test
-session's ROS domain (see conftest.py), as CI does.
+session's ROS domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
+test``) the same module runs with the interpreter under test, as ``./dev`` would exec it.
 """
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
 import pytest
 
+from installed import in_dev_venv
 from launch_free_demos.benchmark import (
     ALL_ROWS, CPU, FANOUT_TRANSPORTS, MODES, STOCK, Result, StealMeter, median_run,
     paired_ratios)
@@ -30,8 +33,10 @@ def table_rows(text: str):
 @pytest.fixture(scope='module')
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
+    command = [str(ROOT / 'dev'), 'benchmark'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.benchmark']
     completed = subprocess.run(  # README's command for the quick mode, as CI runs it
-        [str(ROOT / 'dev'), 'benchmark', '--quick', '--out', str(out)],
+        command + ['--quick', '--out', str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
     assert completed.returncode == 0, completed.stderr[-3000:]
     return out, completed.stdout

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from installed import executable
 from rosidl_buffer_py.nodes.common import REPORT_PREFIX
 
 REPO = Path(__file__).resolve().parent.parent
@@ -29,7 +30,6 @@ PACKAGE = 'rosidl_buffer_py'
 EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
                'legacy_image_subscriber', 'buffer_topic_info', 'buffer_record', 'buffer_play',
                'buffer_bag_info']
-DEV_LIB = Path(sys.prefix) / 'lib' / PACKAGE
 
 
 def _report(stdout: str) -> dict:
@@ -66,31 +66,135 @@ def _short_publisher_args(**extra):
 
 
 @pytest.mark.parametrize('name', EXECUTABLES)
-def test_console_scripts_in_dev_venv(name):
-    path = DEV_LIB / name
+def test_console_scripts_where_the_package_was_installed(name):
+    path = executable(name)
     assert path.is_file() and os.access(path, os.X_OK), (
         f'{path} missing: run ./dev setup (setup.cfg [develop] script_dir)')
 
 
 def test_ros_args_parameters_and_every_script_runs():
-    code, out, err = _run([str(DEV_LIB / 'image_publisher')] + _short_publisher_args(
+    code, out, err = _run([str(executable('image_publisher'))] + _short_publisher_args(
         backend='demo', encoding='mono8'))
     assert code == 0, err
     report = _report(out)
     assert report['node'] == 'short_pub' and report['published'] == 3, report
     assert report['params']['backend'] == 'demo' and report['params']['width'] == 16
     assert report['params']['encoding'] == 'mono8'
-    code, out, err = _run([str(DEV_LIB / 'legacy_image_publisher')] + _short_publisher_args())
+    code, out, err = _run([str(executable('legacy_image_publisher'))] + _short_publisher_args())
     assert code == 0, err
     assert _report(out)['params']['legacy'] is True
     for name in ('image_subscriber', 'legacy_image_subscriber'):
-        code, out, err = _run([str(DEV_LIB / name), '--ros-args', '-p', 'timeout_sec:=0.3',
+        code, out, err = _run([str(executable(name)), '--ros-args', '-p', 'timeout_sec:=0.3',
                                '-p', 'topic:=/nobody_publishes', '-p', 'depth:=3'])
         assert code == 0, err
         report = _report(out)
         assert report['params']['topic'] == '/nobody_publishes' and report['received'] == 0
-    code, out, err = _run([str(DEV_LIB / 'buffer_topic_info'), '--help'])
+    code, out, err = _run([str(executable('buffer_topic_info')), '--help'])
     assert code == 0 and '--probe' in out, err
+
+
+#: Each node executable: parameters its --help must list, and bad values with the one line each
+#: must produce (parameter, value, what is accepted).
+NODE_PARAMETERS = {
+    'image_publisher': ['topic', 'backend', 'fill', 'width', 'height', 'encoding', 'rate_hz',
+                        'count', 'reliability', 'depth', 'wait_for_subscribers',
+                        'wait_for_buffer_peers', 'wait_timeout_sec', 'settle_sec', 'linger_sec',
+                        'first_frame', 'phase_sec', 'legacy'],
+    'image_subscriber': ['topic', 'acceptable_buffer_backends', 'expected_backend',
+                         'expected_count', 'timeout_sec', 'reliability', 'depth', 'legacy', 'raw',
+                         'report_period_sec'],
+}
+NODE_PARAMETERS['legacy_image_publisher'] = NODE_PARAMETERS['image_publisher']
+NODE_PARAMETERS['legacy_image_subscriber'] = NODE_PARAMETERS['image_subscriber']
+BAD_PARAMETERS = {
+    'image_publisher': [
+        ('backend:=foo', "parameter backend: 'foo' is not accepted; expected one of cpu, demo"),
+        ('encoding:=bogus', "parameter encoding: 'bogus' is not accepted; expected mono8, "),
+        ('rate_hz:=fast', "parameter rate_hz: 'fast' is not accepted; expected a double"),
+        ('width:=0', 'parameter width: 0 is not accepted; expected >= 1'),
+    ],
+    'legacy_image_publisher': [
+        ('backend:=demo', "parameter backend: 'demo' is not accepted; expected cpu for a "
+                          'legacy publisher'),
+        ('reliability:=sometimes', "parameter reliability: 'sometimes' is not accepted; "
+                                   'expected one of reliable, best_effort'),
+    ],
+    'image_subscriber': [
+        ('expected_backend:=foo', "parameter expected_backend: 'foo' is not accepted; "
+                                  "expected '' or one of cpu, demo"),
+        ('depth:=0', 'parameter depth: 0 is not accepted; expected >= 1'),
+    ],
+    'legacy_image_subscriber': [
+        ('timeout_sec:=-1', 'parameter timeout_sec: -1.0 is not accepted; expected >= 0'),
+        ('topic:=7', "parameter topic: 7 is not accepted; expected a string"),
+    ],
+}
+
+
+@pytest.mark.parametrize('name', sorted(NODE_PARAMETERS))
+def test_help_lists_every_parameter_and_bad_values_fail_in_one_line(name):
+    """``--help`` prints every parameter with type, default and meaning and exits 0 without
+    starting a node; a bad value ends the node at start-up, before any graph wait: one line
+    naming parameter, value and what is accepted, exit status 2, no traceback."""
+    code, out, err = _run([str(executable(name)), '--help'], timeout=30)
+    assert code == 0 and err == '', err
+    assert out.startswith(f'usage: {name} ') and 'REPORT {' not in out, out
+    for parameter in NODE_PARAMETERS[name]:
+        line = next((line for line in out.splitlines()
+                     if line.startswith(f'  {parameter} (')), None)
+        assert line is not None and ', default ' in line, (parameter, out)
+        description = out.splitlines()[out.splitlines().index(line) + 1].strip()
+        assert description, (parameter, out)
+    for override, message in BAD_PARAMETERS[name]:
+        # a node that checked only after waiting for peers would not end before the timeout
+        code, out, err = _run([str(executable(name)), '--ros-args', '-p', override,
+                               '-p', 'wait_for_subscribers:=5', '-p', 'wait_timeout_sec:=600.0',
+                               '-p', 'timeout_sec:=600.0'], timeout=30)
+        assert code == 2, (override, code, err)
+        assert err.splitlines() == [err.strip()] and err.startswith(f'{name}: {message}'), err
+        assert 'Traceback' not in err and 'REPORT' not in out, err
+    code, out, err = _run([str(executable(name)), 'stray'], timeout=30)
+    assert code == 2 and 'unrecognized arguments stray' in err, err
+
+
+def test_inspector_help_and_usage_errors():
+    code, out, err = _run([str(executable('buffer_topic_info')), '--help'], timeout=30)
+    assert code == 0 and out.startswith('usage: buffer_topic_info') and '--wait' in out, err
+    for args, message in ((['/t', '--wait', '-1'], 'argument --wait: -1 is not accepted; '
+                                                    'expected >= 0'),
+                          (['/t', '--wait', 'soon'], "argument --wait: invalid float value: "
+                                                     "'soon'"),
+                          ([], 'the following arguments are required: topic')):
+        code, out, err = _run([str(executable('buffer_topic_info')), *args], timeout=30)
+        assert code == 2 and out == '', (args, err)
+        assert err == f'buffer_topic_info: {message} (see --help)\n', err
+
+
+def test_parameters_are_declared_with_their_descriptions_and_an_integer_is_a_double():
+    """What ``ros2 param describe`` shows comes from the same table as ``--help``; ``-p
+    rate_hz:=30`` (an integer) sets the double parameter to 30.0."""
+    import rclpy
+    from rosidl_buffer_py.nodes import image_publisher, image_subscriber
+    from rosidl_buffer_py.nodes.common import declare_parameters
+
+    context = rclpy.Context()
+    rclpy.init(context=context, args=['x', '--ros-args', '-p', 'rate_hz:=30',
+                                      '-p', 'timeout_sec:=2', '-p', 'topic:=/describe_me'])
+    try:
+        for module in (image_publisher, image_subscriber):
+            node = rclpy.create_node('describe_me', context=context)
+            values = declare_parameters(node, module.PARAMETERS)
+            for spec in module.PARAMETERS:
+                [descriptor] = node.describe_parameters([spec.name])
+                assert descriptor.description == spec.description, spec.name
+                assert descriptor.type == spec.descriptor().type, spec.name
+            node.destroy_node()
+            if module is image_publisher:
+                assert values['rate_hz'] == 30.0 and isinstance(values['rate_hz'], float)
+            else:
+                assert values['timeout_sec'] == 2.0 and values['topic'] == '/describe_me'
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 def test_colcon_style_install_where_ros2_run_looks(tmp_path):
@@ -126,8 +230,8 @@ def test_colcon_style_install_where_ros2_run_looks(tmp_path):
 
 
 class _Node:
-    def __init__(self, label, executable, **params):
-        command = [str(DEV_LIB / executable), '--ros-args', '-r', f'__node:={label}']
+    def __init__(self, label, name, **params):
+        command = [str(executable(name)), '--ros-args', '-r', f'__node:={label}']
         for name, value in params.items():
             command += ['-p', f'{name}:={value}']
         self.label = label
@@ -255,7 +359,7 @@ def test_phase_sec_sends_frames_on_a_wall_clock_grid():
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         process = subprocess.Popen(
-            [str(DEV_LIB / 'legacy_image_publisher')] + _short_publisher_args(
+            [str(executable('legacy_image_publisher'))] + _short_publisher_args(
                 topic=topic, count=count, rate_hz=rate, phase_sec=phase, wait_for_subscribers=1),
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
         try:

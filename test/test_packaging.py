@@ -1,20 +1,56 @@
 """The package is a proper ament_python package and its dependency lists agree."""
+import ast
 import configparser
 import re
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
+#: package.xml keys the PyPI path gets without a requirements line, and why.
+NOT_FROM_PIP = {'python3-dev': "the Python headers come with the venv's interpreter",
+                'python3-pip': 'every venv has pip'}
+
+#: Top-level modules imported by the code -> the package.xml key that provides them.
+MODULE_KEYS = {
+    'rclpy': 'rclpy', 'rcl_interfaces': 'rcl_interfaces', 'rosidl_parser': 'rosidl_parser',
+    'sensor_msgs': 'sensor_msgs', 'std_msgs': 'std_msgs', 'geometry_msgs': 'geometry_msgs',
+    'visualization_msgs': 'visualization_msgs', 'ament_index_python': 'ament_index_python',
+    'numpy': 'python3-numpy', 'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis',
+    'matplotlib': 'python3-matplotlib', 'setuptools': 'python3-setuptools',
+}
+#: Modules of this repository (or made by the tests) that need no dependency.
+OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'installed',
+               'rbpy_example_backend', 'test_codec', 'my_backend'}
+
+
 def requirement_lines(name):
-    """(requirement, ROS key from the comment) pairs of a requirements file."""
+    """(requirement, package.xml keys) of a requirements file: after ``#``, the keys the line
+    provides, comma-separated, up to an optional ``:`` and explanation."""
     pairs = []
     for line in (ROOT / name).read_text().splitlines():
         requirement, _, comment = line.partition('#')
         if requirement.strip():
-            pairs.append((requirement.strip(), comment.split()[0] if comment.split() else None))
+            keys = comment.split(':', 1)[0]
+            pairs.append((requirement.strip(), {k.strip() for k in keys.split(',') if k.strip()}))
     return pairs
+
+
+def package_xml_keys():
+    """package.xml dependency keys by kind: build, exec and test (``depend`` is build and exec)."""
+    root = ET.parse(ROOT / 'package.xml').getroot()
+    keys = {kind: {e.text for e in root.findall(f'{kind}_depend')}
+            for kind in ('build', 'exec', 'test', 'buildtool')}
+    both = {e.text for e in root.findall('depend')}
+    keys['build'] |= both | keys.pop('buildtool')
+    keys['exec'] |= both
+    return keys
+
+
+def provided(name):
+    return set().union(*(keys for _, keys in requirement_lines(name)))
 
 
 def test_package_xml_is_format_3_ament_python():
@@ -25,17 +61,59 @@ def test_package_xml_is_format_3_ament_python():
     assert (ROOT / 'resource' / 'rosidl_buffer_py').is_file()
 
 
-def test_requirements_agree_with_package_xml():
-    root = ET.parse(ROOT / 'package.xml').getroot()
-    exec_depends = {e.text for e in root.findall('exec_depend')}
-    test_depends = {e.text for e in root.findall('test_depend')}
-    runtime = requirement_lines('requirements.txt')
-    tests = requirement_lines('requirements-test.txt')
-    # every runtime requirement names the package.xml key it provides, and vice versa
-    assert {key for _, key in runtime} == exec_depends
-    assert {'python3-pytest'} <= {key for _, key in tests}
-    assert test_depends <= {key for _, key in tests}
-    assert any(re.match(r'ros-jazzy-rclpy\[fastrtps\]', req) for req, _ in runtime)
+def test_requirements_agree_with_package_xml_both_ways():
+    keys = package_xml_keys()
+    runtime, build, tests = (provided(f) for f in (
+        'requirements.txt', 'requirements-build.txt', 'requirements-test.txt'))
+    for name in ('requirements.txt', 'requirements-build.txt', 'requirements-test.txt'):
+        for requirement, line_keys in requirement_lines(name):
+            assert line_keys, f'{name}: {requirement!r} names no package.xml key'
+    # every requirement provides declared keys of the matching kind ...
+    assert runtime <= keys['exec'] | keys['test'], runtime - keys['exec'] - keys['test']
+    assert build <= keys['build'], build - keys['build']
+    assert tests <= keys['test'], tests - keys['test']
+    # ... and every declared key is provided by a requirement (or listed in NOT_FROM_PIP)
+    assert keys['exec'] - set(NOT_FROM_PIP) <= runtime, keys['exec'] - runtime
+    assert keys['build'] - set(NOT_FROM_PIP) <= runtime | build, \
+        keys['build'] - runtime - build - set(NOT_FROM_PIP)
+    assert keys['test'] - set(NOT_FROM_PIP) <= runtime | tests, \
+        keys['test'] - runtime - tests - set(NOT_FROM_PIP)
+    assert any(re.match(r'ros-jazzy-rclpy\[fastrtps\]', req)
+               for req, _ in requirement_lines('requirements.txt'))
+
+
+def _imported_modules(paths):
+    modules = set()
+    for path in paths:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                modules |= {alias.name.split('.')[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module.split('.')[0])
+    return modules - set(sys.stdlib_module_names) - OWN_MODULES
+
+
+def test_every_imported_module_is_declared():
+    """The package's imports are exec (or, for the benchmark's plots, test) dependencies; the
+    tests' imports are exec or test dependencies; setup.py's are build dependencies."""
+    keys = package_xml_keys()
+    package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos')
+               for p in (ROOT / d).rglob('*.py')]
+    tests = list((ROOT / 'test').rglob('*.py'))
+    for paths, allowed in ((package, keys['exec'] | {'python3-matplotlib'}),
+                           (tests, keys['exec'] | keys['test']),
+                           ([ROOT / 'setup.py'], keys['build'])):
+        modules = _imported_modules(paths)
+        unknown = modules - set(MODULE_KEYS)
+        assert not unknown, f'imported, no package.xml key known: {sorted(unknown)}'
+        undeclared = {MODULE_KEYS[m] for m in modules} - allowed
+        assert not undeclared, f'imported but not declared: {sorted(undeclared)}'
+
+
+def test_python_requires_matches_what_dev_requires():
+    setup_py = (ROOT / 'setup.py').read_text()
+    assert "python_requires='>=3.11'" in setup_py
+    assert 'sys.version_info < (3, 11)' in (ROOT / 'dev').read_text()
 
 
 def test_setup_cfg_installs_scripts_where_ros2_run_looks():

@@ -1,6 +1,8 @@
-"""Every command README.md shows is run: here, by another named test, or by CI itself.
+"""Every command README.md shows is run: here, by another named test, or by CI itself; every
+Python program it shows is run here exactly as printed.
 
-A command added to README without a place in COVERAGE fails the first test, so the README
+A command added to README without a place in COVERAGE fails the first test, and so does a
+``python`` block without a test below (each block starts with ``# <name>.py``), so the README
 cannot rot silently.
 """
 import json
@@ -9,10 +11,14 @@ import re
 import shlex
 import signal
 import subprocess
+import sys
 import time
+import tomllib
 from pathlib import Path
 
 import pytest
+
+from installed import executable, in_dev_venv
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / 'README.md').read_text()
@@ -32,6 +38,8 @@ COVERAGE = {
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
     'buffer_topic_info <topic> [--json] [--wait S] [--probe]': 'test_info.py',
+    'buffer_topic_info --probe': 'test_info.py',
+    '.venv/bin/python test/measure_inspector.py 20': 'here',     # with 1 run instead of 20
     'colcon build': 'test_colcon.py',
     'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
     'colcon test-result --verbose': 'test_colcon.py',
@@ -44,6 +52,7 @@ COVERAGE = {
     '.venv/lib/rosidl_buffer_py/buffer_play camera_bag --rate 2': 'test_record.py',
     'wait': 'test_record.py',
     './dev bench-record': 'test_record.py',               # 1 s of small frames
+    'colcon test': 'test_colcon.py',
 }
 
 
@@ -62,6 +71,21 @@ def readme_commands():
     return commands
 
 
+#: The README's commands that only make sense in the ./dev checkout (under `colcon test` the
+#: source copy has no .venv; those are run by ./dev test).
+dev_only = pytest.mark.skipif(not in_dev_venv(), reason='not running in the ./dev venv')
+
+
+def python_snippets():
+    """README's ``python`` blocks by the file name on their first line."""
+    snippets = {}
+    for block in re.findall(r'```python\n(.*?)```', README, re.S):
+        match = re.match(r'# (\w+\.py)', block)
+        assert match, f'a README python block does not start with "# <name>.py": {block[:80]!r}'
+        snippets[match.group(1)] = block
+    return snippets
+
+
 def run(command, timeout):
     return subprocess.run(command, shell=True, cwd=ROOT, capture_output=True, text=True,
                           timeout=timeout)
@@ -75,6 +99,7 @@ def test_every_readme_command_has_a_place_that_runs_it():
             assert (ROOT / 'test' / where).is_file(), (command, where)
 
 
+@dev_only
 def test_dev_setup_and_demo():
     assert run('./dev setup', 300).returncode == 0
     help_text = run('./dev demo --help', 60)
@@ -85,6 +110,25 @@ def test_dev_setup_and_demo():
     assert '| duplicates / gaps / checksum failures | 0 / 0 / 0 |' in demo.stdout
 
 
+@dev_only
+def test_dev_setup_says_what_it_does_and_shows_pip_only_when_it_fails(tmp_path):
+    """One line per step; pip's own output only on failure (a venv without pip fails)."""
+    venv = tmp_path / 'venv'
+    subprocess.run([sys.executable, '-m', 'venv', '--without-pip', str(venv)], check=True)
+    done = subprocess.run([str(ROOT / 'dev'), 'setup'], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120,
+                          env=dict(os.environ, ROSIDL_BUFFER_PY_VENV=str(venv)))
+    assert done.returncode != 0 and done.stdout == '', done.stdout
+    lines = done.stderr.splitlines()
+    assert lines[0] == 'dev: installing ROS 2 Jazzy from PyPI and the test tools (about a ' \
+        'minute)', lines
+    assert 'No module named pip' in done.stderr, done.stderr  # what pip (here: python) said
+    assert lines[-1].startswith(f'dev: failed (exit {done.returncode}): {venv}/bin/python -m '
+                                'pip install'), lines
+    assert not (venv / '.rosidl_buffer_py_stamp').exists()
+
+
+@dev_only
 def test_dev_bench_prints_the_table():
     bench = run('./dev bench', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
@@ -94,6 +138,7 @@ def test_dev_bench_prints_the_table():
     assert '| 1 KiB |' in transport.stdout
 
 
+@dev_only
 def test_readme_image_publisher_command_runs_and_stops_cleanly():
     command = [c for c in COVERAGE if c.startswith('.venv/lib/')][0]
     process = subprocess.Popen(shlex.split(command), cwd=ROOT, stdout=subprocess.PIPE,
@@ -113,8 +158,117 @@ def test_readme_image_publisher_command_runs_and_stops_cleanly():
     assert report['published'] > 0 and report['params']['backend'] == 'demo'
 
 
+@dev_only
+def test_inspector_measurement_command():
+    command = [c for c in COVERAGE if 'measure_inspector' in c][0]
+    out = run(command.replace(' 20', ' 1'), 120)
+    assert out.returncode == 0, out.stdout + out.stderr[-2000:]
+    assert 'complete on the first try: 1 of 1' in out.stdout, out.stdout
+
+
+@dev_only
 @pytest.mark.parametrize('name', ['demo_pub_to_legacy_sub'])
 def test_scenarios_command_line(name):
     out = run(f'.venv/bin/python -m launch_free_demos.scenarios {name}', 120)
     assert out.returncode == 0, out.stdout + out.stderr[-2000:]
     assert f'| {name} | PASS |' in out.stdout
+
+
+#: Each README program and the test that runs it as printed.
+SNIPPET_TESTS = {
+    'camera.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
+    'viewer.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
+    'points.py': 'test_pointcloud_program',
+    'my_backend.py': 'test_backend_guide_module_serves_the_nodes_and_leaves_nothing',
+}
+
+
+def test_every_readme_program_is_run_by_a_test():
+    assert set(python_snippets()) == set(SNIPPET_TESTS)
+    for test in SNIPPET_TESTS.values():
+        assert callable(globals()[test]), test
+
+
+def _write_snippet(directory, name):
+    path = directory / name
+    path.write_text(python_snippets()[name])
+    return path
+
+
+def _popen(command, **kwargs):
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, **kwargs)
+
+
+def _communicate_all(processes, timeout):
+    """Wait for every process (killed at the timeout); return their (code, out, err)."""
+    results = []
+    try:
+        for process in processes:
+            out, err = process.communicate(timeout=timeout)
+            results.append((process.returncode, out, err))
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.communicate()
+    return results
+
+
+def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
+    """The Publishing and Subscribing programs as a pair: all 30 4K frames arrive as demo
+    Buffers (nothing on the main topic)."""
+    camera = _write_snippet(tmp_path, 'camera.py')
+    viewer = _write_snippet(tmp_path, 'viewer.py')
+    processes = [_popen([sys.executable, str(viewer)], cwd=tmp_path),
+                 _popen([sys.executable, str(camera)], cwd=tmp_path)]
+    (vcode, vout, verr), (ccode, cout, cerr) = _communicate_all(processes, 120)
+    assert vcode == 0 and ccode == 0, verr[-2000:] + cerr[-2000:]
+    assert vout.strip() == "('DemoBuffer', (2160, 3840, 3), 0) ('DemoBuffer', (2160, 3840, 3), " \
+        "29)", vout + verr[-2000:]
+    assert "'sent_on_main_topic': 0" in cout, cout
+
+
+def test_pointcloud_program(tmp_path):
+    code, out, err = _communicate_all(
+        [_popen([sys.executable, str(_write_snippet(tmp_path, 'points.py'))], cwd=tmp_path)],
+        120)[0]
+    assert code == 0, err[-2000:]
+    assert out.strip() == "[('DemoBuffer', (100000, 4))]", out + err[-2000:]
+
+
+def test_backend_guide_module_serves_the_nodes_and_leaves_nothing(tmp_path):
+    """The guide's backend module, registered with the guide's entry point (the TOML block),
+    carries image_publisher's frames to image_subscriber; no file of it is left."""
+    site = tmp_path / 'site'
+    site.mkdir()
+    _write_snippet(site, 'my_backend.py')
+    [toml] = re.findall(r'```toml\n(.*?)```', README, re.S)
+    entry_points = tomllib.loads(toml)['project']['entry-points']
+    dist_info = site / 'my_backend-0.1.dist-info'
+    dist_info.mkdir()
+    (dist_info / 'METADATA').write_text('Metadata-Version: 2.1\nName: my-backend\n'
+                                        'Version: 0.1\n')
+    (dist_info / 'entry_points.txt').write_text(''.join(
+        f'[{group}]\n' + ''.join(f'{name} = {target}\n' for name, target in points.items())
+        for group, points in entry_points.items()))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        filter(None, [str(site), os.environ.get('PYTHONPATH')])))
+    before = {n for n in os.listdir('/dev/shm') if n.startswith('mymem_')}
+    topic = f'/mymem_{os.getpid()}'
+    processes = [
+        _popen([str(executable('image_subscriber')), '--ros-args', '-p', f'topic:={topic}',
+                '-p', 'acceptable_buffer_backends:=mymem', '-p', 'expected_backend:=mymem',
+                '-p', 'expected_count:=20', '-p', 'timeout_sec:=60', '-p', 'depth:=20'], env=env),
+        _popen([str(executable('image_publisher')), '--ros-args', '-p', f'topic:={topic}',
+                '-p', 'backend:=mymem', '-p', 'count:=20', '-p', 'rate_hz:=20',
+                '-p', 'width:=640', '-p', 'height:=480', '-p', 'depth:=20',
+                '-p', 'wait_for_subscribers:=1', '-p', 'wait_for_buffer_peers:=1',
+                '-p', 'linger_sec:=10'], env=env)]
+    (scode, sout, serr), (pcode, pout, perr) = _communicate_all(processes, 120)
+    assert scode == 0 and pcode == 0, serr[-2000:] + perr[-2000:]
+    report = json.loads(sout.split('REPORT ', 1)[1])
+    assert report['backends'] == {'mymem': 20} and report['distinct'] == 20, report
+    assert report['checksum_failures'] == 0 and report['wrong_backend'] == 0, report
+    left = {n for n in os.listdir('/dev/shm') if n.startswith('mymem_')} - before
+    assert not left, left

@@ -164,31 +164,43 @@ def test_backend_contract_descriptors_validation_and_cleanup(plugin_site, store,
                 errors.append('ValueError')
         out['bad'] = errors
 
-        # Retention: the publisher keeps the last RBPY_EXAMPLE_RETAIN (3) described files for
-        # late readers; older ones vanish and their descriptors are refused as stale.
-        descriptors = []
-        for i in range(5):
-            b = be.allocate(10)
-            descriptors.append(be.create_descriptor_with_endpoint(b, sub))
-        del b
-        stale = []
-        for desc in descriptors:
+        # Release: a descriptor is a link its receiver consumes (a second take is refused);
+        # links a subscriber never took go when it leaves; a file goes with its last name.
+        b = be.allocate(10)
+        first = be.create_descriptor_with_endpoint(b, sub)
+        untaken = be.create_descriptor_with_endpoint(b, sub)
+        out['pending_before'] = be.pending_links()
+        kept = be.from_descriptor_with_endpoint(first, pub)
+        takes = []
+        for desc in (first, untaken):
             try:
                 be.from_descriptor_with_endpoint(desc, pub)
-                stale.append(False)
+                takes.append('taken')
             except ValueError:
-                stale.append(True)
-        out['stale'] = stale
+                takes.append('refused')
+        out['second_takes'] = takes
+        untaken_too = be.create_descriptor_with_endpoint(b, sub)
+        be.on_removing_endpoint(sub)
+        try:
+            be.from_descriptor_with_endpoint(untaken_too, pub)
+            out['after_leaving'] = 'taken'
+        except ValueError:
+            out['after_leaving'] = 'refused'
+        del b
+        out['kept_readable'] = kept.to_bytes() == bytes(10)
+        out['pending_after'] = be.pending_links()
         out['files_now'] = len(os.listdir({str(store)!r}))
         print(json.dumps(out))
     '''
-    env = dict(_env(plugin_site, store), RBPY_EXAMPLE_RETAIN='3')
+    env = _env(plugin_site, store)
     result, _ = _child(code, env)
     assert result.pop('bad') == ['ValueError'] * 8
-    assert result.pop('stale') == [True, True, False, False, False]
-    assert 0 < result.pop('descriptor_len') <= 64
-    # buf (still referenced) and the 3 retained ones; the 0-byte file went with its Buffer
-    assert result.pop('files_now') == 4
+    assert result.pop('second_takes') == ['refused', 'taken']
+    assert result.pop('after_leaving') == 'refused'
+    assert result.pop('pending_before') == 2 and result.pop('pending_after') == 0
+    assert 0 < result.pop('descriptor_len') <= 80
+    # only buf, still referenced: every link was taken or removed, b went with its Buffer
+    assert result.pop('files_now') == 1
     assert all(result.values()), result
     assert os.listdir(store) == [], 'files left after the process exited'
 

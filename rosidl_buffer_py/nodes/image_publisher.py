@@ -1,14 +1,8 @@
 """image_publisher: publish verifiable sensor_msgs/Image frames (cpu or a buffer backend).
 
-Parameters: topic, backend (cpu | demo | any installed backend that can allocate), fill
-(allocate: fill the backend's memory in place | from_cpu: copy a CPU frame into it), width,
-height, encoding, rate_hz (0 = as fast as possible), count (0 = until stopped), reliability,
-depth, wait_for_subscribers (start once this many are matched), wait_timeout_sec,
-linger_sec (after the last frame, stay until subscribers leave or this long), first_frame
-(counter of the first frame), wait_for_buffer_peers (also wait until this many buffer-aware
-subscriptions are served by a channel), settle_sec (then wait this long: a DDS volatile reader
-that matches after the writer may miss the first samples), phase_sec (when >= 0: send frames at
-wall-clock times t with t mod (1 / rate_hz) == phase_sec), legacy (plain rclpy publisher).
+Each frame carries its counter in its first bytes and a CRC32 in ``header.frame_id``
+(``frames.py``); image_subscriber checks both. The parameters are listed in :data:`PARAMETERS`
+(``image_publisher --help`` prints them).
 """
 import time
 
@@ -18,27 +12,93 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
-from rosidl_buffer_py.image import allocate_image_msg
-from rosidl_buffer_py.nodes.common import declare_qos_parameters, print_report, run_node
+from rosidl_buffer_py.backend import BufferBackend
+from rosidl_buffer_py.image import allocate_image_msg, encoding_info, supported_encodings
+from rosidl_buffer_py.nodes.common import (
+    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, print_report,
+    qos_profile, run_node, with_default)
 from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
+
+SUMMARY = ('Publish verifiable sensor_msgs/Image frames (a counter and a CRC32 in each) from '
+           'CPU memory or a buffer backend; image_subscriber checks them.')
+
+#: Every ROS parameter of image_publisher (legacy_image_publisher: legacy defaults to true).
+PARAMETERS = (
+    Param('topic', 'image', 'topic to publish on'),
+    Param('backend', 'cpu', 'where frames live: cpu (array.array, as stock rclpy) or a buffer '
+          'backend', accepts='cpu or an installed backend that can allocate'),
+    Param('fill', 'allocate', 'allocate: fill the backend memory in place; from_cpu: copy a '
+          'CPU frame into it at publish time (demo backend)', choices=('allocate', 'from_cpu')),
+    Param('width', 640, 'image width in pixels', minimum=1),
+    Param('height', 480, 'image height in rows', minimum=1),
+    Param('encoding', 'rgb8', 'sensor_msgs image encoding', accepts='mono8, rgb8, bgr8, rgba8, '
+          'mono16, yuv422, bayer_*8/16, 8UC1 .. 64FC4, ...'),
+    Param('rate_hz', 30.0, 'frames per second; 0 = as fast as possible', minimum=0),
+    Param('count', 0, 'frames to publish; 0 = until stopped', minimum=0),
+    *QOS_PARAMETERS,
+    Param('wait_for_subscribers', 0, 'start publishing once this many subscriptions are '
+          'matched', minimum=0),
+    Param('wait_for_buffer_peers', 0, 'also wait until this many buffer-aware subscriptions '
+          'are served by a descriptor channel', minimum=0),
+    Param('wait_timeout_sec', 30.0, 'give up waiting for subscribers after this long '
+          '(error, exit 1)', minimum=0),
+    Param('settle_sec', 0.5, 'after the wait, spin this long before the first frame (a DDS '
+          'volatile reader that matches after the writer may miss the first samples)',
+          minimum=0),
+    Param('linger_sec', 5.0, 'after the last frame, stay until subscribers leave or this long',
+          minimum=0),
+    Param('first_frame', 0, 'counter of the first frame', minimum=0),
+    Param('phase_sec', -1.0, 'when >= 0: send frames at wall-clock times t with t mod '
+          '(1 / rate_hz) == phase_sec; -1 = off'),
+    Param('legacy', False, 'publish with a plain rclpy publisher (no rosidl_buffer_py); only '
+          'backend cpu'),
+)
+
+
+def _can_allocate(backend: BufferBackend) -> bool:
+    return type(backend).allocate is not BufferBackend.allocate
+
+
+def check_parameters(p: dict) -> None:
+    """Reject combinations and values :func:`declare_parameters` cannot check alone.
+
+    :raises ParameterError: Naming the parameter, its value and what is accepted.
+    """
+    if p['backend'] != 'cpu':
+        installed = rosidl_buffer_py.get_installed_backends()
+        usable = ['cpu'] + sorted(n for n, b in installed.items()
+                                 if n != 'cpu' and _can_allocate(b))
+        if p['backend'] not in usable:
+            raise bad_parameter('backend', p['backend'], 'one of ' + ', '.join(usable) + (
+                ' (installed, cannot allocate: ' + ', '.join(sorted(set(installed) - set(usable)))
+                + ')' if set(installed) - set(usable) else ''))
+    try:
+        encoding_info(p['encoding'])
+    except ValueError:
+        raise bad_parameter('encoding', p['encoding'], supported_encodings()) from None
+    if p['fill'] == 'from_cpu' and p['backend'] not in ('cpu', 'demo'):
+        raise bad_parameter('fill', 'from_cpu', f"allocate with backend {p['backend']!r} "
+                            '(from_cpu is implemented for the demo backend)')
+    if p['legacy'] and p['backend'] != 'cpu':
+        raise bad_parameter('backend', p['backend'], 'cpu for a legacy publisher')
+    if p['phase_sec'] != -1.0 and not (p['phase_sec'] >= 0 and (
+            p['rate_hz'] == 0 or p['phase_sec'] < 1.0 / p['rate_hz'])):
+        raise bad_parameter('phase_sec', p['phase_sec'],
+                            '-1 (off) or 0 <= phase_sec < 1 / rate_hz')
 
 
 class ImagePublisher(Node):
 
     def __init__(self, legacy: bool = False) -> None:
         super().__init__('legacy_image_publisher' if legacy else 'image_publisher')
-        p = {name: self.declare_parameter(name, default).value for name, default in [
-            ('topic', 'image'), ('backend', 'cpu'), ('fill', 'allocate'), ('width', 640),
-            ('height', 480), ('encoding', 'rgb8'), ('rate_hz', 30.0), ('count', 0),
-            ('wait_for_subscribers', 0), ('wait_timeout_sec', 30.0), ('linger_sec', 5.0),
-            ('first_frame', 0), ('wait_for_buffer_peers', 0), ('settle_sec', 0.5),
-            ('phase_sec', -1.0), ('legacy', legacy)]}
+        try:
+            p = declare_parameters(self, with_default(PARAMETERS, 'legacy', legacy))
+            check_parameters(p)
+        except ParameterError:
+            self.destroy_node()
+            raise
         self.params = p
-        qos = declare_qos_parameters(self)
-        if p['fill'] not in ('allocate', 'from_cpu'):
-            raise ValueError(f"fill must be 'allocate' or 'from_cpu', got {p['fill']!r}")
-        if p['legacy'] and p['backend'] != 'cpu':
-            raise ValueError('a legacy publisher can only publish backend cpu')
+        qos = qos_profile(p)
         self.publisher = self.create_publisher(Image, p['topic'], qos) if p['legacy'] else \
             rosidl_buffer_py.create_publisher(self, Image, p['topic'], qos)
         template = allocate_image_msg(p['height'], p['width'], p['encoding'])
@@ -125,11 +185,16 @@ def _from_cpu(backend: str, frame: numpy.ndarray):
 
 
 def main(args=None) -> int:
-    return run_node(lambda: ImagePublisher(), lambda node: node.run())
+    return run_node(lambda: ImagePublisher(), lambda node: node.run(),
+                    program='image_publisher', summary=SUMMARY, parameters=PARAMETERS)
 
 
 def legacy_main(args=None) -> int:
-    return run_node(lambda: ImagePublisher(legacy=True), lambda node: node.run())
+    return run_node(lambda: ImagePublisher(legacy=True), lambda node: node.run(),
+                    program='legacy_image_publisher',
+                    summary=SUMMARY.replace('from CPU memory or a buffer backend',
+                                            'with plain rclpy only'),
+                    parameters=with_default(PARAMETERS, 'legacy', True))
 
 
 if __name__ == '__main__':

@@ -1,13 +1,8 @@
 """image_subscriber: receive and verify the frames of image_publisher, then report.
 
-Parameters: topic, acceptable_buffer_backends (``__default__``: do not pass the option, as
-upstream's test nodes do), expected_backend (optional: count frames of any other backend as
-wrong), expected_count (exit once that many distinct frames arrived; 0 = until stopped),
-timeout_sec (give up after this long; 0 = never), reliability, depth, legacy (a plain rclpy
-subscription), raw (legacy only: take serialized bytes and check they are canonical CDR),
-report_period_sec (log a summary this often, default 5 s; 0 = never).
 The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
-frames), checksum failures, backends seen, wrong-backend frames and latency percentiles.
+frames), checksum failures, backends seen, wrong-backend frames and latency percentiles. The
+parameters are listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
 """
 import collections
 import time
@@ -20,22 +15,57 @@ from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
 from rosidl_buffer_py import codec
-from rosidl_buffer_py.nodes.common import declare_qos_parameters, print_report, run_node
+from rosidl_buffer_py.nodes.common import (
+    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, print_report,
+    qos_profile, run_node, with_default)
 from rosidl_buffer_py.nodes.frames import check_frame, latency_ms
 
 DEFAULT_SENTINEL = '__default__'
+
+SUMMARY = ('Receive the frames of image_publisher, verify each (counter, CRC32), log a summary '
+           'periodically and print a JSON report at exit.')
+
+#: Every ROS parameter of image_subscriber (legacy_image_subscriber: legacy defaults to true).
+PARAMETERS = (
+    Param('topic', 'image', 'topic to subscribe to'),
+    Param('acceptable_buffer_backends', DEFAULT_SENTINEL,
+          "the subscription option: which backends' descriptors to take (cpu, any, or names "
+          f'such as demo); {DEFAULT_SENTINEL} = do not pass the option (default cpu)'),
+    Param('expected_backend', '', 'count frames of any other backend as wrong_backend in the '
+          "report; '' = no expectation", accepts="'', cpu or an installed backend"),
+    Param('expected_count', 0, 'exit once this many distinct frames arrived; 0 = until stopped',
+          minimum=0),
+    Param('timeout_sec', 60.0, 'exit after this long; 0 = never', minimum=0),
+    *QOS_PARAMETERS,
+    Param('legacy', False, 'a plain rclpy subscription (no rosidl_buffer_py)'),
+    Param('raw', False, 'legacy only: take serialized bytes and check they are canonical CDR'),
+    Param('report_period_sec', 5.0, 'log a summary line this often; 0 = never', minimum=0),
+)
+
+
+def check_parameters(p: dict) -> None:
+    """:raises ParameterError: A value :func:`declare_parameters` cannot check alone."""
+    if p['expected_backend']:
+        known = sorted({'cpu', *rosidl_buffer_py.get_installed_backends()})
+        if p['expected_backend'] not in known:
+            raise bad_parameter('expected_backend', p['expected_backend'],
+                                "'' or one of " + ', '.join(known))
+    if p['raw'] and not p['legacy']:
+        raise bad_parameter('raw', True, 'false unless legacy is true')
 
 
 class ImageSubscriber(Node):
 
     def __init__(self, legacy: bool = False) -> None:
         super().__init__('legacy_image_subscriber' if legacy else 'image_subscriber')
-        p = {name: self.declare_parameter(name, default).value for name, default in [
-            ('topic', 'image'), ('acceptable_buffer_backends', DEFAULT_SENTINEL),
-            ('expected_backend', ''), ('expected_count', 0), ('timeout_sec', 60.0),
-            ('legacy', legacy), ('raw', False), ('report_period_sec', 5.0)]}
+        try:
+            p = declare_parameters(self, with_default(PARAMETERS, 'legacy', legacy))
+            check_parameters(p)
+        except ParameterError:
+            self.destroy_node()
+            raise
         self.params = p
-        qos = declare_qos_parameters(self)
+        qos = qos_profile(p)
         self.latencies = []
         self.counters = collections.Counter()
         self.backends = collections.Counter()
@@ -136,11 +166,15 @@ class ImageSubscriber(Node):
 
 
 def main(args=None) -> int:
-    return run_node(lambda: ImageSubscriber(), lambda node: node.run())
+    return run_node(lambda: ImageSubscriber(), lambda node: node.run(),
+                    program='image_subscriber', summary=SUMMARY, parameters=PARAMETERS)
 
 
 def legacy_main(args=None) -> int:
-    return run_node(lambda: ImageSubscriber(legacy=True), lambda node: node.run())
+    return run_node(lambda: ImageSubscriber(legacy=True), lambda node: node.run(),
+                    program='legacy_image_subscriber',
+                    summary=SUMMARY.replace('Receive', 'With plain rclpy only, receive'),
+                    parameters=with_default(PARAMETERS, 'legacy', True))
 
 
 if __name__ == '__main__':

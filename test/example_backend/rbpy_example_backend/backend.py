@@ -1,5 +1,12 @@
-"""FileStoreBackend: payloads in files of a shared directory, ~50-byte descriptors."""
-import collections
+"""FileStoreBackend: payloads in files of a shared directory, ~60-byte descriptors.
+
+Memory is released without guessing how long receivers need it: each descriptor names a hard
+link made for that one subscriber, which the receiver unlinks as soon as it has mapped the file.
+The publisher's own name for the file goes with its Buffer; links a subscriber never took are
+removed when that subscriber leaves (``on_removing_endpoint``) and at process exit. The kernel
+frees the pages with the last mapping.
+"""
+import atexit
 import hashlib
 import itertools
 import mmap
@@ -11,7 +18,7 @@ import struct
 import threading
 import weakref
 import zlib
-from typing import Deque, List, Mapping, Optional, Sequence, Set, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from rosidl_buffer_py import Buffer, BufferBackend
 from rosidl_buffer_py.backend import EndpointInfo
@@ -19,12 +26,13 @@ from rosidl_buffer_py.backend import EndpointInfo
 BACKEND_TYPE = 'filestore'
 #: Directory that holds the payload files; processes sharing it share payloads. Required.
 STORE_DIR_ENV = 'RBPY_EXAMPLE_STORE_DIR'
-#: How many files sent as descriptors a publisher process keeps for late readers (default 64).
-RETAIN_ENV = 'RBPY_EXAMPLE_RETAIN'
 
 _MAGIC = b'FSB1'
 _HEADER = struct.Struct('<4sQI')  # magic, size, crc32; then the file name (ASCII)
-_NAME = re.compile(r'^[0-9]{1,10}-[0-9]{1,20}-[0-9a-f]{16}\.buf$')
+#: A descriptor names a per-subscriber link: <pid>-<sequence>-<16 hex>.buf.<8 hex>
+_LINK = re.compile(r'^[0-9]{1,10}-[0-9]{1,20}-[0-9a-f]{16}\.buf\.[0-9a-f]{8}$')
+#: Links per subscriber after which those already consumed are forgotten.
+_PRUNE_AT = 64
 _sequence = itertools.count()
 
 
@@ -77,11 +85,9 @@ class FileStoreBackend(BufferBackend):
     ``filestore = rbpy_example_backend:FileStoreBackend``).
 
     :param directory: The store directory (default: ``$RBPY_EXAMPLE_STORE_DIR``).
-    :param retain: Files sent as descriptors kept for late readers (default:
-        ``$RBPY_EXAMPLE_RETAIN`` or 64).
     """
 
-    def __init__(self, directory: Optional[str] = None, retain: Optional[int] = None) -> None:
+    def __init__(self, directory: Optional[str] = None) -> None:
         directory = directory or os.environ.get(STORE_DIR_ENV)
         if not directory:
             raise RuntimeError(f'set {STORE_DIR_ENV} to the directory that peers share')
@@ -91,12 +97,11 @@ class FileStoreBackend(BufferBackend):
         # Metadata: the directory itself, so a peer is compatible only if it shares it.
         self._metadata = self.directory if _advertisable(self.directory) else \
             'sha256-' + hashlib.sha256(self.directory.encode()).hexdigest()
-        retain = int(os.environ.get(RETAIN_ENV, '64')) if retain is None else retain
-        if retain < 1:
-            raise ValueError(f'retain must be >= 1, got {retain}')
         self._lock = threading.Lock()
-        self._retained: Deque[_StoredFile] = collections.deque(maxlen=retain)
         self._peers: Set[bytes] = set()
+        #: subscriber GID -> links made for it that it may not have consumed yet
+        self._links: Dict[bytes, Set[str]] = {}
+        atexit.register(self.close)
 
     # identity ---------------------------------------------------------------------------------
 
@@ -121,8 +126,12 @@ class FileStoreBackend(BufferBackend):
         return compatible, []
 
     def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
+        """A peer left: forget it and remove the links it did not take."""
         with self._lock:
             self._peers.discard(endpoint_info.gid)
+            links = self._links.pop(endpoint_info.gid, set())
+        for link in links:
+            _unlink(link)
 
     # memory -------------------------------------------------------------------------------------
 
@@ -142,10 +151,14 @@ class FileStoreBackend(BufferBackend):
         if not known or not isinstance(buffer, FileStoreBuffer) or stored is None:
             return None
         crc = zlib.crc32(memoryview(buffer)) if len(buffer) else 0
+        link = f'{stored.path}.{secrets.token_hex(4)}'
+        os.link(stored.path, link)  # this subscriber's own name for the payload
         with self._lock:
-            if not self._retained or self._retained[-1] is not stored:
-                self._retained.append(stored)  # the oldest retained file may now be unlinked
-        return _HEADER.pack(_MAGIC, stored.size, crc) + stored.name.encode('ascii')
+            links = self._links.setdefault(endpoint_info.gid, set())
+            links.add(link)
+            if len(links) > _PRUNE_AT:  # forget the links their receivers consumed
+                links.difference_update([x for x in links if not os.path.exists(x)])
+        return _HEADER.pack(_MAGIC, stored.size, crc) + os.path.basename(link).encode('ascii')
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> FileStoreBuffer:
@@ -154,14 +167,14 @@ class FileStoreBackend(BufferBackend):
             raise ValueError(f'filestore descriptor of {len(descriptor)} bytes')
         magic, size, crc = _HEADER.unpack_from(descriptor)
         name = descriptor[_HEADER.size:].decode('ascii', errors='replace')
-        if magic != _MAGIC or not _NAME.match(name):
+        if magic != _MAGIC or not _LINK.match(name):
             raise ValueError(f'malformed filestore descriptor {descriptor[:80]!r}')
         try:
             fd = os.open(os.path.join(self.directory, name),
                          os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
         except FileNotFoundError:
-            raise ValueError(f'filestore file {name} is gone (dropped by its publisher, or '
-                             'another store directory)') from None
+            raise ValueError(f'filestore link {name} is gone (taken already, dropped by its '
+                             'publisher, or another store directory)') from None
         except OSError as exc:
             raise ValueError(f'filestore file {name}: {exc}') from None
         try:
@@ -173,6 +186,9 @@ class FileStoreBackend(BufferBackend):
                 else b''
         finally:
             os.close(fd)
+        # Taken: the link is this receiver's alone. Its mapping keeps the pages; the kernel
+        # frees them once the publisher's Buffer and every mapping are gone.
+        _unlink(os.path.join(self.directory, name))
         if (zlib.crc32(view) if size else 0) != crc:
             if size:
                 view.close()
@@ -181,12 +197,15 @@ class FileStoreBackend(BufferBackend):
 
     # diagnostics --------------------------------------------------------------------------------
 
-    def retained_count(self) -> int:
-        """Files kept for late readers."""
+    def pending_links(self) -> int:
+        """Links made for subscribers that they have not taken yet."""
         with self._lock:
-            return len(self._retained)
+            return sum(1 for links in self._links.values() for x in links if os.path.exists(x))
 
     def close(self) -> None:
-        """Drop the retained files (unlinked unless a Buffer of this process still uses them)."""
+        """Remove every link not taken yet (also run at interpreter exit)."""
         with self._lock:
-            self._retained.clear()
+            links = [link for peer_links in self._links.values() for link in peer_links]
+            self._links.clear()
+        for link in links:
+            _unlink(link)

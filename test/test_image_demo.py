@@ -1,0 +1,62 @@
+"""``./dev demo`` (launch_free_demos.image_demo) stops at once when a node fails, and Ctrl-C
+ends it with the summary so far, no traceback."""
+import os
+import signal
+import subprocess
+import sys
+import time
+
+DEMO = [sys.executable, '-m', 'launch_free_demos.image_demo']
+
+
+def _start(*args):
+    return subprocess.Popen([*DEMO, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED='1'))
+
+
+def _finish(process, timeout):
+    try:
+        return process.communicate(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+
+
+def test_a_node_failing_at_start_up_stops_the_demo_at_once():
+    for option, value, line in (
+            ('--backend', 'foo', "image_publisher: parameter backend: 'foo' is not accepted; "
+                                 'expected one of cpu, demo'),
+            ('--encoding', 'bogus', "image_publisher: parameter encoding: 'bogus' is not "
+                                    'accepted; expected mono8')):
+        # without fail-fast the demo would wait for the subscriber's timeout (--seconds + 60 s)
+        # and be killed at _finish's timeout
+        process = _start(option, value, '--seconds', '30')
+        out, err = _finish(process, 60)
+        assert process.returncode == 1, out + err
+        assert 'demo: demo_publisher (image_publisher) exited with status 2; its last error ' \
+               'lines:' in err, err
+        assert f'  {line}' in err and 'Traceback' not in err, err
+        assert 'received' not in out, out  # stopped before the subscriber's first summary
+
+
+def test_ctrl_c_stops_the_nodes_and_prints_the_summary_so_far():
+    process = _start('--width', '64', '--height', '48', '--rate', '20', '--seconds', '60')
+    try:
+        deadline = time.monotonic() + 60
+        for line in process.stdout:  # the subscriber's once-a-second summary
+            if "backends {'demo'" in line or time.monotonic() > deadline:
+                break
+        os.kill(process.pid, signal.SIGINT)  # what Ctrl-C sends the demo
+        rest, err = _finish(process, 60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == 130, rest[-2000:] + err[-2000:]
+    assert 'Traceback' not in err and 'KeyboardInterrupt' not in err, err
+    assert 'demo: interrupted; the summary so far:' in rest, rest
+    assert '| frames published |' in rest and '| frames received (distinct) |' in rest, rest
+    published = int(rest.split('| frames published | ')[1].split(' ')[0])
+    assert published > 0, rest
