@@ -125,3 +125,24 @@ def test_a_node_that_ignores_sigint_is_killed_and_reaped():
         assert node.reaped and node.stuck
         assert node.process.returncode == -signal.SIGKILL
         assert time.monotonic() - started < 10
+
+
+def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
+    """README's ./dev bench-mixed, small and short: every graph's row, a figure for every
+    process it has (every subscriber checks every frame's counter and CRC32)."""
+    command = [str(ROOT / 'dev'), 'bench-mixed'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench_mixed']
+    completed = subprocess.run(
+        command + ['--payload', '64x48', '--frames', '1', '--extra', '2', '--rounds', '1'],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    assert set(rows) == {'graph', 'pure', 'mixed', 'stock'}, completed.stdout
+    present = {graph: [cell != '-' for cell in cells] for graph, cells in rows.items()
+               if graph != 'graph'}
+    assert present == {'pure': [True, False, True], 'mixed': [True, True, True],
+                       'stock': [False, True, True]}, completed.stdout
+    for graph, cells in rows.items():
+        for cell in cells:
+            if graph != 'graph' and cell != '-':
+                float(cell.split()[0])  # a number of ms (it may be negative for so few frames)

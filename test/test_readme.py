@@ -52,6 +52,7 @@ COVERAGE = {
     '.venv/lib/rosidl_buffer_py/buffer_play camera_bag --rate 2': 'test_record.py',
     'wait': 'test_record.py',
     './dev bench-record': 'test_record.py',               # 1 s of small frames
+    './dev bench-mixed': 'test_benchmark.py',             # small frames, fewer of them
     'colcon test': 'test_colcon.py',
 }
 
