@@ -80,6 +80,16 @@ def _owner_alive(name: str) -> bool:
     return True
 
 
+@pytest.fixture
+def context():
+    """A private rclpy context (its own DDS participant) for in-process tests."""
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
 @pytest.fixture(scope='session')
 def extra_domain_ids():
     """Two more domain ids of this run's own (same flock scheme as its ROS_DOMAIN_ID), for

@@ -14,40 +14,20 @@ import rclpy
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
+from in_process import frame, spin_until
 from launch_free_demos.runner import fastdds_leftovers
-from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
-from rosidl_buffer_py.nodes.frames import check_frame, pattern, stamp_frame
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
-@pytest.fixture
-def context():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
-def _spin_until(executor, predicate, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        executor.spin_once(timeout_sec=0.05)
-    return True
 
 
-def _frame(counter, backend='cpu'):
-    msg = allocate_image_msg(8, 8, 'rgb8', backend=backend)
-    flat = from_output_msg(msg).reshape(-1)
-    flat[...] = pattern(flat.nbytes)
-    stamp_frame(msg, counter, flat)
-    return msg
 
 
 def _endpoints(kind, node, topic, callback, qos, **kwargs):
@@ -89,9 +69,9 @@ def test_destroy_node_and_shutdown_in_any_order(order):
                                                acceptable_buffer_backends='demo')
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
-    pub.publish(_frame(0, 'demo'))
-    assert _spin_until(executor, lambda: got)
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    pub.publish(frame(0, 'demo'))
+    assert spin_until(executor, lambda: got)
     executor.shutdown()
     if order == 'destroy_node_first':
         node.destroy_node()
@@ -113,12 +93,12 @@ def test_wait_for_all_acked_covers_the_channels(context):
                                          acceptable_buffer_backends='any')
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     for counter in range(5):
-        pub.publish(_frame(counter, 'demo'))
+        pub.publish(frame(counter, 'demo'))
     assert pub.statistics()['sent_on_main_topic'] == 0
     assert pub.wait_for_all_acked(Duration(seconds=5.0)) is True
-    assert _spin_until(executor, lambda: len(got) == 5)
+    assert spin_until(executor, lambda: len(got) == 5)
     node.destroy_node()
 
 
@@ -146,19 +126,19 @@ def test_deadline_events_count_every_route(context, kind):
             deadline=lambda info: counts['sub'].append(info.total_count))})
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: pub.get_subscription_count() == 1)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 1)
     if kind == 'ours':
-        assert _spin_until(executor,
+        assert spin_until(executor,
                            lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     start = time.monotonic()
     counter = 0
     while time.monotonic() - start < 2.0:
-        pub.publish(_frame(counter, 'demo' if kind == 'ours' else 'cpu'))
+        pub.publish(frame(counter, 'demo' if kind == 'ours' else 'cpu'))
         counter += 1
         end = time.monotonic() + 0.1
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.02)
-    assert _spin_until(executor, lambda: len(got) == counter)
+    assert spin_until(executor, lambda: len(got) == counter)
     assert counts == {'pub': [], 'sub': []}, counts
     end = time.monotonic() + 1.8  # three periods of silence: 3 misses each (timing: 2 to 4)
     while time.monotonic() < end:

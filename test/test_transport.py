@@ -15,11 +15,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
+from in_process import frame, spin_until
 from launch_free_demos.runner import Run
 from launch_free_demos.scenarios import SCENARIOS, SMALL
 from rosidl_buffer_py import _dds, advertisement, codec
-from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
-from rosidl_buffer_py.nodes.frames import check_frame, pattern, stamp_frame
+from rosidl_buffer_py.nodes.frames import check_frame
 
 #: What a publisher node reports when not one subscriber matched its main topic in time.
 NO_DDS_MATCH = 'TimeoutError: 0 of '
@@ -71,30 +71,10 @@ def test_publisher_restarted():
     assert report['backends'] == {'demo': 40}, report
 
 
-@pytest.fixture
-def context():
-    """A private rclpy context (its own DDS participant) for in-process tests."""
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
-def _spin_until(executor, predicate, timeout=20.0):
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        executor.spin_once(timeout_sec=0.05)
-    return True
 
 
-def _frame(counter, backend='cpu', height=8, width=8):
-    msg = allocate_image_msg(height, width, 'rgb8', backend=backend)
-    flat = from_output_msg(msg).reshape(-1)
-    flat[...] = pattern(flat.nbytes)
-    stamp_frame(msg, counter, flat)
-    return msg
 
 
 def test_second_participant_reads_user_data_and_stock_typehash(context):
@@ -116,7 +96,7 @@ def test_second_participant_reads_user_data_and_stock_typehash(context):
                     seen[event.gid] = event.user_data
             return any(advertisement.decode(u) for u in seen.values())
 
-        assert _spin_until(executor, advertised), seen
+        assert spin_until(executor, advertised), seen
         user_data = next(u for u in seen.values() if advertisement.decode(u))
         assert user_data.startswith(b'typehash=RIHS01_')
         assert b';\0BUFBE:cpu=;demo=shm1.' in user_data
@@ -154,14 +134,14 @@ def test_in_process(context, publishers, subscriptions, backend, accept, expecte
     executor = MultiThreadedExecutor(num_threads=2, context=context)
     executor.add_node(pub_node)
     executor.add_node(sub_node)
-    assert _spin_until(executor, lambda: all(sum(
+    assert spin_until(executor, lambda: all(sum(
         1 for p in pub.buffer_peers() if p['channel_serving']) == subscriptions for pub in pubs))
     for index, pub in enumerate(pubs):
         for counter in range(index * frames, (index + 1) * frames):
-            pub.publish(_frame(counter, backend))
+            pub.publish(frame(counter, backend))
             executor.spin_once(timeout_sec=0.01)
     total = frames * publishers
-    assert _spin_until(executor, lambda: all(len(r) >= total for r in received.values())), (
+    assert spin_until(executor, lambda: all(len(r) >= total for r in received.values())), (
         {name: sorted(set(range(total)) - {c for c, _ in got}) for name, got in received.items()},
         [s.statistics() for s in subs], [p.statistics() for p in pubs])
     executor.spin_once(timeout_sec=0.2)
@@ -184,22 +164,22 @@ def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
     pub = rosidl_buffer_py.create_publisher(node, Image, '/routes_image', RELIABLE)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     for counter in range(5):
-        pub.publish(_frame(counter, 'cpu'))
-    assert _spin_until(executor, lambda: len(got) == 5)
+        pub.publish(frame(counter, 'cpu'))
+    assert spin_until(executor, lambda: len(got) == 5)
     assert pub.statistics()['sent_on_main_topic'] == 0  # the channel serves the only subscriber
     legacy = node.create_subscription(
         Image, '/routes_image', lambda m: legacy_got.append(check_frame(m).counter), RELIABLE)
-    assert _spin_until(executor, lambda: pub.get_subscription_count() == 2)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 2)
     for counter in range(5, 10):  # the first one goes to the stale routes, then the re-check
-        pub.publish(_frame(counter, 'cpu'))
-    assert _spin_until(executor, lambda: len(got) >= 10 and len(legacy_got) >= 5)
+        pub.publish(frame(counter, 'cpu'))
+    assert spin_until(executor, lambda: len(got) >= 10 and len(legacy_got) >= 5)
     node.destroy_subscription(legacy)
-    assert _spin_until(executor, lambda: pub.get_subscription_count() == 1)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 1)
     for counter in range(10, 15):
-        pub.publish(_frame(counter, 'cpu'))
-    assert _spin_until(executor, lambda: len(got) >= 15)
+        pub.publish(frame(counter, 'cpu'))
+    assert spin_until(executor, lambda: len(got) >= 15)
     executor.spin_once(timeout_sec=0.2)
     assert legacy_got == list(range(5, 10))
     assert sorted(got) == list(range(15)), got  # exactly once, main-topic twins dropped
@@ -219,21 +199,21 @@ def test_reannounce_timer_retires_while_every_channel_is_matched(context):
         node, Image, '/retire_image', lambda m: got.append(check_frame(m).counter), RELIABLE)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     for endpoint in (pub, sub):  # the first tick after the match retires each one's timer
-        assert _spin_until(executor, lambda: endpoint._reannounce_timer.is_canceled())
+        assert spin_until(executor, lambda: endpoint._reannounce_timer.is_canceled())
         assert endpoint._spinning(time.monotonic())  # no publish-time discovery polling
     got_second = []
     rosidl_buffer_py.create_subscription(
         node, Image, '/retire_image', lambda m: got_second.append(check_frame(m).counter),
         RELIABLE)
-    assert _spin_until(executor, lambda: len(pub.buffer_peers()) == 2)
+    assert spin_until(executor, lambda: len(pub.buffer_peers()) == 2)
     assert not pub._reannounce_timer.is_canceled()  # re-armed for the new channel
-    assert _spin_until(executor, lambda: pub._reannounce_timer.is_canceled())
+    assert spin_until(executor, lambda: pub._reannounce_timer.is_canceled())
     assert all(p['channel_matched'] for p in pub.buffer_peers())
     for counter in range(3):
-        pub.publish(_frame(counter, 'cpu'))
-    assert _spin_until(executor, lambda: len(got) == len(got_second) == 3), (got, got_second)
+        pub.publish(frame(counter, 'cpu'))
+    assert spin_until(executor, lambda: len(got) == len(got_second) == 3), (got, got_second)
     node.destroy_node()
 
 
@@ -251,16 +231,16 @@ def test_destroy_node_removes_channels_and_destroy_is_idempotent(context):
         return [name for name, _ in observer.get_topic_names_and_types(no_demangle=True)
                 if '/_buf/' in name]
 
-    assert _spin_until(executor, lambda: len(channel_topics()) == 1), channel_topics()
+    assert spin_until(executor, lambda: len(channel_topics()) == 1), channel_topics()
     assert pub.buffer_peers() and sub.buffer_peers()
     # diagnostics name each peer's node (from the ROS graph)
-    assert _spin_until(executor, lambda: pub.buffer_peers()[0]['node'] == '/destroy_me')
+    assert spin_until(executor, lambda: pub.buffer_peers()[0]['node'] == '/destroy_me')
     assert sub.buffer_peers()[0]['node'] == '/destroy_me'
     name = channel_topics()[0]
     assert name == (f'rt/destroy_image/_buf/{pub.statistics()["gid"]}_'
                     f'{sub.statistics()["gid"]}')
     node.destroy_node()
-    assert _spin_until(executor, lambda: not channel_topics()), channel_topics()
+    assert spin_until(executor, lambda: not channel_topics()), channel_topics()
     assert pub.buffer_peers() == [] and sub.buffer_peers() == []
     observer.destroy_node()
 
@@ -274,15 +254,15 @@ def test_malformed_descriptors_are_rejected_counted_and_survived(context):
     rogue = node.create_publisher(Image, '/rogue_image', 10)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: rogue.get_subscription_count() == 1)
-    bad = [codec.encode(_frame(0), ('demo', b'\x00' * 10)),             # garbage descriptor
-           codec.encode(_frame(1), ('nosuch', b'x')),                   # unknown backend
-           codec.encode(_frame(2))[:40],                                # truncated
+    assert spin_until(executor, lambda: rogue.get_subscription_count() == 1)
+    bad = [codec.encode(frame(0), ('demo', b'\x00' * 10)),             # garbage descriptor
+           codec.encode(frame(1), ('nosuch', b'x')),                   # unknown backend
+           codec.encode(frame(2))[:40],                                # truncated
            b'\x00\x07\x00\x00' + bytes(60)]                             # bad encapsulation
     for raw in bad:
         rogue.publish(bytes(raw))
-    rogue.publish(bytes(codec.encode(_frame(3))))
-    assert _spin_until(executor, lambda: len(good) == 1)
+    rogue.publish(bytes(codec.encode(frame(3))))
+    assert spin_until(executor, lambda: len(good) == 1)
     executor.spin_once(timeout_sec=0.2)
     assert check_frame(good[0]).counter == 3 and isinstance(good[0].data, array.array)
     assert sub.statistics()['rejected'] == len(bad)
@@ -300,9 +280,9 @@ def test_other_rmw_falls_back_to_plain_rclpy(context, monkeypatch, capfd):
     pub = rosidl_buffer_py.create_publisher(node, Image, '/fallback_image', 10)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: pub.get_subscription_count() == 1)
-    pub.publish(_frame(5))
-    assert _spin_until(executor, lambda: got)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 1)
+    pub.publish(frame(5))
+    assert spin_until(executor, lambda: got)
     assert check_frame(got[0]).ok and isinstance(got[0].data, array.array)
     assert not sub.statistics()['buffer_aware']
     err = capfd.readouterr().err
@@ -322,19 +302,19 @@ def test_a_rogue_writer_on_a_channel_is_rejected(context):
         acceptable_buffer_backends='any')
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
-    assert _spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     channel = sub.buffer_peers()[0]['channel_topic']
     rogue_context = rclpy.Context()
     rclpy.init(context=rogue_context)
     try:
         rogue_node = rclpy.create_node('rogue', context=rogue_context)
         rogue = _dds.create_channel_publisher(rogue_node, Image, channel, RELIABLE)
-        assert _spin_until(executor, lambda: rogue.matched_count() == 1)
+        assert spin_until(executor, lambda: rogue.matched_count() == 1)
         for counter in range(100, 105):
-            rogue.publish(codec.encode(_frame(counter)), time.time_ns())
+            rogue.publish(codec.encode(frame(counter)), time.time_ns())
         for counter in range(3):
-            pub.publish(_frame(counter, 'demo'))
-        assert _spin_until(executor, lambda: len(got) == 3 and sub.statistics()['rejected'] == 5)
+            pub.publish(frame(counter, 'demo'))
+        assert spin_until(executor, lambda: len(got) == 3 and sub.statistics()['rejected'] == 5)
         assert got == [0, 1, 2]
         rogue.destroy()
         rogue_node.destroy_node()
