@@ -148,6 +148,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._channels: List[_PublisherPeer] = []  # the peers with a channel, polled in turn
         self._waiting = 0  # streams with a channel message waiting for its fence
         self._switched: Set[bytes] = set()  # publishers serving us on their channel
+        self._suspects: Set[bytes] = set()  # publishers whose data C could not deserialize
         self._reliable = qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT
         self._destroyed = False
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
@@ -281,8 +282,15 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         While some publisher serves us on its channel, its main-topic copies (written for
         legacy subscribers) are duplicates: their key (publisher GID, source timestamp) is read
         from the DDS sample info and they are discarded without copying their payload.
+
+        Publishers write only CPU data on the main topic: it is deserialized in C, as rclpy
+        does. A sample that does not deserialize makes Jazzy's C type support print a line to
+        stderr; its publisher is then a *suspect*, whose later samples are taken as bytes for
+        the codec (which rejects malformed data silently, counted and logged throttled), so a
+        hostile writer gets one such line, not one per message.
         """
-        while self._switched:
+        key = None
+        while self._switched or self._suspects:
             key = _dds.peek_untaken(self.handle)
             if key is None:
                 return None
@@ -292,8 +300,15 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             if _dds.discard_untaken(self.handle) is not None:
                 self._counts['from_main_topic'] += 1
                 self._counts['duplicates_dropped'] += 1
-        # publishers write only CPU data on the main topic: deserialize it in C, as rclpy does
-        taken = _dds.take_message_with_gid(self.handle, self.msg_type, C_DESERIALIZE_MAX_BYTES)
+            key = None
+        if key is not None and key[0] in self._suspects:
+            taken = _dds.take_serialized_with_gid(self.handle)
+        else:
+            taken = _dds.take_message_with_gid(self.handle, self.msg_type,
+                                               C_DESERIALIZE_MAX_BYTES)
+            if taken is not None and type(taken[0]) is not self.msg_type and \
+                    len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
+                self._suspects.add(taken[1])  # C deserialization failed (and said so)
         if taken is None:
             return None
         self._counts['from_main_topic'] += 1
@@ -495,6 +510,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
     def _on_peer_gone(self, gid: bytes) -> None:
         with self._lock:
+            self._suspects.discard(gid)
             stream = self._streams.pop(gid, None)
             if stream is not None and stream.waiting is not None:
                 self._waiting -= 1

@@ -53,6 +53,8 @@ def _wait_for(predicate, timeout: float, what: str, diagnostics=lambda: '') -> f
 
 FRAME = {'width': 640, 'height': 480, 'encoding': 'rgb8'}
 STALL_SECONDS = 10.0
+#: What each callback of the slow subscriber takes (it keeps up with 30 Hz for a fifth of it).
+SLOW_CALLBACK_SECONDS = 0.15
 #: Runs a command in a private mount namespace with a fresh tmpfs on /dev/shm: no process outside
 #: the test (another test run of this machine starting the demo backend) can clean up for it.
 PRIVATE_SHM = ['unshare', '-m', 'sh', '-c',
@@ -71,8 +73,10 @@ def run_graph() -> dict:
                             **common)
         never = run.start('never', 'image_subscriber', depth=10, report_period_sec=0.0,
                           **common)
+        slow = run.start('slow', 'image_subscriber', depth=100, report_period_sec=0.5,
+                         work_sec=SLOW_CALLBACK_SECONDS, **common)
         pub = run.start('pub', 'image_publisher', topic=topic, backend='demo', rate_hz=30.0,
-                        count=0, depth=30, wait_for_subscribers=3, wait_for_buffer_peers=3,
+                        count=0, depth=30, wait_for_subscribers=4, wait_for_buffer_peers=4,
                         wait_timeout_sec=60.0, settle_sec=0.5, **FRAME)
         _wait_for(lambda: _received(healthy) >= 10 and _received(stalled) >= 10, 60,
                   'frames flowing to healthy and stalled', run.diagnostics)
@@ -93,19 +97,21 @@ def run_graph() -> dict:
         result['clean_after'] = time.monotonic() - start
         result['left'] = _ours(pub_pid)
         never.process.send_signal(signal.SIGCONT)
-        for node in (healthy, stalled, never):
+        for node in (healthy, stalled, never, slow):
             node.stop()
         result['reports'] = {label: run.nodes[label].report
-                             for label in ('healthy', 'stalled', 'never')}
+                             for label in ('healthy', 'stalled', 'never', 'slow')}
         result['diagnostics'] = run.diagnostics()
     return result
 
 
 def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publisher_crash():
     """A demo publisher (640x480 rgb8, 30 Hz) serves three demo subscribers: `healthy`,
-    `stalled` (SIGSTOP 10 s, then SIGCONT) and `never` (SIGSTOPped for good once the frames
-    flow: it never takes again). The healthy one gets every frame, at least 95 % of them as
-    demo Buffers. Then the publisher is SIGKILLed while the subscribers idle: its segments and
+    `stalled` (SIGSTOP 10 s, then SIGCONT), `never` (SIGSTOPped for good once the frames
+    flow: it never takes again) and `slow` (0.15 s per callback, so it keeps up with a fifth of
+    the frames and loses the others from its history, as a stock subscriber would). The healthy
+    one gets every frame, at least 95 % of them as demo Buffers; the others what they get
+    intact, once and in order. Then the publisher is SIGKILLed while the subscribers idle: its segments and
     presence file must leave /dev/shm within 10 s, removed by the subscribers' housekeeping.
 
     The graph runs in a /dev/shm of its own when a mount namespace can be made (else the
@@ -132,10 +138,13 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
     assert good['checksum_failures'] == 0, good
     assert share >= 0.95, good
     assert good['distinct'] >= 150, good  # it ran all along (30 Hz for about 13 s)
-    for label in ('stalled', 'never'):
+    for label in ('stalled', 'never', 'slow'):
         report = reports[label]
         if report is not None:  # (a stopped node may miss its report: only healthy counts)
             assert report['checksum_failures'] == 0 and report['duplicates'] == 0, report
+            assert report['out_of_order'] == 0, report  # what it gets, in publish order
+    slow = reports['slow']
+    assert slow and slow['distinct'] >= 20 and slow['backends'].get('demo', 0) > 0, slow
 
 
 # --- backend-level cases ------------------------------------------------------------------------

@@ -40,6 +40,8 @@ PARAMETERS = (
     Param('legacy', False, 'a plain rclpy subscription (no rosidl_buffer_py)'),
     Param('raw', False, 'legacy only: take serialized bytes and check they are canonical CDR'),
     Param('report_period_sec', 5.0, 'log a summary line this often; 0 = never', minimum=0),
+    Param('work_sec', 0.0, 'seconds each callback spends after checking its frame (a slow '
+          'subscriber, for fault tests); 0 = none', minimum=0),
 )
 
 
@@ -71,6 +73,7 @@ class ImageSubscriber(Node):
         self.backends = collections.Counter()
         self.problems = []
         self.seen = set()
+        self.last_counter = None
         self.last_size = 'none yet'
         self.start = time.monotonic()
         if p['legacy']:
@@ -110,7 +113,12 @@ class ImageSubscriber(Node):
         if check.counter is not None:
             if check.counter in self.seen:
                 self.counters['duplicates'] += 1
+            if self.last_counter is not None and check.counter < self.last_counter:
+                self.counters['out_of_order'] += 1  # (one publisher: its counters increase)
+            self.last_counter = check.counter
             self.seen.add(check.counter)
+        if self.params['work_sec']:
+            time.sleep(self.params['work_sec'])
 
     def problem(self, text: str) -> None:
         if len(self.problems) < 20:
@@ -140,6 +148,7 @@ class ImageSubscriber(Node):
             'role': 'subscriber', 'node': self.get_name(), 'params': p,
             'received': self.counters['received'], 'distinct': len(self.seen),
             'duplicates': self.counters['duplicates'], 'gaps': len(missing),
+            'out_of_order': self.counters['out_of_order'],
             'missing': missing[:20],
             'checksum_failures': self.counters['checksum_failures'],
             'wrong_backend': self.counters['wrong_backend'],
