@@ -22,7 +22,7 @@ domain (peers are compatible when it is equal) then the process's presence token
 Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=,
 max_inflight_per_peer=)``, the environment variables ``RBPY_DEMO_MAX_POOL_BYTES``,
 ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, ``RBPY_DEMO_MAX_INFLIGHT_PER_PEER``, or
-``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 32 slots, 5 s, a quarter of the slots.
+``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 64 slots, 5 s, a third of the slots.
 
 Trust: a segment is mapped only if it looks exactly as the backend creates them (regular file,
 no symlink, our uid, mode 0600, our header naming the owner of its name); no lock is waited for

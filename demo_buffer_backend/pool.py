@@ -22,10 +22,11 @@ a :class:`PeerLedger`, its descriptors in flight (sent, not seen taken), in send
 - *KEEP_LAST depth N* (``EndpointInfo.history_depth``): a descriptor followed by N newer
   messages to the same peer has left its reader history and can no longer be taken by it, so it
   stops pinning its slot (``released_window``);
-- *share*: a peer pins at most ``max_inflight_per_peer`` slots (default a quarter of
-  ``max_slots``; also the bound for KEEP_ALL and unknown depths). Past its share that peer alone
-  gets CPU bytes (``over_share``): its descriptors in flight stay valid, so a slow subscriber
-  loses nothing that a stock one would get, and the others keep the rest of the pool;
+- *share*: a peer pins at most ``max_inflight_per_peer`` slots (default a third of
+  ``max_slots`` and of ``max_pool_bytes``; also the bound for KEEP_ALL and unknown depths).
+  Past its share that peer alone gets CPU bytes (``over_share``): its descriptors in flight
+  stay valid, so a slow subscriber loses nothing that a stock one would get, and the others
+  keep the rest of the pool;
 - *in order*: a peer takes its channel in order, so descriptors older than one it took were
   dropped by it (best effort, or rejected) and stop pinning (``released_skipped``; only when
   the ledger sees one channel, see below);
@@ -85,7 +86,7 @@ from demo_buffer_backend import locks, presence, shm
 #: Defaults of the pool limits; each can be set with its environment variable, with
 #: :func:`configure` or with ``DemoBackend(...)`` keyword arguments.
 DEFAULT_MAX_POOL_BYTES = 512 * 1024 * 1024
-DEFAULT_MAX_SLOTS = 32
+DEFAULT_MAX_SLOTS = 64
 DEFAULT_RECLAIM_TIMEOUT = 5.0
 ENV_MAX_POOL_BYTES = 'RBPY_DEMO_MAX_POOL_BYTES'
 ENV_MAX_SLOTS = 'RBPY_DEMO_MAX_SLOTS'
@@ -137,7 +138,12 @@ class _Limits:
 
     def peer_share(self) -> int:
         """In-flight descriptors one peer may have (its share of the pool)."""
-        return self.max_inflight_per_peer or max(1, self.max_slots // 4)
+        return self.max_inflight_per_peer or max(1, self.max_slots // 3)
+
+    def peer_share_bytes(self) -> int:
+        """Bytes of slots one peer may pin (a third of the pool unless the share is set)."""
+        return (self.max_pool_bytes if self.max_inflight_per_peer
+                else max(1, self.max_pool_bytes // 3))
 
     def as_dict(self) -> dict:
         return {'max_pool_bytes': self.max_pool_bytes, 'max_slots': self.max_slots,
@@ -158,7 +164,7 @@ def configure(*, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] 
     :param reclaim_timeout: Seconds after which, at the limits, a slot whose descriptors were never
         all taken (a subscriber that dropped or never read the message) may be reused.
     :param max_inflight_per_peer: Descriptors one peer may have in flight (sent, not taken)
-        before it gets CPU bytes; 0 means a quarter of ``max_slots`` (at least 1).
+        before it gets CPU bytes; 0 means a third of ``max_slots`` (at least 1).
     """
     for name, value in (('max_pool_bytes', max_pool_bytes), ('max_slots', max_slots),
                         ('reclaim_timeout', reclaim_timeout),
@@ -748,18 +754,25 @@ class State:
             # Its descriptors in flight stay valid: a stalled peer that resumes takes them, as
             # a stock subscriber would take its backlog. Within its share it gets a probe, whose
             # take shows it is back; at its share, CPU bytes (its pins are its own share).
-            if len(ledger.inflight) >= share:
+            if self._at_share(ledger, share):
                 self.counters['cpu_not_taking'] += 1
                 return False
             ledger.probe_ns = now
             self.counters['probes'] += 1
             return True
-        if len(ledger.inflight) >= share:
+        if self._at_share(ledger, share):
             # past its share the peer alone gets CPU bytes: its descriptors in flight stay
             # valid (no message is lost, as with stock), and it pins no more than its share
             self.counters['over_share'] += 1
             return False
         return True
+
+    @staticmethod
+    def _at_share(ledger: PeerLedger, share: int) -> bool:
+        """Whether the peer pins its share: ``share`` descriptors, or a third of the pool's
+        bytes (large frames reach that first)."""
+        return len(ledger.inflight) >= share or \
+            sum(entry.slot.capacity for entry in ledger.inflight) >= _limits.peer_share_bytes()
 
     def _settle(self, ledger: PeerLedger, now: int) -> None:
         """Bring the peer's in-flight list up to date: drop what it took or what was reclaimed,

@@ -21,7 +21,8 @@ import time
 
 import pytest
 
-from demo_backend_peer import Peer
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # run as a script: 'graph'
+from demo_backend_peer import Peer  # noqa: E402
 from launch_free_demos.runner import Run
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer

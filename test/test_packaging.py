@@ -20,9 +20,11 @@ MODULE_KEYS = {
     'visualization_msgs': 'visualization_msgs', 'ament_index_python': 'ament_index_python',
     'numpy': 'python3-numpy', 'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis',
     'matplotlib': 'python3-matplotlib', 'setuptools': 'python3-setuptools',
+    'mcap': 'python3-mcap', 'yaml': 'python3-yaml', 'mcap_ros2': 'python3-mcap-ros2-support',
 }
 #: Modules of this repository (or made by the tests) that need no dependency.
 OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'installed',
+               'in_process', 'demo_backend_peer',
                'rbpy_example_backend', 'test_codec', 'my_backend'}
 
 

@@ -35,6 +35,7 @@ COVERAGE = {
     './dev setup': 'here',
     '.venv/bin/python -m launch_free_demos.scenarios': 'test_transport.py',  # every scenario
     '.venv/bin/python -m launch_free_demos.equivalence [names] [--echo]': 'test_equivalence.py',
+    '.venv/bin/python -m launch_free_demos.equivalence': 'test_equivalence.py',
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
     'buffer_topic_info <topic> [--json] [--wait S] [--probe]': 'test_info.py',

@@ -15,6 +15,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+import installed
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -270,7 +272,12 @@ def _readme_block(title: str) -> str:
 def test_readme_recording_example_runs(tmp_path):
     """The README's worked example, verbatim, as one script in an empty directory."""
     block = _readme_block('### Recording and playback')
-    (tmp_path / '.venv').symlink_to(sys.prefix)
+    # the README's .venv paths, pointing where the package under test was installed (the
+    # ./dev venv, or a colcon install space with the interpreter's bin/)
+    venv = tmp_path / '.venv'
+    (venv / 'lib').mkdir(parents=True)
+    (venv / 'lib' / 'rosidl_buffer_py').symlink_to(installed.executable('buffer_record').parent)
+    (venv / 'bin').symlink_to(Path(sys.prefix) / 'bin')
     process = subprocess.Popen(['bash', '-e', '-c', block], cwd=tmp_path, text=True,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                start_new_session=True)
