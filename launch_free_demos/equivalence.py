@@ -634,10 +634,12 @@ def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[st
         tolerance = TOLERANCES.get(kind, lambda stock: 0)(sn)
         if kind == 'incompatible_qos' and scenario.endpoints[eid]['impl'] == 'stock':
             # The documented difference (README, "What stays as with stock rclpy"): a
-            # buffer-aware endpoint sets its advertisement in USER_DATA right after creation,
-            # a second discovery event, so a plain endpoint whose QoS is incompatible with it
-            # may count it twice (whether it does depends on discovery timing).
-            tolerance = _buffer_aware_peers(scenario, eid)
+            # buffer-aware endpoint publishes its advertisement in USER_DATA right after
+            # creation, and again once when it finds a new buffer-aware peer whose QoS matches
+            # its own (here: the BEST_EFFORT subscription); each is a discovery event on which
+            # a plain endpoint whose QoS is incompatible with it may count it again (whether
+            # it does depends on discovery timing).
+            tolerance = 2 * _buffer_aware_peers(scenario, eid)
         if abs(sn - on) > tolerance:
             diffs.append(f'{key}: {on} (stock {sn}, tolerance {tolerance})')
     if s['liveliness_states'] != o['liveliness_states']:

@@ -6,12 +6,12 @@ the participant, local endpoints included. :class:`ParticipantDiscovery` turns t
 to the buffer-aware publishers and subscriptions that watch that topic. Processing happens in
 Python threads only (publish(), executor callbacks), never in DDS threads.
 
-Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. A peer
-that missed our advertisement opens no channel to us, so ours stays unmatched: then, and only
-then, a buffer-aware endpoint re-announces its USER_DATA (see
-``BufferEndpoint._reannounce_if_unmatched``), and the peer sees it as a 'changed' event. Each
-re-announce makes DDS re-check matching at every peer (stock endpoints log incompatible QoS
-again), which is why nothing else re-announces.
+Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. So a
+buffer-aware endpoint re-announces its USER_DATA once when it first finds a new remote
+buffer-aware peer whose QoS matches its own (that peer may have missed it), and again while a
+peer's channel stays unmatched (see ``BufferEndpoint._reannounce_if_unmatched``); the peer sees
+it as a 'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
+matching at every peer, and stock endpoints with incompatible QoS report it again.
 """
 import threading
 import weakref

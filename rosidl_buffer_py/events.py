@@ -98,6 +98,6 @@ def _note_stock_peers_may_count_twice() -> None:
         _noted = True
         get_logger('rosidl_buffer_py').warning(
             'incompatible QoS with a buffer-aware endpoint: a plain rclpy/rclcpp peer may '
-            'report it twice (a buffer-aware endpoint publishes its USER_DATA advertisement '
-            'right after creation, a second discovery event); buffer-aware endpoints report it '
-            'once per peer, as stock does')
+            'report it more than once (a buffer-aware endpoint publishes its USER_DATA '
+            'advertisement after creation and when it finds a new buffer-aware peer: discovery '
+            'events); buffer-aware endpoints report it once per peer, as stock does')

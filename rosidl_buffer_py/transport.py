@@ -197,6 +197,11 @@ class BufferEndpoint:
                 known.created_at = time.monotonic()
                 self._peers[peer.gid] = known
                 self._rearm_reannounce_timer()
+                if not peer.local:
+                    # a new buffer-aware peer whose QoS matches ours may have discovered us
+                    # before its tap existed (its node was created well before its endpoint):
+                    # announce once now rather than after a second of unmatched channel
+                    self._announce()
             known.backends = dict(peer.backends)
             self._update_peer(known, compatible)
 
