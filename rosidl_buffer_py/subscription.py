@@ -535,7 +535,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
 def create_subscription(node, msg_type, topic: str, callback: Callable,
                         qos_profile: Union[QoSProfile, int], *, callback_group=None,
-                        event_callbacks=None, raw: bool = False,
+                        event_callbacks=None, qos_overriding_options=None, raw: bool = False,
                         acceptable_buffer_backends: Optional[str] = 'cpu'):
     """Create a buffer-aware subscription on ``node`` (arguments as ``Node.create_subscription``).
 
@@ -554,6 +554,12 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
                          'node.create_subscription(..., raw=True) receives from every publisher, '
                          'buffer-aware ones included')
     qos = qos_of(qos_profile)
+    if qos_overriding_options is not None:
+        # what Node.create_subscription does with them (rclpy has no public entry point)
+        from rclpy.qos_overriding_options import _declare_qos_parameters
+        qos = copy.copy(qos)
+        _declare_qos_parameters(rclpy.subscription.Subscription, node,
+                                node.resolve_topic_name(topic), qos, qos_overriding_options)
     callback_group = callback_group or node.default_callback_group
     event_callbacks = event_callbacks or SubscriptionEventCallbacks()
     if _dds.is_supported():

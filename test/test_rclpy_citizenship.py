@@ -232,3 +232,23 @@ def test_ctrl_c_out_of_spin_leaves_what_stock_leaves_in_dev_shm(tmp_path):
         assert 'Error' not in err.replace('KeyboardInterrupt', ''), err
     assert outcome['ours'] == outcome['stock'], outcome
     assert all(left == [] for _, left in outcome['stock']), outcome
+
+
+@pytest.mark.parametrize('kind', ['stock', 'ours'])
+def test_qos_overriding_options_declare_the_same_parameters(context, kind):
+    """QoSOverridingOptions declare the QoS parameters rclpy declares, and their values
+    (overridden at node creation) set the endpoints' QoS, for publishers and subscriptions."""
+    from rclpy.parameter import Parameter
+    from rclpy.qos_overriding_options import QoSOverridingOptions
+    prefix = f'qos_overrides./overridden_{kind}'
+    node = rclpy.create_node(f'overrides_{kind}', context=context, parameter_overrides=[
+        Parameter(f'{prefix}.publisher.depth', value=7),
+        Parameter(f'{prefix}.subscription.depth', value=9)])
+    options = QoSOverridingOptions.with_default_policies()
+    pub, sub = _endpoints(kind, node, f'/overridden_{kind}', lambda m: None, 10,
+                          pub={'qos_overriding_options': options},
+                          sub={'qos_overriding_options': options})
+    assert (pub.qos_profile.depth, sub.qos_profile.depth) == (7, 9)
+    declared = sorted(name for name in node._parameters if name.startswith('qos_overrides.'))
+    assert len(declared) == 6, declared  # history, depth, reliability for each
+    node.destroy_node()
