@@ -50,7 +50,7 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
                           depth=frames)
             if executable.endswith('publisher'):
                 params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
-                              wait_timeout_sec=30.0, linger_sec=1.0)
+                              wait_timeout_sec=30.0, linger_sec=3.0)
             else:
                 params.update(expected_count=frames, timeout_sec=60.0 + frames / rate)
             started[label] = run.start(label, executable, **params)
