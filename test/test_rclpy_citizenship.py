@@ -229,7 +229,9 @@ def test_ctrl_c_out_of_spin_leaves_what_stock_leaves_in_dev_shm(tmp_path):
         time.sleep(0.3)
         left = fastdds_leftovers(since, domain)
         outcome.setdefault(kind, []).append((proc.returncode, left))
-        assert 'Error' not in err.replace('KeyboardInterrupt', ''), err
+        # KeyboardInterrupt's traceback runs through rclpy's executor, as with stock; nothing
+        # of ours may show in it (our teardown at exit, an exception of our threads)
+        assert 'rosidl_buffer_py' not in err and 'Exception ignored' not in err, err
     assert outcome['ours'] == outcome['stock'], outcome
     assert all(left == [] for _, left in outcome['stock']), outcome
 
