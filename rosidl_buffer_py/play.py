@@ -29,6 +29,9 @@ from rosidl_buffer_py.message_definition import import_message_type
 
 __all__ = ['main']
 
+#: --wait-for-subscribers: how long every subscription must look served before playback starts.
+SERVED_SETTLE_SECONDS = 0.5
+
 EXIT_USAGE = 2
 REPORT_PREFIX = 'REPORT '
 
@@ -179,9 +182,21 @@ class Player:
                     lacking.append(f'{name}: a buffer-aware subscription not served yet')
             return lacking
 
-        while not self.stop.is_set() and (lacking := missing()):
-            if time.monotonic() > deadline:
-                raise TimeoutError(f'after {self.args.wait_timeout} s: {"; ".join(lacking)}')
+        # a matched subscription's advertisement can reach us a moment after the match: what
+        # is ready must stay so for SERVED_SETTLE_SECONDS (no buffer-aware peer appeared)
+        ready_since = None
+        while not self.stop.is_set():
+            lacking = missing()
+            now = time.monotonic()
+            if lacking:
+                ready_since = None
+            elif ready_since is None:
+                ready_since = now
+            elif now - ready_since >= SERVED_SETTLE_SECONDS:
+                return
+            if now > deadline:
+                raise TimeoutError(f'after {self.args.wait_timeout} s: '
+                                   f'{"; ".join(lacking) or "subscriptions still changing"}')
             executor.spin_once(timeout_sec=0.05)
 
     def _publish(self, output: _Output, data: bytes) -> None:
