@@ -96,25 +96,12 @@ def _incompatible(pub: QoSProfile, sub: QoSProfile) -> bool:
     return qos_check_compatible(pub, sub)[0] == QoSCompatibility.ERROR
 
 
-def qos_compatible(node, topic: str, own_gid: bytes, peer_gid: bytes,
-                   peer_kind: EndpointKind) -> bool:
-    """Whether our QoS and the peer's, as the ROS graph reports them, let them communicate.
-
-    A peer whose QoS is incompatible with ours gets no channel: stock endpoints would not talk,
-    and an unmatched channel would make both sides re-announce (and log) forever. Both profiles
-    come from the graph (what DDS uses: rclpy's "default" durations are resolved there).
-    """
-    publishers, subscriptions = _endpoint_qos(node, topic)
-    pub_gid, sub_gid = ((own_gid, peer_gid) if peer_kind is EndpointKind.SUBSCRIPTION
-                        else (peer_gid, own_gid))
-    pub, sub = publishers.get(pub_gid), subscriptions.get(sub_gid)
-    if pub is None or sub is None:
-        return True  # not in the graph yet: assume it is
-    return not _incompatible(pub, sub)
-
-
 def incompatible_peers(node, topic: str, own_gid: bytes, peer_kind: EndpointKind) -> Set[bytes]:
-    """GIDs of the endpoints of the opposite kind whose QoS is incompatible with ours."""
+    """GIDs of the endpoints of the opposite kind whose QoS is incompatible with ours.
+
+    Both profiles come from the ROS graph (what DDS uses: rclpy's "default" durations are
+    resolved there); an endpoint the graph does not list yet is not in the set.
+    """
     publishers, subscriptions = _endpoint_qos(node, topic)
     if peer_kind is EndpointKind.SUBSCRIPTION:
         own = publishers.get(own_gid)
@@ -131,11 +118,11 @@ def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: E
     logging rclpy's default warning) fires once per incompatible peer (see
     :func:`rosidl_buffer_py.events.once_per_peer`)."""
     callback = event_callbacks.incompatible_qos
+    if callback is None and not event_callbacks.use_default_callbacks:
+        return event_callbacks
+    topic = endpoint_impl.get_topic_name()
     if callback is None:
-        if not event_callbacks.use_default_callbacks:
-            return event_callbacks
         logger = get_logger(endpoint_impl.get_logger_name())
-        topic = endpoint_impl.get_topic_name()
         if kind is EndpointKind.PUBLISHER:
             text = (f"New subscription discovered on topic '{topic}', requesting incompatible "
                     'QoS. No messages will be sent to it. Last incompatible policy: {}')
@@ -149,13 +136,8 @@ def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: E
                  else EndpointKind.PUBLISHER)
     event_callbacks = copy.copy(event_callbacks)
     event_callbacks.incompatible_qos = once_per_peer(
-        callback, lambda: incompatible_peers(node, topic_of(endpoint_impl), gid, peer_kind))
+        callback, lambda: incompatible_peers(node, topic, gid, peer_kind))
     return event_callbacks
-
-
-def topic_of(endpoint_impl) -> str:
-    with endpoint_impl:
-        return endpoint_impl.get_topic_name()
 
 
 class BufferEndpoint:
@@ -188,9 +170,11 @@ class BufferEndpoint:
                     self._drop_peer(peer.gid)
                 return
             info = EndpointInfo(peer.gid, self._topic_name, self._peer_kind)
-            if known is None and not qos_compatible(self._node, self._topic_name, self._gid,
-                                                    peer.gid, self._peer_kind):
-                return  # stock endpoints would not communicate: neither do our channels
+            if known is None and peer.gid in incompatible_peers(
+                    self._node, self._topic_name, self._gid, self._peer_kind):
+                # stock endpoints would not communicate: neither do our channels (and an
+                # unmatched channel would make both sides re-announce, and log, forever)
+                return
             compatible = self._compatible_backends(info, peer.backends)
             if known is None:
                 known = self._add_peer(info, dict(peer.backends))
