@@ -271,27 +271,29 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             used = self._routes
             if used is None:
                 used = self._routes = self._current_routes()
-            self._write(encoder, timestamp, used.peers, used.main, used.unserved)
+            self._write(encoder, timestamp, used.peers, used.main)
             routes = self._valid_routes()
+            main = used.main
             if routes is not used:
                 self._write(encoder, timestamp,
                             [p for p in routes.peers if not any(p is u for u in used.peers)],
-                            routes.main and not used.main, routes.unserved)
-            if used.main or routes.main:
+                            routes.main and not used.main)
+                main = main or routes.main
+            if main:
                 self._sent_main += 1
+                # noted after both writes: a fence written in the re-check above names the
+                # previous message, since this one also went on that peer's channel (the
+                # subscription drops main-topic copies from the fence's own message on)
+                for gid in (used if used.main else routes).unserved:
+                    self._main_timestamps[gid] = timestamp
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:
             self._deadline.activity()
 
-    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool,
-               unserved: Tuple[bytes, ...]) -> None:
+    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool) -> None:
         """Write one message to ``peers``' channels (after their route fence, if pending) and,
-        when ``main``, to the main topic, for the ``unserved`` subscriptions (noted first: a
-        fence written later in this ``publish()`` names this message)."""
-        if main:
-            for gid in unserved:
-                self._main_timestamps[gid] = timestamp
+        when ``main``, to the main topic."""
         for peer in peers:
             if peer.fence_pending:
                 self._write_fence(peer, encoder.msg, timestamp)
