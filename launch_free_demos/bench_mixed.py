@@ -65,6 +65,11 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
         if executable.endswith('subscriber') and (report is None or report['distinct'] != frames
                                                  or report['checksum_failures']):
             raise RuntimeError(f'{graph}: {label} did not get every frame intact: {report}')
+    for label in started:
+        stats = (reports.get(label) or {}).get('statistics') or {}
+        print(f'{graph} {frames} {label}: ' + ', '.join(f'{k}={stats.get(k)}' for k in (
+            'from_main_topic', 'from_channels', 'duplicates_dropped', 'sent_on_main_topic',
+            'main_topic_withheld') if k in stats), file=sys.stderr)
     cpu = {}
     for label, node in started.items():
         usage = node.rusage

@@ -11,7 +11,7 @@ Everything raises :class:`UnsupportedRmwError` when the entity is not rmw_fastrt
 import os
 import re
 from pathlib import Path
-from typing import Any, Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from rosidl_buffer_py import _native
 
@@ -258,6 +258,23 @@ def publish_serialized(publisher: Any, data: Any, source_timestamp: int) -> None
     exactly it in ``info['source_timestamp']``.
     """
     _native.publish_serialized(publisher, data, source_timestamp)
+
+
+def exclude_from_next_write(publisher: Any, reader_gids: Sequence[bytes]) -> bool:
+    """Keep the next sample written on an rclpy publisher's DataWriter from ``reader_gids``.
+
+    Writer side: Fast DDS sends those matched readers a GAP instead of the sample, so they
+    neither receive nor copy its payload (a reliable reader counts nothing as lost). Call right
+    before the write; calling again before it replaces the set. The filter chains to Fast DDS's
+    own (content-filtered readers keep working). False when this DataWriter cannot filter (its
+    private layout did not check out): nothing is excluded then.
+    """
+    return _native.exclude_from_next_write(publisher, reader_gids)
+
+
+def remove_write_exclusions(publisher: Any) -> None:
+    """Take :func:`exclude_from_next_write`'s filter off the publisher's DataWriter again."""
+    _native.remove_write_exclusions(publisher)
 
 
 def matched_subscription_gids(publisher: Any) -> List[bytes]:

@@ -7,7 +7,10 @@ every buffer-aware subscription it discovers, it opens a channel ``rt/<topic>/_b
 gid>`` below rcl and, once that channel is matched, serves the subscription there: a descriptor
 when the backend accepts the peer, CPU bytes otherwise. The main topic is written while some
 matched subscription is not served by a channel, and always for a TRANSIENT_LOCAL publisher (its
-DataWriter keeps the history late joiners get).
+DataWriter keeps the history late joiners get). A main-topic sample is kept from the
+subscriptions a channel serves (writer side: Fast DDS sends them a GAP instead of the payload,
+see :func:`rosidl_buffer_py._dds.exclude_from_next_write`), so a legacy listener costs them
+nothing.
 
 Each message has one designated route per subscription. Every copy of a message carries the same
 explicit source timestamp, increasing per publisher. When a subscription starts being served on
@@ -92,6 +95,8 @@ class _Routes(NamedTuple):
     recheck_at: float
     #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
     unserved: Tuple[bytes, ...]
+    #: GIDs of ``peers``: their main-topic readers do not get main-topic samples.
+    served: Tuple[bytes, ...]
 
 
 class _Encoder:
@@ -161,6 +166,12 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._peers: Dict[bytes, _SubscriptionPeer] = {}
         self._last_timestamp = 0
         self._sent_main = 0
+        #: main-topic samples kept from subscriptions served on channels (per subscription)
+        self._withheld = 0
+        #: None: writer-side exclusion not tried yet; False: this DataWriter cannot do it
+        self._exclusions: Optional[bool] = None
+        #: the last exclusion registered was not empty (the next main write must re-register)
+        self._excluding = False
         self._routes: Optional[_Routes] = None
         #: GID -> source timestamp of the last message the main topic served that subscription
         self._main_timestamps: Dict[bytes, int] = {}
@@ -271,13 +282,13 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             used = self._routes
             if used is None:
                 used = self._routes = self._current_routes()
-            self._write(encoder, timestamp, used.peers, used.main)
+            self._write(encoder, timestamp, used.peers, used.main, used.served)
             routes = self._valid_routes()
             main = used.main
             if routes is not used:
                 self._write(encoder, timestamp,
                             [p for p in routes.peers if not any(p is u for u in used.peers)],
-                            routes.main and not used.main)
+                            routes.main and not used.main, used.served + routes.served)
                 main = main or routes.main
             if main:
                 self._sent_main += 1
@@ -291,9 +302,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if self._deadline is not None:
             self._deadline.activity()
 
-    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool) -> None:
+    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool,
+               served: Tuple[bytes, ...] = ()) -> None:
         """Write one message to ``peers``' channels (after their route fence, if pending) and,
-        when ``main``, to the main topic."""
+        when ``main``, to the main topic, whose sample the ``served`` subscriptions (their
+        channels carry this message) do not get."""
         for peer in peers:
             if peer.fence_pending:
                 self._write_fence(peer, encoder.msg, timestamp)
@@ -301,6 +314,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             # CPU payload: one conversion to C, rmw serializes into each target, as rclpy's
             # publish does (no Python-level CDR work)
             targets = [peer.channel for peer in peers] + ([self] if main else [])
+            if main:
+                self._exclude_from_main(served)
             if targets:
                 _dds.write_message(encoder.msg, timestamp, targets)
             for peer in peers:
@@ -322,6 +337,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             peer.backend_in_use = CPU_BACKEND
         if main:
             cpu_targets.append(self)
+            self._exclude_from_main(served)
         if not cpu_targets:
             return
         if encoder.host_buffer:
@@ -335,6 +351,24 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 _dds.publish_serialized(self, data, timestamp)
             else:
                 target.publish(data, timestamp)
+
+    def _exclude_from_main(self, served: Tuple[bytes, ...]) -> None:
+        """Keep the next main-topic sample from the subscriptions ``served`` on channels.
+
+        Registered right before that write (for the DataWriter's next sequence number); an
+        empty set is registered only to replace a non-empty one left by a write that failed.
+        """
+        if self._exclusions is False or not (served or self._excluding):
+            return
+        self._exclusions = _dds.exclude_from_next_write(self, served)
+        self._excluding = bool(served) and self._exclusions
+        if self._excluding:
+            self._withheld += len(served)
+        elif self._exclusions is False:
+            _logger.warning(
+                f'publisher of {self._topic_name}: this Fast DDS DataWriter cannot keep '
+                'main-topic samples from subscriptions served on channels; they receive and '
+                'drop them (costs CPU, loses nothing)', once=True)
 
     def _write_fence(self, peer: _SubscriptionPeer, msg, timestamp: int) -> None:
         """Tell a subscription just switched to its channel which main-topic message came last.
@@ -386,7 +420,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                          if gid not in served)
         main = bool(unserved) or self._main_always
         targets = [peer.channel for peer in peers] + ([self] if main else [])
-        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved)
+        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved,
+                       tuple(served))
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -414,6 +449,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                     'buffer_aware': self._transport,
                     'advertised_backends': dict(getattr(self, '_advertised', {})),
                     'sent_on_main_topic': self._sent_main,
+                    'main_topic_withheld': self._withheld,
                     'peers_added': self._peers_added, 'peers_removed': self._peers_removed,
                     'peers': self.buffer_peers()}
 
@@ -451,6 +487,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
         _dds.set_user_data(self, self._user_data)
+
+    def _release(self) -> None:
+        if self._exclusions:
+            try:  # before rclpy destroys the DataWriter the filter sits on
+                _dds.remove_write_exclusions(self)
+            except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
+                _logger.debug(f'removing the main-topic exclusions: {exc}')
+        super()._release()
 
     def _node_entities(self) -> list:
         entities = [self._reannounce_timer, self._discovery_guard]

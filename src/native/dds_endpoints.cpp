@@ -7,11 +7,14 @@
 //   take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, gid, info) | None
 //   publish_serialized(publisher, data, source_timestamp) -> None
 //   matched_subscription_gids(publisher) -> list[bytes]
+//   exclude_from_next_write(publisher, reader_gids) -> bool
+//   remove_write_exclusions(publisher) -> None
 //   set_new_message_wakeup(subscription, guard_condition) -> None
 //   clear_new_message_wakeup(subscription) -> None
 //
 // `endpoint` is an rcl_publisher_t* / rcl_subscription_t* (int), an rclpy handle, or an
 // rclpy Publisher/Subscription; `kind` is "publisher" or "subscription" and must match it.
+#include <algorithm>
 #include <map>
 #include <mutex>
 #include <vector>
@@ -448,6 +451,104 @@ PyObject * matched_subscription_gids(PyObject *, PyObject * pub_arg)
   return gid_list(gids);
 }
 
+/// The rmw publisher of a pinned rcl publisher (GIL released inside); nullptr with DdsError.
+rmw_publisher_t * rmw_publisher_of(PinnedHandle * pub)
+{
+  DdsEndpoint dds;  // checks validity and the rmw implementation
+  if (resolve_endpoint(pub->get(), true, &dds) < 0) {
+    return nullptr;
+  }
+  rmw_publisher_t * rmw_pub;
+  {
+    GilRelease nogil;
+    rmw_pub = rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(pub->get()));
+    if (rmw_pub == nullptr) {
+      rcl_reset_error();
+    }
+  }
+  if (rmw_pub == nullptr) {
+    PyErr_SetString(DdsError, "the rcl publisher is not valid");
+  }
+  return rmw_pub;
+}
+
+PyObject * exclude_from_next_write(PyObject *, PyObject * args)
+{
+  PyObject * pub_arg;
+  PyObject * gids_arg;
+  if (!PyArg_ParseTuple(args, "OO:exclude_from_next_write", &pub_arg, &gids_arg)) {
+    return nullptr;
+  }
+  PyObject * gids_seq = PySequence_Fast(gids_arg, "reader_gids must be a sequence of bytes");
+  if (gids_seq == nullptr) {
+    return nullptr;
+  }
+  std::vector<GidArray> readers(static_cast<size_t>(PySequence_Fast_GET_SIZE(gids_seq)));
+  for (Py_ssize_t i = 0; i < PySequence_Fast_GET_SIZE(gids_seq); ++i) {
+    PyObject * item = PySequence_Fast_GET_ITEM(gids_seq, i);
+    char * data;
+    Py_ssize_t length;
+    if (!PyBytes_Check(item) || PyBytes_AsStringAndSize(item, &data, &length) < 0 ||
+      length != RMW_GID_STORAGE_SIZE)
+    {
+      PyErr_Format(
+        PyExc_ValueError, "reader_gids[%zd] must be %d bytes, got %R", i,
+        static_cast<int>(RMW_GID_STORAGE_SIZE), item);
+      Py_DECREF(gids_seq);
+      return nullptr;
+    }
+    std::copy(data, data + length, readers[static_cast<size_t>(i)].begin());
+  }
+  Py_DECREF(gids_seq);
+  PinnedHandle pub;
+  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
+    pub.acquire(pub_arg, "publisher") < 0)
+  {
+    return nullptr;
+  }
+  rmw_publisher_t * rmw_pub = rmw_publisher_of(&pub);
+  if (rmw_pub == nullptr) {
+    return nullptr;
+  }
+  bool ok;
+  bool available;
+  std::string error;
+  {
+    GilRelease nogil;
+    ok = rbpy_dds::exclude_from_next_write(rmw_pub, readers, &available, &error);
+  }
+  if (!ok) {
+    PyErr_Format(DdsError, "exclude_from_next_write: %s", error.c_str());
+    return nullptr;
+  }
+  return PyBool_FromLong(available);
+}
+
+PyObject * remove_write_exclusions(PyObject *, PyObject * pub_arg)
+{
+  PinnedHandle pub;
+  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
+    pub.acquire(pub_arg, "publisher") < 0)
+  {
+    return nullptr;
+  }
+  rmw_publisher_t * rmw_pub = rmw_publisher_of(&pub);
+  if (rmw_pub == nullptr) {
+    return nullptr;
+  }
+  bool ok;
+  std::string error;
+  {
+    GilRelease nogil;
+    ok = rbpy_dds::remove_write_exclusions(rmw_pub, &error);
+  }
+  if (!ok) {
+    PyErr_Format(DdsError, "remove_write_exclusions: %s", error.c_str());
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
 // ---- new-message wakeups on rcl subscriptions ----
 
 /// One registration: the user data of rmw's on-new-message callback. Immutable while
@@ -622,6 +723,15 @@ PyMethodDef endpoint_methods[] = {
     "matched_subscription_gids(publisher) -> list[bytes]\n\n"
     "16-byte GIDs (as get_subscriptions_info_by_topic endpoint_gid) of the DataReaders\n"
     "currently matched with the DataWriter behind an rcl publisher."},
+  {"exclude_from_next_write", exclude_from_next_write, METH_VARARGS,
+    "exclude_from_next_write(publisher, reader_gids) -> bool\n\n"
+    "Keep the next sample written on the DataWriter behind an rcl publisher from the matched\n"
+    "DataReaders reader_gids (16-byte GIDs): Fast DDS sends them a GAP instead, so they\n"
+    "neither receive nor copy it. Call right before the write; calling again before it\n"
+    "replaces the set. False when this writer cannot filter (then nothing is excluded)."},
+  {"remove_write_exclusions", remove_write_exclusions, METH_O,
+    "remove_write_exclusions(publisher) -> None\n\n"
+    "Take the exclusion filter off the publisher's DataWriter (before destroying it)."},
   {"set_new_message_wakeup", set_new_message_wakeup, METH_VARARGS,
     "set_new_message_wakeup(subscription, guard_condition) -> None\n\n"
     "Trigger the rcl guard condition on every new message of the rcl subscription\n"

@@ -1,6 +1,10 @@
 // DataWriter helpers (see dds_writer.hpp). No Python in here.
 #include "dds_writer.hpp"
 
+#include <algorithm>
+#include <deque>
+#include <map>
+#include <mutex>
 
 #include "fastcdr/Cdr.h"
 #include "fastcdr/FastBuffer.h"
@@ -8,6 +12,8 @@
 #include "fastdds/dds/publisher/DataWriter.hpp"
 #include "fastdds/rtps/common/InstanceHandle.h"
 #include "fastdds/rtps/common/Time_t.h"
+#include "fastdds/rtps/interfaces/IReaderDataFilter.hpp"
+#include "fastdds/rtps/writer/RTPSWriter.h"
 #include "rmw_fastrtps_private.hpp"
 #include "rmw_fastrtps_shared_cpp/TypeSupport.hpp"
 #include "rmw_fastrtps_shared_cpp/guid_utils.hpp"
@@ -20,14 +26,166 @@ using eprosima::fastrtps::types::ReturnCode_t;
 namespace
 {
 
-GidArray to_gid_array(const eprosima::fastrtps::rtps::GUID_t & guid)
+using eprosima::fastrtps::rtps::GUID_t;
+
+GidArray to_gid_array(const GUID_t & guid)
 {
   GidArray gid{};
   rmw_fastrtps_shared_cpp::copy_from_fastrtps_guid_to_byte_array(guid, gid.data());
   return gid;
 }
 
+/// The reader filter of a main-topic RTPSWriter: which readers a sample (by sequence number)
+/// must not reach. Fast DDS asks it, under the writer's mutex, when a sample is added (reliable
+/// writers; for each reader) or delivered (best-effort writers; for each fragment), and for the
+/// history a late-joining TRANSIENT_LOCAL reader gets. A sample it has no entry for (an old one,
+/// or one another thread delivers late) reaches every reader: an extra copy, never a loss.
+class ReaderExclusions final : public eprosima::fastdds::rtps::IReaderDataFilter
+{
+public:
+  explicit ReaderExclusions(const eprosima::fastdds::rtps::IReaderDataFilter * previous)
+  : previous_(previous) {}
+
+  bool is_relevant(
+    const eprosima::fastrtps::rtps::CacheChange_t & change,
+    const GUID_t & reader_guid) const override
+  {
+    const int64_t sequence = change.sequenceNumber.to64long();
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      for (auto it = entries_.rbegin(); it != entries_.rend(); ++it) {
+        if (it->sequence == sequence) {
+          if (std::find(it->readers.begin(), it->readers.end(), reader_guid) !=
+            it->readers.end())
+          {
+            return false;
+          }
+          break;
+        }
+      }
+    }
+    return previous_ == nullptr || previous_->is_relevant(change, reader_guid);
+  }
+
+  /// Exclude `readers` from the sample `sequence` (replacing an entry for it).
+  void exclude(int64_t sequence, std::vector<GUID_t> readers)
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    while (!entries_.empty() && entries_.back().sequence >= sequence) {
+      entries_.pop_back();  // registered for a write that did not happen
+    }
+    if (!readers.empty()) {
+      entries_.push_back({sequence, std::move(readers)});
+      if (entries_.size() > kKeptEntries) {
+        entries_.pop_front();
+      }
+    }
+  }
+
+  const eprosima::fastdds::rtps::IReaderDataFilter * previous() const {return previous_;}
+
+private:
+  /// Samples remembered: far more than are ever in flight between their write and delivery.
+  static constexpr size_t kKeptEntries = 256;
+  struct Entry
+  {
+    int64_t sequence;
+    std::vector<GUID_t> readers;
+  };
+  const eprosima::fastdds::rtps::IReaderDataFilter * previous_;
+  mutable std::mutex mutex_;
+  std::deque<Entry> entries_;
+};
+
+/// The filters we installed, by RTPSWriter. An entry whose writer no longer has our filter
+/// (rclpy destroyed the publisher without our remove) is stale: dropped, its filter leaked
+/// (a writer may still point at it for all we know).
+std::mutex g_exclusions_mutex;
+std::map<const eprosima::fastrtps::rtps::RTPSWriter *, ReaderExclusions *> g_exclusions;
+
+/// Our filter on `rtps` (g_exclusions_mutex held): the installed one, or nullptr.
+ReaderExclusions * installed_exclusions(eprosima::fastrtps::rtps::RTPSWriter * rtps)
+{
+  auto it = g_exclusions.find(rtps);
+  if (it == g_exclusions.end()) {
+    return nullptr;
+  }
+  if (rtps->reader_data_filter() != it->second) {
+    g_exclusions.erase(it);
+    return nullptr;
+  }
+  return it->second;
+}
+
 }  // namespace
+
+bool exclude_from_next_write(
+  rmw_publisher_t * publisher, const std::vector<GidArray> & readers, bool * available,
+  std::string * error)
+{
+  *available = false;
+  rmw_private::PublisherParts info;
+  if (!rmw_private::publisher_parts(publisher, &info, error)) {
+    return false;
+  }
+  std::string unavailable;
+  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(
+    info.writer, &unavailable);
+  if (rtps == nullptr) {
+    return true;
+  }
+  std::vector<GUID_t> guids(readers.size());
+  for (size_t i = 0; i < readers.size(); ++i) {
+    rmw_fastrtps_shared_cpp::copy_from_byte_array_to_fastrtps_guid(readers[i].data(), &guids[i]);
+  }
+  std::lock_guard<std::mutex> registry(g_exclusions_mutex);
+  ReaderExclusions * exclusions = installed_exclusions(rtps);
+  if (exclusions == nullptr) {
+    std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
+    const auto * previous = rtps->reader_data_filter();
+    if (previous != nullptr && !rmw_private::is_own_reader_filter(info.writer, previous)) {
+      return true;  // someone else's filter: leave it alone
+    }
+    exclusions = new ReaderExclusions(previous);
+    rtps->reader_data_filter(exclusions);
+    g_exclusions[rtps] = exclusions;
+  }
+  const int64_t sequence = rmw_private::next_sequence_number(rtps);
+  if (sequence <= 0) {
+    return true;
+  }
+  exclusions->exclude(sequence, std::move(guids));
+  *available = true;
+  return true;
+}
+
+bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error)
+{
+  rmw_private::PublisherParts info;
+  if (!rmw_private::publisher_parts(publisher, &info, error)) {
+    return false;
+  }
+  std::string unavailable;
+  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(
+    info.writer, &unavailable);
+  if (rtps == nullptr) {
+    return true;
+  }
+  std::lock_guard<std::mutex> registry(g_exclusions_mutex);
+  ReaderExclusions * exclusions = installed_exclusions(rtps);
+  if (exclusions == nullptr) {
+    return true;
+  }
+  {
+    // Fast DDS asks the filter under this mutex only: once it is ours again, nobody uses it.
+    std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
+    rtps->reader_data_filter(
+      const_cast<eprosima::fastdds::rtps::IReaderDataFilter *>(exclusions->previous()));
+  }
+  g_exclusions.erase(rtps);
+  delete exclusions;
+  return true;
+}
 
 bool write_serialized_w_timestamp(
   eprosima::fastdds::dds::DataWriter * writer, const void * data, size_t length,

@@ -49,6 +49,21 @@ bool write_message_w_timestamp(
 
 using GidArray = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
 
+/// Keep the next sample written on the DataWriter of an rmw_fastrtps_cpp publisher (identifier
+/// already checked) from the matched readers `readers` (rmw GIDs): Fast DDS then sends them a
+/// GAP, not the sample. Installs the writer's exclusion filter on first use (it chains to the
+/// filter Fast DDS had installed, for content-filtered readers). Registering again before the
+/// write replaces the entry. *available is false (and nothing registered) when this writer
+/// cannot be filtered: the private-layout check failed, or another filter is installed.
+/// Returns true, or false with *error.
+bool exclude_from_next_write(
+  rmw_publisher_t * publisher, const std::vector<GidArray> & readers, bool * available,
+  std::string * error);
+
+/// Remove the exclusion filter from the publisher's writer, giving Fast DDS's own back; call it
+/// before the publisher is destroyed. Nothing to do when none was installed.
+bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error);
+
 /// The rmw GIDs (Fast DDS GUIDs) of the DataReaders matched with the DataWriter of an
 /// rmw_fastrtps_cpp publisher (identifier already checked). Asks the DataWriter first; Fast DDS
 /// 2.14 answers RETCODE_UNSUPPORTED, and then rmw's own set of matched readers (the one behind

@@ -8,7 +8,14 @@
 //   std::set<GUID_t>) and subscriptions_mutex_, kept by its on_publication_matched;
 // - rmw_fastrtps_shared_cpp/src/participant.cpp (__create_participant): rmw installs its own
 //   ParticipantListener on the DomainParticipant; we replace it with a tap that forwards every
-//   callback to it (dds_discovery.cpp), and give it back on uninstall.
+//   callback to it (dds_discovery.cpp), and give it back on uninstall;
+// - Fast DDS src/cpp/fastdds/publisher/DataWriterImpl.hpp (v2.14.0 to v2.14.6, not installed):
+//   `class DataWriterImpl : protected rtps::IReaderDataFilter` whose first data members are
+//   `PublisherImpl* publisher_` and `RTPSWriter* writer_` (DataWriterImplHead below). Reached
+//   from the installed DataWriter.hpp's protected `impl_`; checked against the DataWriter's
+//   publisher (Publisher.hpp's protected `impl_`) and GUID before the writer is used;
+// - Fast DDS's installed RTPSWriter.h: its protected `mp_history` (the WriterHistory, whose
+//   public next_sequence_number() tells the next sample's sequence number).
 // The layouts come from the headers of the prefix setup.py builds against. A patch release that
 // changes them would make these reads wrong without any error, hence the version guard: nothing
 // here runs until rosidl_buffer_py._dds found the running libraries to be the built versions.
@@ -21,6 +28,9 @@
 #include "fastdds/dds/domain/DomainParticipant.hpp"
 #include "fastdds/dds/domain/DomainParticipantListener.hpp"
 #include "fastdds/dds/publisher/DataWriter.hpp"
+#include "fastdds/dds/publisher/Publisher.hpp"
+#include "fastdds/rtps/history/WriterHistory.h"
+#include "fastdds/rtps/writer/RTPSWriter.h"
 #include "fastrtps/config.h"
 #include "rmw_fastrtps_shared_cpp/custom_publisher_info.hpp"
 
@@ -65,6 +75,34 @@ struct ExposeMember
 };
 template struct ExposeMember<MatchedSetTag, &RMWPublisherEvent::subscriptions_>;
 template struct ExposeMember<MatchedMutexTag, &RMWPublisherEvent::subscriptions_mutex_>;
+
+struct WriterImplTag
+{
+  using type = eprosima::fastdds::dds::DataWriterImpl * eprosima::fastdds::dds::DataWriter::*;
+};
+struct PublisherImplTag
+{
+  using type = eprosima::fastdds::dds::PublisherImpl * eprosima::fastdds::dds::Publisher::*;
+};
+struct WriterHistoryTag
+{
+  using type =
+    eprosima::fastrtps::rtps::WriterHistory * eprosima::fastrtps::rtps::RTPSWriter::*;
+};
+WriterImplTag::type member_of(WriterImplTag);
+PublisherImplTag::type member_of(PublisherImplTag);
+WriterHistoryTag::type member_of(WriterHistoryTag);
+template struct ExposeMember<WriterImplTag, &eprosima::fastdds::dds::DataWriter::impl_>;
+template struct ExposeMember<PublisherImplTag, &eprosima::fastdds::dds::Publisher::impl_>;
+template struct ExposeMember<WriterHistoryTag, &eprosima::fastrtps::rtps::RTPSWriter::mp_history>;
+
+/// The start of Fast DDS 2.14's DataWriterImpl (see the top of this file).
+struct DataWriterImplHead
+{
+  const void * vtable;  // of its only base, IReaderDataFilter (so at offset 0)
+  const void * publisher;  // PublisherImpl*
+  eprosima::fastrtps::rtps::RTPSWriter * writer;
+};
 
 }  // namespace
 
@@ -141,6 +179,42 @@ bool set_participant_listener(
     return false;
   }
   return true;
+}
+
+eprosima::fastrtps::rtps::RTPSWriter * rtps_writer_of(
+  eprosima::fastdds::dds::DataWriter * writer, std::string * error)
+{
+  if (!layout_verified()) {
+    *error = kNotVerified;
+    return nullptr;
+  }
+  const void * impl = writer->*member_of(WriterImplTag{});
+  const eprosima::fastdds::dds::Publisher * publisher = writer->get_publisher();
+  if (impl == nullptr || publisher == nullptr) {
+    *error = "the DataWriter has no implementation or no publisher";
+    return nullptr;
+  }
+  const auto * head = static_cast<const DataWriterImplHead *>(impl);
+  // The publisher pointer is checked before the writer pointer is followed.
+  if (head->publisher != static_cast<const void *>(publisher->*member_of(PublisherImplTag{})) ||
+    head->writer == nullptr || head->writer->getGuid() != writer->guid())
+  {
+    *error = "Fast DDS's DataWriterImpl does not have the layout of 2.14";
+    return nullptr;
+  }
+  return head->writer;
+}
+
+bool is_own_reader_filter(eprosima::fastdds::dds::DataWriter * writer, const void * filter)
+{
+  return layout_verified() && filter != nullptr &&
+         filter == static_cast<const void *>(writer->*member_of(WriterImplTag{}));
+}
+
+int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer)
+{
+  eprosima::fastrtps::rtps::WriterHistory * history = writer->*member_of(WriterHistoryTag{});
+  return history == nullptr ? -1 : history->next_sequence_number().to64long();
 }
 
 }  // namespace rmw_private

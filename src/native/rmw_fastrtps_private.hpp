@@ -1,11 +1,12 @@
-// Every access of rosidl_buffer_py._native to rmw_fastrtps's private memory layout, and the one
-// place that replaces an object rmw owns (its participant listener). See the .cpp for what each
+// Every access of rosidl_buffer_py._native to rmw_fastrtps's and Fast DDS's private memory layout,
+// and the one place that replaces an object rmw owns (its participant listener). See the .cpp for what each
 // mirrors. Plain C++, no Python; all of it refuses to run until the Python side has verified
 // that the running rmw_fastrtps_cpp, rmw_fastrtps_shared_cpp and Fast DDS are the versions this
 // extension was built against (set_layout_verified, called by rosidl_buffer_py._dds at import).
 #ifndef ROSIDL_BUFFER_PY_NATIVE__RMW_FASTRTPS_PRIVATE_HPP_
 #define ROSIDL_BUFFER_PY_NATIVE__RMW_FASTRTPS_PRIVATE_HPP_
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -23,6 +24,13 @@ class DomainParticipant;
 class DomainParticipantListener;
 }  // namespace dds
 }  // namespace fastdds
+namespace fastrtps
+{
+namespace rtps
+{
+class RTPSWriter;
+}  // namespace rtps
+}  // namespace fastrtps
 }  // namespace eprosima
 
 namespace rbpy_dds
@@ -64,6 +72,21 @@ bool rmw_matched_readers(
 bool set_participant_listener(
   eprosima::fastdds::dds::DomainParticipant * participant,
   eprosima::fastdds::dds::DomainParticipantListener * listener, std::string * error);
+
+/// The RTPSWriter behind a DataWriter (Fast DDS keeps it in the private DataWriterImpl), checked
+/// to be the one: its publisher and GUID must be the DataWriter's. nullptr with *error when not
+/// verified or when the check fails.
+eprosima::fastrtps::rtps::RTPSWriter * rtps_writer_of(
+  eprosima::fastdds::dds::DataWriter * writer, std::string * error);
+
+/// Whether `filter` is the DataWriter's own reader filter (its DataWriterImpl, which Fast DDS
+/// installs on the RTPSWriter for content-filtered readers).
+bool is_own_reader_filter(
+  eprosima::fastdds::dds::DataWriter * writer, const void * filter);
+
+/// The sequence number the RTPSWriter gives its next sample (from its WriterHistory, a
+/// protected member of the public RTPSWriter). Read it only while nothing else writes.
+int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer);
 
 }  // namespace rmw_private
 }  // namespace rbpy_dds
