@@ -288,7 +288,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             if routes is not used:
                 self._write(encoder, timestamp,
                             [p for p in routes.peers if not any(p is u for u in used.peers)],
-                            routes.main and not used.main, used.served + routes.served)
+                            routes.main and not used.main,
+                            tuple(dict.fromkeys(used.served + routes.served)))
                 main = main or routes.main
             if main:
                 self._sent_main += 1

@@ -1,7 +1,7 @@
 """image_subscriber: receive and verify the frames of image_publisher, then report.
 
 The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
-frames), checksum failures, backends seen, wrong-backend frames and latency percentiles. The
+frames), the first and last frame seen, checksum failures, backends seen, wrong-backend frames and latency percentiles. The
 parameters are listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
 """
 import collections
@@ -150,6 +150,8 @@ class ImageSubscriber(Node):
             'duplicates': self.counters['duplicates'], 'gaps': len(missing),
             'out_of_order': self.counters['out_of_order'],
             'missing': missing[:20],
+            'first_frame': min(self.seen) if self.seen else None,
+            'last_frame': max(self.seen) if self.seen else None,
             'checksum_failures': self.counters['checksum_failures'],
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
