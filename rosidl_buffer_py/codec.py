@@ -33,6 +33,7 @@ from typing import Any, Container, Dict, List, NamedTuple, Optional, Tuple, Type
 from rclpy.serialization import deserialize_message, serialize_message
 from rosidl_parser import definition
 
+from rosidl_buffer_py import _native
 from rosidl_buffer_py.backend import MAX_DESCRIPTOR_SIZE
 from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.message_support import enable_buffer_fields
@@ -62,6 +63,8 @@ _HEADER_SIZE = 4
 _ZERO_LENGTH = b'\x00\x00\x00\x00'
 _U32 = {True: struct.Struct('<I'), False: struct.Struct('>I')}
 _MARKER_BYTES = b'\xff\xff\xff\xff'
+#: The payload of the clone that encode_descriptor serializes (read, never modified).
+_EMPTY_PAYLOAD = array.array('B')
 
 # Wire size (= XCDR1 alignment) of each supported basic type.
 _BASIC_SIZES = {
@@ -567,6 +570,12 @@ def encode(msg: Any, descriptor: Optional[Tuple[str, bytes]] = None) -> bytearra
         return head
     plan = _plan(type(msg))
     backend, data = _check_descriptor(descriptor)
+    if not plan.plain_slots:
+        # the same bytes from C (None when it cannot: the code below then says why)
+        out = _native.encode_descriptor(msg, plan.slots, plan.slot, _EMPTY_PAYLOAD, backend,
+                                        data, plan.suffix_size)
+        if out is not None:
+            return out
     out, suffix, u32 = _encode_head(msg, plan)
     out += _MARKER_BYTES
     out += u32.pack(len(backend) + 1)
@@ -612,6 +621,13 @@ def decode(raw: Any, msg_type: Type,
     :return: A :class:`Decoded`. Legacy bytes decode to the message ``deserialize_message`` gives.
     :raises CodecError: on malformed input, an unknown backend or an oversized descriptor.
     """
+    plan = _plan(msg_type)
+    # Descriptor messages are decoded in C; CPU bytes and anything malformed come back as None
+    # and take the path below (which names what is wrong).
+    fast = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
+                                     MAX_DESCRIPTOR_SIZE)
+    if fast is not None and (known_backends is None or fast[1] in known_backends):
+        return Decoded(*fast)
     decoded, payload = _decode(raw, msg_type, known_backends)
     if payload.nbytes:
         getattr(decoded.msg, _plan(msg_type).slot).frombytes(payload)

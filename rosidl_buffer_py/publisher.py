@@ -107,20 +107,26 @@ class _Encoder:
     descriptor form once per distinct descriptor.
     """
 
-    __slots__ = ('msg', 'payload', 'cpu_message', 'host_buffer', 'vendor', '_cpu', '_described')
+    __slots__ = ('msg', 'payload', 'cpu_message', 'vendor', '_fields', '_cpu', '_described')
 
     def __init__(self, msg, serialized, payload, fields: Tuple[str, ...]) -> None:
         self.msg = msg
         self.payload = payload
         buffer = isinstance(payload, Buffer)
         self.cpu_message = serialized is None and not buffer
-        #: a message whose payload is a Buffer in host memory: its CPU form is the message
-        #: itself, converted through the buffer protocol (other payload fields: plain data)
-        self.host_buffer = (buffer and payload.host_addressable and
-                            sum(isinstance(getattr(msg, f), Buffer) for f in fields) == 1)
         self.vendor = payload.backend_type if buffer and not payload.is_cpu else None
+        self._fields = fields
         self._cpu = serialized
-        self._described: Dict[bytes, bytearray] = {}
+        self._described = None
+
+    @property
+    def host_buffer(self) -> bool:
+        """A message whose payload is a Buffer in host memory: its CPU form is the message
+        itself, converted through the buffer protocol (other payload fields: plain data). Only
+        asked when some target gets CPU data (a descriptor-only publish skips it)."""
+        payload = self.payload
+        return (isinstance(payload, Buffer) and payload.host_addressable
+                and sum(isinstance(getattr(self.msg, f), Buffer) for f in self._fields) == 1)
 
     def cpu_bytes(self):
         if self._cpu is None:
@@ -128,9 +134,12 @@ class _Encoder:
         return self._cpu
 
     def with_descriptor(self, vendor: str, descriptor: bytes) -> bytearray:
-        data = self._described.get(descriptor)
+        described = self._described
+        if described is None:
+            described = self._described = {}
+        data = described.get(descriptor)
         if data is None:
-            data = self._described[descriptor] = codec.encode(self.msg, (vendor, descriptor))
+            data = described[descriptor] = codec.encode(self.msg, (vendor, descriptor))
         return data
 
 

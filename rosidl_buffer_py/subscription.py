@@ -426,6 +426,11 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             if item is None:
                 return
             self._call(*item)
+            if not self._waiting and not any(peer.channel.pending for peer in self._channels):
+                # drained (each take counts what its reader holds): no empty take to prove it.
+                # A sample arriving from now on triggers the guard again; main-topic samples
+                # wake the executor through the main reader itself.
+                return
         self._wake()  # more may be waiting: let other callbacks run first
 
     def _on_fence_timer(self) -> None:

@@ -742,3 +742,61 @@ def test_walker_finds_the_end_of_many_message_layouts():
             with pytest.raises(CodecError):
                 codec._walk(walker_ops(type(msg)), body, 0, end - 1,
                             struct.Struct('<I').unpack_from, None)
+
+
+# --- the C fast path (rosidl_buffer_py._native.encode_descriptor / decode_descriptor) -----------
+
+def _python_only(monkeypatch):
+    """Make the codec run its Python path only (the C one answers None: "cannot")."""
+    class NoFastPath:
+        @staticmethod
+        def encode_descriptor(*args):
+            return None
+
+        @staticmethod
+        def decode_descriptor(*args):
+            return None
+    monkeypatch.setattr(codec, '_native', NoFastPath)
+
+
+def _fast_path_cases():
+    image = Image(height=3, width=70001, encoding='rgb8', is_bigendian=1, step=9)
+    image.header.frame_id = 'camera'
+    image.header.stamp.sec, image.header.stamp.nanosec = 1700000000, 123456789
+    cloud = PointCloud2(fields=[PointField(name='x', offset=0, datatype=7, count=1)],
+                        is_dense=True)
+    array_msg = UInt8MultiArray()
+    array_msg.layout.dim = [MultiArrayDimension(label='rows', size=3, stride=2)]
+    return [(image, ('demo', bytes(range(70)))), (CompressedImage(format='jpeg'), ('x', b'')),
+            (cloud, ('vendor_backend', b'\x01' * 9)), (array_msg, ('d', b'\xff' * 64))]
+
+
+def test_fast_path_gives_the_python_path_bytes_and_messages(monkeypatch):
+    from rosidl_buffer_py import _native
+    for msg, descriptor in _fast_path_cases():
+        plan = codec._plan(type(msg))
+        fast = encode(msg, descriptor)
+        assert _native.encode_descriptor(
+            msg, plan.slots, plan.slot, codec._EMPTY_PAYLOAD, descriptor[0].encode(),
+            descriptor[1], plan.suffix_size) == fast  # the C path did answer
+        assert _native.decode_descriptor(fast, type(msg), plan.prefix_ops, plan.suffix_size,
+                                         MAX_DESCRIPTOR_SIZE) is not None
+        fast_decoded = decode(fast, type(msg))
+        # malformed variants: the C path declines, the Python path names the problem
+        variants = [fast[:cut] for cut in range(0, len(fast), 3)]
+        variants += [fast[:i] + bytes([fast[i] ^ 0xA5]) + fast[i + 1:] for i in range(len(fast))]
+
+        def outcome(raw):
+            try:
+                d = decode(raw, type(msg), known_backends={descriptor[0]})
+                return d.msg, d.backend_type, d.descriptor
+            except CodecError as exc:
+                return str(exc)
+        fast_outcomes = [outcome(bytes(v)) for v in variants]
+        with monkeypatch.context() as m:
+            _python_only(m)
+            assert encode(msg, descriptor) == fast
+            slow_decoded = decode(fast, type(msg))
+            assert [outcome(bytes(v)) for v in variants] == fast_outcomes
+        assert fast_decoded == slow_decoded
+        assert type(getattr(fast_decoded.msg, plan.field)) is array.array

@@ -279,6 +279,33 @@ def test_channel_in_process_wakeup_and_subscription_gid(ctx):
     node.destroy_node()
 
 
+def test_channel_pending_counts_announced_samples_until_taken(ctx):
+    """``pending`` is what lets the subscription stop after a take without an empty take: it
+    never under-counts the announced samples still in the reader."""
+    node = _node(ctx, 'chan_pending')
+    topic = _channel_topic(_unique('chan_pending'))
+    gc = node.create_guard_condition(lambda: None)
+    sub = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=5),
+                                           guard_condition=gc)
+    unguarded = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=5))
+    pub = _dds.create_channel_publisher(node, Image, topic, QoSProfile(depth=5))
+    assert _wait(lambda: pub.matched_count() == 2)
+    assert sub.pending == 0 and unguarded.pending == 1  # 1: unknown, take to find out
+    data = serialize_message(_image(64))
+    for _ in range(3):
+        pub.publish(data)
+    assert _wait(lambda: sub.pending == 3)
+    assert sub.take() is not None and sub.pending == 2
+    assert sub.take() is not None and sub.take() is not None and sub.pending == 0
+    assert sub.take() is None and sub.pending == 0
+    pub.publish(data)
+    assert _wait(lambda: sub.pending == 1)
+    assert sub.take() is not None and sub.pending == 0
+    for channel in (sub, unguarded, pub):
+        channel.destroy()
+    node.destroy_node()
+
+
 # ---------------------------------------------------------------- main-topic take
 
 

@@ -24,6 +24,7 @@
 // Both pin the node's rclpy handle (rclpy defers destroy_node() until destroy()) and the
 // subscription pins its guard condition, which it triggers from the DDS thread (rmw's
 // on-new-message callback) whenever data arrives.
+#include <atomic>
 #include <cstring>
 #include <memory>
 #include <mutex>
@@ -54,13 +55,33 @@ namespace
 /// What the rmw on-new-message callback needs; lives until the callback is unset.
 struct NewMessageNotify
 {
+  explicit NewMessageNotify(rcl_guard_condition_t * gc)
+  : guard_condition(gc) {}
+
   rcl_guard_condition_t * guard_condition;
+  /// Samples announced by the callback and not taken since: never fewer than the announced
+  /// samples still in the reader (a take of a sample not announced yet clamps at 0, and its
+  /// announcement later over-counts, which costs one empty take), reset by a take that finds
+  /// none. So `pending() == 0` right after a take means that every sample still unread will
+  /// trigger, or has triggered since, the guard condition.
+  std::atomic<uint64_t> notified{0};
+
+  void taken(bool any)
+  {
+    if (!any) {
+      notified.store(0);
+      return;
+    }
+    uint64_t value = notified.load();
+    while (value > 0 && !notified.compare_exchange_weak(value, value - 1)) {
+    }
+  }
 };
 
 void on_new_message(const void * user_data, size_t number_of_events)
 {
-  (void)number_of_events;
-  auto * notify = static_cast<const NewMessageNotify *>(user_data);
+  auto * notify = const_cast<NewMessageNotify *>(static_cast<const NewMessageNotify *>(user_data));
+  notify->notified.fetch_add(number_of_events);  // before the trigger: the woken side sees it
   if (rcl_trigger_guard_condition(notify->guard_condition) != RCL_RET_OK) {
     rcl_reset_error();
   }
@@ -609,8 +630,8 @@ int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
       base_unsetup(&self->base);
       return -1;
     }
-    self->notify = new NewMessageNotify{
-      static_cast<rcl_guard_condition_t *>(self->guard_condition->get())};
+    self->notify = new NewMessageNotify(
+      static_cast<rcl_guard_condition_t *>(self->guard_condition->get()));
   }
   self->buffer = new rmw_serialized_message_t(rmw_get_zero_initialized_serialized_message());
   rmw_subscription_options_t options = rmw_get_default_subscription_options();
@@ -763,6 +784,9 @@ PyObject * sub_take_impl(
     } else if (taken && support != nullptr && fits(*self->buffer, max_size)) {
       deserialized = try_deserialize(*support, *self->buffer, &ros_message);
     }
+    if (self->notify != nullptr && ret == RMW_RET_OK) {
+      self->notify->taken(taken);
+    }
   }
   PyEval_RestoreThread(ts);
   PyObject * result = nullptr;
@@ -851,7 +875,17 @@ PyMethodDef sub_methods[] = {
   {nullptr, nullptr, 0, nullptr},
 };
 
+PyObject * sub_pending(PyObject * op, void *)
+{
+  const NewMessageNotify * notify = reinterpret_cast<ChannelSubscriptionObject *>(op)->notify;
+  return PyLong_FromUnsignedLongLong(notify != nullptr ? notify->notified.load() : 1);
+}
+
 PyGetSetDef sub_getset[] = {
+  {"pending", sub_pending, nullptr,
+    "Samples announced to the guard condition and not taken since (1 without a guard "
+    "condition): 0 after a take means that every sample left will trigger the guard "
+    "condition (again), so no empty take is needed to know the channel is drained", nullptr},
   {"gid", base_gid, nullptr, "16-byte GID (as in get_subscriptions_info_by_topic)", nullptr},
   {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
   {"valid", sub_valid, nullptr, "False once destroyed", nullptr},

@@ -345,7 +345,8 @@ int add_dds_api(PyObject * module)
   if (add_abi_api(module) < 0 ||
     rbpy_dds::add_dds_endpoint_functions(module) < 0 ||
     rbpy_dds::add_dds_discovery_functions(module) < 0 ||
-    rbpy_dds::add_dds_channel_types(module) < 0)
+    rbpy_dds::add_dds_channel_types(module) < 0 ||
+    rbpy_dds::add_codec_functions(module) < 0)
   {
     return -1;
   }

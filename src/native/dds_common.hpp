@@ -161,6 +161,7 @@ bool try_deserialize(
 int add_dds_endpoint_functions(PyObject * module);
 int add_dds_discovery_functions(PyObject * module);
 int add_dds_channel_types(PyObject * module);
+int add_codec_functions(PyObject * module);  // codec_fast.cpp
 
 }  // namespace rbpy_dds
 
