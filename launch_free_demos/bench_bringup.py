@@ -29,14 +29,20 @@ from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers
 
 #: How long the publisher runs before the first trial (its own start-up is not measured).
 WARM_UP_SECONDS = 2.0
+#: Frames a stock subscriber (``--stock``) takes.
+STOCK_FRAMES = 15
 #: Pause between trials: the publisher sees the previous subscriber leave.
 GAP_SECONDS = 0.5
 
 
 # --- the subscriber process -------------------------------------------------------------------
 
-def run_subscriber(topic: str, after: int, timeout: float) -> int:
-    """One trial's subscriber: record the match, the frames and their routes; print a report."""
+def run_subscriber(topic: str, after: int, timeout: float, stock: bool = False) -> int:
+    """One trial's subscriber: record the match, the frames and their routes; print a report.
+
+    ``stock``: a plain rclpy subscription instead, which takes ``STOCK_FRAMES`` frames (what a
+    stock subscriber loses at bring-up, for comparison).
+    """
     started = time.monotonic()
     import rclpy
     from rclpy.event_handler import SubscriptionEventCallbacks
@@ -55,10 +61,12 @@ def run_subscriber(topic: str, after: int, timeout: float) -> int:
             self.frames: List[list] = []  # [arrival, backend, counter, ok]
             self.zero_copy = 0
             self.created_at = time.monotonic()
-            self.subscription = rosidl_buffer_py.create_subscription(
+            callbacks = SubscriptionEventCallbacks(matched=self.on_matched)
+            self.subscription = self.create_subscription(
+                Image, topic, self.on_image, QoSProfile(depth=10),
+                event_callbacks=callbacks) if stock else rosidl_buffer_py.create_subscription(
                 self, Image, topic, self.on_image, QoSProfile(depth=10),
-                event_callbacks=SubscriptionEventCallbacks(matched=self.on_matched),
-                acceptable_buffer_backends='demo')
+                event_callbacks=callbacks, acceptable_buffer_backends='demo')
             self.subscribed_at = time.monotonic()
 
         def on_matched(self, info) -> None:
@@ -75,7 +83,8 @@ def run_subscriber(topic: str, after: int, timeout: float) -> int:
                 self.zero_copy += 1
 
         def done(self) -> bool:
-            return self.zero_copy > after or time.monotonic() - started > timeout
+            return (self.zero_copy > after or (stock and len(self.frames) >= STOCK_FRAMES) or
+                    time.monotonic() - started > timeout)
 
         def run(self) -> None:
             while not self.done():
@@ -85,7 +94,7 @@ def run_subscriber(topic: str, after: int, timeout: float) -> int:
             print_report({'started': started, 'created': self.created_at,
                           'subscribed': self.subscribed_at, 'matched': self.matched_at,
                           'frames': self.frames,
-                          'statistics': self.subscription.statistics()})
+                          'statistics': {} if stock else self.subscription.statistics()})
 
     return run_node(BringupSubscriber, lambda node: node.run(), program='bench_bringup')
 
@@ -116,6 +125,7 @@ class Trial:
     start_to_match: Optional[float] = None
     problem: str = ''
     fence_timeouts: int = 0
+    rejected: int = 0
 
     @property
     def bringup(self) -> Optional[float]:
@@ -156,13 +166,14 @@ def trial_of(report: Optional[dict]) -> Trial:
         if counters != sorted(counters):
             trial.problem = (trial.problem + '; ' if trial.problem else '') + 'out of order'
     trial.fence_timeouts = report['statistics'].get('fence_timeouts', 0)
-    if trial.first_zero_copy is None:
+    trial.rejected = report['statistics'].get('rejected', 0)
+    if trial.first_zero_copy is None and report['statistics']:
         trial.problem = trial.problem or 'no zero-copy frame'
     return trial
 
 
 def run_trials(width: int, height: int, rate: float, trials: int, after: int,
-               echo: bool = False) -> List[Trial]:
+               stock: bool = False, echo: bool = False) -> List[Trial]:
     """Start the publisher, then one subscriber per trial, in turn; return what each saw."""
     topic = f'/bench_bringup_{os.getpid()}/image'
     results = []
@@ -176,7 +187,8 @@ def run_trials(width: int, height: int, rate: float, trials: int, after: int,
                 raise RuntimeError('the publisher exited:\n' + run.diagnostics())
             label = f'sub{index}'
             node = run.add(SubscriberProcess(label, 'bench_bringup', arguments=[
-                '--topic', topic, '--after', str(after), '--timeout', '30']))
+                '--topic', topic, '--after', str(after), '--timeout', '30',
+                *(['--stock'] if stock else [])]))
             if not run.wait([label], timeout=60.0):
                 node.stop()
             results.append(trial_of(node.report))
@@ -193,27 +205,31 @@ def _percentile(values: List[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, max(0, round(q * (len(ordered) - 1))))]
 
 
-def table(results: List[Trial], payload: str, rate: float) -> str:
+def table(results: List[Trial], payload: str, rate: float, stock: bool = False) -> str:
     """The summary and one row per trial, as markdown."""
     bringups = [t.bringup for t in results if t.bringup is not None]
     cpu = [t.cpu_before for t in results if t.bringup is not None]
-    lines = [f'Bring-up of a buffer-aware subscriber accepting demo: from its main-topic match to '
-             f'its first zero-copy frame; demo publisher, {payload} rgb8 at {rate:g} Hz, '
-             f'{len(results)} trials ({len(bringups)} reached zero-copy).', '',
-             '| | p50 | p90 | max |', '|---|---|---|---|']
+    who = ('a plain rclpy subscriber (for comparison: no zero-copy)' if stock else
+           'a buffer-aware subscriber accepting demo: from its main-topic match to its first '
+           'zero-copy frame')
+    lines = [f'Bring-up of {who}; demo publisher, {payload} rgb8 at {rate:g} Hz, '
+             f'{len(results)} trials ({len(bringups)} reached zero-copy); frames lost after '
+             f'the first: {sum(t.lost for t in results)} in '
+             f'{sum(1 for t in results if t.lost)} trials.', '']
     if bringups:
-        lines.append('| match to first zero-copy frame, ms | ' + ' | '.join(
-            _ms(_percentile(bringups, q)) for q in (0.5, 0.9, 1.0)) + ' |')
-        lines.append('| CPU frames before it | ' + ' | '.join(
-            f'{_percentile(cpu, q):g}' for q in (0.5, 0.9, 1.0)) + ' |')
+        lines += ['| | p50 | p90 | max |', '|---|---|---|---|',
+                  '| match to first zero-copy frame, ms | ' + ' | '.join(
+                      _ms(_percentile(bringups, q)) for q in (0.5, 0.9, 1.0)) + ' |',
+                  '| CPU frames before it | ' + ' | '.join(
+                      f'{_percentile(cpu, q):g}' for q in (0.5, 0.9, 1.0)) + ' |']
     lines += ['', '| trial | start to match, ms | match to first frame, ms | '
               'match to zero-copy, ms | CPU frames first | frames | lost | duplicated | '
-              'corrupt | fence timeouts | problem |', '|' + '---|' * 11]
+              'corrupt | rejected | fence timeouts | problem |', '|' + '---|' * 12]
     for index, t in enumerate(results):
         first = None if t.first_frame is None or t.matched is None else t.first_frame - t.matched
         lines.append(f'| {index} | {_ms(t.start_to_match)} | {_ms(first)} | {_ms(t.bringup)} | '
                      f'{t.cpu_before} | {t.frames} | {t.lost} | {t.duplicated} | {t.corrupt} | '
-                     f'{t.fence_timeouts} | {t.problem} |')
+                     f'{t.rejected} | {t.fence_timeouts} | {t.problem} |')
     return '\n'.join(lines)
 
 
@@ -224,23 +240,26 @@ def main(argv=None) -> int:
     parser.add_argument('--trials', type=int, default=20)
     parser.add_argument('--after', type=int, default=5,
                         help='zero-copy frames each subscriber takes after the first')
+    parser.add_argument('--stock', action='store_true',
+                        help='plain rclpy subscribers instead (what they lose at bring-up)')
     parser.add_argument('--echo', action='store_true', help="show the processes' output")
     parser.add_argument('--subscriber', action='store_true', help=argparse.SUPPRESS)
     parser.add_argument('--topic', help=argparse.SUPPRESS)
     parser.add_argument('--timeout', type=float, default=30.0, help=argparse.SUPPRESS)
     args, _ros_args = parser.parse_known_args(argv)
     if args.subscriber:
-        return run_subscriber(args.topic, args.after, args.timeout)
+        return run_subscriber(args.topic, args.after, args.timeout, args.stock)
     width, height = (int(v) for v in args.payload.split('x'))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     if not os.environ.get('ROS_DOMAIN_ID'):
         os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids()[0])
     began = time.time()
     try:
-        results = run_trials(width, height, args.rate, args.trials, args.after, args.echo)
+        results = run_trials(width, height, args.rate, args.trials, args.after, args.stock,
+                             args.echo)
     finally:
         remove_fastdds_leftovers(began, int(os.environ['ROS_DOMAIN_ID']))
-    print(table(results, args.payload, args.rate))
+    print(table(results, args.payload, args.rate, args.stock))
     return 0
 
 
