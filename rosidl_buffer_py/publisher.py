@@ -84,6 +84,8 @@ class _SubscriptionPeer:
     #: When the last probe was written (0: none yet), and whether the peer acknowledged them.
     probed_at: float = 0.0
     acknowledged: bool = False
+    #: Source timestamp of the last message published when the acknowledgment was seen.
+    acknowledged_after: int = 0
 
 
 class _Routes(NamedTuple):
@@ -464,9 +466,17 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if peer.matched_since is None:
             peer.matched_since = now
             _logger.debug(f'channel to {peer.info.gid_hex} matched')
-        if peer.acknowledged or now - peer.matched_since >= CHANNEL_SETTLE_SECONDS:
+        if now - peer.matched_since >= CHANNEL_SETTLE_SECONDS:
             return True
-        return peer.handshake and self._acknowledged(peer, now)
+        if not peer.acknowledged and not (peer.handshake and self._acknowledged(peer, now)):
+            return False
+        # The route fence names the last main-topic message written for the peer, which the
+        # subscription waits for: none, or one written after the acknowledgment was seen. The
+        # peer's main-topic reader had matched our writer by then (its discovery of our writer
+        # came before that of the channel's, on the same path), so it gets that one; one
+        # written before may be gone from our KEEP_LAST history when the new reader asks.
+        last_main = self._main_timestamps.get(peer.info.gid)
+        return last_main is None or last_main > peer.acknowledged_after
 
     def _acknowledged(self, peer: _SubscriptionPeer, now: float) -> bool:
         """Whether the peer's reader acknowledged the probes; writes them (or one more) first.
@@ -479,6 +489,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         """
         if peer.probed_at and peer.channel.wait_for_all_acked(0.0):
             peer.acknowledged = True
+            peer.acknowledged_after = self._last_timestamp
             _logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
                           f'{1000 * (now - peer.matched_since):.0f} ms after its match')
             return True
