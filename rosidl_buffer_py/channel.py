@@ -41,3 +41,8 @@ def is_channel_topic(dds_name: str) -> bool:
 #: the last message the main topic served the subscription. Backend names match
 #: ``registry.BACKEND_NAME_PATTERN`` (no ``:``), so it never collides with a backend.
 FENCE_BACKEND = ':route-fence'
+#: Backend name of a *probe* on a channel: a descriptor-encoded message with an empty descriptor
+#: that a RELIABLE publisher writes once the channel matched, and serves the subscription there
+#: once the subscription's reader acknowledged it (it matched the channel writer by then). The
+#: subscription drops it.
+PROBE_BACKEND = ':route-probe'

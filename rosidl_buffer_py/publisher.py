@@ -4,13 +4,12 @@ It is an rclpy publisher (created by ``Node.create_publisher`` with ``publisher_
 node owns it: ``destroy_publisher``, ``destroy_node`` and rclpy's event handlers work as for any
 publisher) whose DataWriter also advertises ``BUFBE:cpu=;<backend>=<meta>;...`` in USER_DATA. For
 every buffer-aware subscription it discovers, it opens a channel ``rt/<topic>/_buf/<pub gid>_<sub
-gid>`` below rcl and, once that channel is matched, serves the subscription there: a descriptor
-when the backend accepts the peer, CPU bytes otherwise. The main topic is written while some
-matched subscription is not served by a channel, and always for a TRANSIENT_LOCAL publisher (its
-DataWriter keeps the history late joiners get). A main-topic sample is kept from the
-subscriptions a channel serves (writer side: Fast DDS sends them a GAP instead of the payload,
-see :func:`rosidl_buffer_py._dds.exclude_from_next_write`), so a legacy listener costs them
-nothing.
+gid>`` below rcl and, once that channel is up (see ``Publisher._channel_ready``), serves the
+subscription there: a descriptor when the backend accepts the peer, CPU bytes otherwise. The main
+topic is written while some matched subscription is not served by a channel, and always for a
+TRANSIENT_LOCAL publisher (its DataWriter keeps the history late joiners get). A main-topic
+sample is kept from the subscriptions a channel serves (writer side: Fast DDS sends them a GAP
+instead of the payload, see :func:`rosidl_buffer_py._dds.exclude_from_next_write`).
 
 Each message has one designated route per subscription. Every copy of a message carries the same
 explicit source timestamp, increasing per publisher. When a subscription starts being served on
@@ -33,24 +32,30 @@ import rclpy.publisher
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.logging import get_logger
-from rclpy.qos import DurabilityPolicy, LivelinessPolicy, QoSProfile
+from rclpy.qos import (
+    DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
 from rosidl_buffer_py import _dds, advertisement, codec, discovery
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
-from rosidl_buffer_py.channel import FENCE_BACKEND, channel_topic, dds_topic
+from rosidl_buffer_py.channel import FENCE_BACKEND, PROBE_BACKEND, channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, track_endpoint,
-    warn_unsupported_rmw)
+    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, reliable_subscription,
+    track_endpoint, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.publisher')
 
 #: How long a channel must have been matched before it serves its subscription.
 CHANNEL_SETTLE_SECONDS = 0.2
+#: A channel whose reader has not acknowledged the probes yet gets one more at most this often.
+PROBE_INTERVAL_SECONDS = 0.01
+#: A RELIABLE KEEP_LAST channel up to this depth proves its reader matched by acknowledging
+#: ``depth + 1`` probes (see ``Publisher._acknowledged``); a deeper one waits the settle time.
+MAX_PROBE_DEPTH = 100
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
@@ -76,6 +81,13 @@ class _SubscriptionPeer:
     serving: bool = False
     #: A route fence must precede the next channel message (the peer was just switched to it).
     fence_pending: bool = False
+    #: The channel's readiness is acknowledged (see ``Publisher._acknowledged``), not waited for.
+    handshake: bool = False
+    #: When the last probe was written (0: none yet), and whether the peer acknowledged them.
+    probed_at: float = 0.0
+    acknowledged: bool = False
+    #: Source timestamp of the last message published when the acknowledgment was seen.
+    acknowledged_after: int = 0
 
 
 class _Routes(NamedTuple):
@@ -206,6 +218,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         advertised.update({name: backend.get_backend_metadata()
                            for name, backend in self._backends.items() if name != CPU_BACKEND})
         self._advertised = advertised
+        self._handshake = (qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT and
+                           qos_profile.history != HistoryPolicy.KEEP_ALL and
+                           qos_profile.depth <= MAX_PROBE_DEPTH)
+        #: what ``_channel_ready`` writes to learn that a peer's channel reader matched
+        self._probe = bytes(codec.encode(msg_type(), (PROBE_BACKEND, b'')))
         self._user_data = advertisement.append(_dds.get_user_data(self), advertised)
         self._discovery = discovery.for_node(node)
         self._announce()
@@ -388,6 +405,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         subscription (0: none). The subscription delivers main-topic messages up to it first.
         """
         last_main = self._main_timestamps.get(peer.info.gid, 0)
+        _logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message {last_main})')
         peer.channel.publish(codec.encode(msg, (FENCE_BACKEND, _FENCE.pack(last_main))),
                              timestamp)
         peer.fence_pending = False
@@ -422,8 +440,9 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 peers.append(peer)
                 if not peer.serving:
                     peer.fence_pending = True
-            elif peer.matched_since is not None:  # settling: ready at the end of it
-                recheck_at = min(recheck_at, peer.matched_since + CHANNEL_SETTLE_SECONDS)
+            elif peer.matched_since is not None:  # settling: ready at the end of it, or once
+                recheck_at = min(recheck_at, now if peer.handshake else  # acknowledged
+                                 peer.matched_since + CHANNEL_SETTLE_SECONDS)
             peer.serving = ready
         served = {peer.info.gid for peer in peers}
         unserved = tuple(gid for gid in _dds.matched_subscription_gids(self)
@@ -471,19 +490,60 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         return self._last_timestamp
 
     def _channel_ready(self, peer: _SubscriptionPeer) -> bool:
-        """True once the channel has been matched for ``CHANNEL_SETTLE_SECONDS``.
+        """True once what the channel carries from now on reaches the peer's reader.
 
-        A DDS VOLATILE reader that matches the writer after the writer matched it may discard
-        the first samples; until the match has settled, the main topic serves the peer, so
-        bring-up loses nothing.
+        The channel writer matches the peer's reader before, sometimes long before, that reader
+        matches the writer: what is written meanwhile reaches the reader only if the writer
+        still holds it when the reader asks (KEEP_LAST), so a route fence written too early can
+        be lost. A RELIABLE reader proves that it matched by acknowledging the probes written
+        once the writer matched it (see :meth:`_acknowledged`); otherwise the channel serves
+        once it has been matched for ``CHANNEL_SETTLE_SECONDS``. Until then the main topic
+        serves the peer, so bring-up loses nothing.
         """
         if peer.channel.matched_count() == 0:
+            if peer.matched_since is not None:
+                # its reader left; if it comes back, the channel settles: no probe may follow a
+                # route fence (the subscription may take later samples as messages)
+                peer.handshake = peer.acknowledged = False
             peer.matched_since = None
             return False
         now = time.monotonic()
         if peer.matched_since is None:
             peer.matched_since = now
-        return now - peer.matched_since >= CHANNEL_SETTLE_SECONDS
+            _logger.debug(f'channel to {peer.info.gid_hex} matched')
+        if now - peer.matched_since >= CHANNEL_SETTLE_SECONDS:
+            return True
+        if not peer.acknowledged and not (peer.handshake and self._acknowledged(peer, now)):
+            return False
+        # The route fence names the last main-topic message written for the peer, which the
+        # subscription waits for: none, or one written after the acknowledgment was seen. The
+        # peer's main-topic reader had matched our writer by then (its discovery of our writer
+        # came before that of the channel's, on the same path), so it gets that one; one
+        # written before may be gone from our KEEP_LAST history when the new reader asks.
+        last_main = self._main_timestamps.get(peer.info.gid)
+        return last_main is None or last_main > peer.acknowledged_after
+
+    def _acknowledged(self, peer: _SubscriptionPeer, now: float) -> bool:
+        """Whether the peer's reader acknowledged the probes; writes them (or one more) first.
+
+        A reader acknowledges only writers it matched, and only when a heartbeat asks, which
+        Fast DDS sends with a write while its KEEP_LAST history is full (else every few
+        seconds): so ``depth + 1`` probes go first, and one more at most every
+        ``PROBE_INTERVAL_SECONDS`` while unacknowledged. Probes are the only channel samples
+        before the route fence, so "all acknowledged" means the probes.
+        """
+        if peer.probed_at and peer.channel.wait_for_all_acked(0.0):
+            peer.acknowledged = True
+            peer.acknowledged_after = self._last_timestamp
+            _logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
+                          f'{1000 * (now - peer.matched_since):.0f} ms after its match')
+            return True
+        if now - peer.probed_at >= PROBE_INTERVAL_SECONDS:
+            timestamp = self._last_timestamp or time.time_ns()
+            for _ in range(1 if peer.probed_at else self.qos_profile.depth + 1):
+                peer.channel.publish(self._probe, timestamp)
+            peer.probed_at = now
+        return False
 
     def _describe(self, vendor: str, payload: Buffer, peer: _SubscriptionPeer) -> Optional[bytes]:
         try:
@@ -519,6 +579,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         record.channel_topic = channel_topic(self._topic_name, self._gid, info.gid)
         record.channel = _dds.create_channel_publisher(
             self._node, self.msg_type, record.channel_topic, self.qos_profile)
+        record.handshake = self._handshake and reliable_subscription(
+            self._node, self._topic_name, info.gid)
         self._peers_added += 1
         return record
 

@@ -19,7 +19,9 @@ publisher, messages are delivered once and in publish order:
 - a publisher that starts serving us on its channel first sends a *route fence* naming the last
   message the main topic carried for us; channel messages wait until that one was delivered
   (main-topic messages are never held), and main-topic copies from the fence's message on are
-  duplicates of channel messages.
+  duplicates of channel messages;
+- before that, a publisher may write *probes* on the channel (to learn that our channel reader
+  matched it): they are dropped.
 
 No copy waits for its twin on a clock. The only timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds
 the wait for a fenced message that was lost (a reader history that overflowed), as DDS's own
@@ -40,7 +42,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from rosidl_buffer_py import _dds, advertisement, codec, discovery
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
-from rosidl_buffer_py.channel import FENCE_BACKEND, channel_topic, dds_topic
+from rosidl_buffer_py.channel import FENCE_BACKEND, PROBE_BACKEND, channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
@@ -62,6 +64,9 @@ C_DESERIALIZE_MAX_BYTES = 64 * 1024
 #: A route fence is a small descriptor-encoded message: longer samples are not searched for one.
 _FENCE_MAX_BYTES = 64 * 1024
 _FENCE_NAME = FENCE_BACKEND.encode()
+_PROBE_NAME = PROBE_BACKEND.encode()
+#: What :meth:`Subscription._fence_of` returns for a probe (see ``channel.PROBE_BACKEND``).
+_PROBE = -1
 #: A GID is the DDS GUID: a 12-byte participant prefix, then the 4-byte entity id.
 _GUID_PREFIX = 12
 
@@ -377,8 +382,12 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         ts = taken.timestamp
         if type(taken.raw) is not self.msg_type:
             fence = self._fence_of(taken.raw)
+            if fence == _PROBE:
+                return None  # the publisher learning that this channel reader matched
             if fence is not None:
                 self._counts['fences'] += 1
+                _logger.debug(f'route fence from {peer.info.gid_hex}: main-topic messages up '
+                              f'to {fence} first')
                 peer.fence_seen = True
                 stream.switch, stream.fence = ts, fence
                 self._switched.add(peer.info.gid)
@@ -408,13 +417,16 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         return False
 
     def _fence_of(self, raw) -> Optional[int]:
-        """The timestamp a route fence carries, or None when ``raw`` is not a fence."""
-        if len(raw) > _FENCE_MAX_BYTES or _FENCE_NAME not in raw:
+        """The timestamp a route fence carries, ``_PROBE`` for a probe, or None when ``raw`` is
+        neither."""
+        if len(raw) > _FENCE_MAX_BYTES or (_FENCE_NAME not in raw and _PROBE_NAME not in raw):
             return None
         try:
             decoded = codec.decode(raw, self.msg_type)
         except codec.CodecError:
             return None
+        if decoded.backend_type == PROBE_BACKEND and not decoded.descriptor:
+            return _PROBE
         if decoded.backend_type != FENCE_BACKEND or len(decoded.descriptor) != 8:
             return None
         return int.from_bytes(decoded.descriptor, 'little')

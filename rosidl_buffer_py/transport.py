@@ -8,7 +8,8 @@ from typing import Dict, Mapping, Set, Union
 
 from rclpy.logging import get_logger
 from rclpy.qos import (
-    QoSCompatibility, QoSProfile, qos_check_compatible, qos_policy_name_from_kind)
+    QoSCompatibility, QoSProfile, ReliabilityPolicy, qos_check_compatible,
+    qos_policy_name_from_kind)
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import dds_topic
@@ -110,6 +111,13 @@ def incompatible_peers(node, topic: str, own_gid: bytes, peer_kind: EndpointKind
     own = subscriptions.get(own_gid)
     return set() if own is None else {
         gid for gid, qos in publishers.items() if _incompatible(qos, own)}
+
+
+def reliable_subscription(node, topic: str, gid: bytes) -> bool:
+    """Whether the ROS graph lists subscription ``gid`` of ``topic`` as RELIABLE (False when it
+    does not list it yet)."""
+    qos = _endpoint_qos(node, topic)[1].get(gid)
+    return qos is not None and qos.reliability == ReliabilityPolicy.RELIABLE
 
 
 def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: EndpointKind,

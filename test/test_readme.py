@@ -54,6 +54,7 @@ COVERAGE = {
     'wait': 'test_record.py',
     './dev bench-record': 'test_record.py',               # 1 s of small frames
     './dev bench-mixed': 'test_benchmark.py',             # small frames, fewer of them
+    './dev bench-bringup': 'test_bringup.py',             # small frames, 2 trials
     'colcon test': 'test_colcon.py',
 }
 
