@@ -23,16 +23,18 @@ publisher, messages are delivered once and in publish order:
 - before that, a publisher may write *probes* on the channel (to learn that our channel reader
   matched it): they are dropped.
 
-No copy waits for its twin on a clock. The only timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds
-the wait for a fenced message that was lost (a reader history that overflowed), as DDS's own
-KEEP_LAST loses it. Messages of legacy publishers arrive on the main topic only, as with stock.
+No copy waits for its twin on a clock. Channel messages that wait for their fence are taken
+from the channel meanwhile and queued here, in order, so a slow main topic (DDS repairing the
+first large frames) delays them but cannot make the channel's DDS history overflow. The only
+timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds the wait for a fenced message that was lost (a
+reader history that overflowed), as DDS's own KEEP_LAST loses it. Messages of legacy publishers arrive on the main topic only, as with stock.
 """
 import collections
 import copy
 import threading
 import time
-from dataclasses import dataclass
-from typing import Callable, Dict, List, NamedTuple, Optional, Set, Tuple, Union
+from dataclasses import dataclass, field
+from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -111,8 +113,10 @@ class _Stream:
     #: and main-topic copies from ``switch`` on duplicate channel messages.
     fence: int = 0
     switch: Optional[int] = None
-    #: A channel message waiting for the fenced main-topic message, and since when.
-    waiting: Optional[Tuple[_Taken, _PublisherPeer]] = None
+    #: Channel messages waiting for the fenced main-topic message (taken from the channel
+    #: meanwhile, so its DDS history cannot overflow while the main topic is slow), and since
+    #: when the first one waits.
+    waiting: Deque[Tuple[_Taken, _PublisherPeer]] = field(default_factory=collections.deque)
     waiting_since: float = 0.0
 
     def duplicate(self, timestamp: int) -> bool:
@@ -338,12 +342,18 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         for i in range(count):
             peer = channels[(self._next_channel + i) % count]
             stream = self._streams[peer.info.gid]
-            if stream.waiting is not None:
+            if stream.waiting:
                 if not self._fence_passed(stream):
-                    continue
-                taken, _ = stream.waiting
-                stream.waiting = None
-                self._waiting -= 1
+                    # keep taking meanwhile: the messages queue here, in order
+                    taken = self._take_channel(peer)
+                    if taken is None:
+                        continue
+                    msg = self._accept_channel(taken, peer, stream)
+                    self._next_channel = (self._next_channel + i) % count
+                    return msg, taken
+                taken, _ = stream.waiting.popleft()
+                if not stream.waiting:
+                    self._waiting -= 1
                 msg = None
                 if taken.timestamp > stream.last:
                     stream.last = taken.timestamp
@@ -399,10 +409,12 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         if stream.switch is None:  # no fence yet: channel messages are newer than main's
             stream.switch = ts
             self._switched.add(peer.info.gid)
-        if self._reliable and stream.fence > stream.last and stream.waiting is None:
-            stream.waiting, stream.waiting_since = (taken, peer), time.monotonic()
-            self._waiting += 1
-            self._arm_fence_timer()
+        if stream.waiting or (self._reliable and stream.fence > stream.last):
+            if not stream.waiting:
+                stream.waiting_since = time.monotonic()
+                self._waiting += 1
+                self._arm_fence_timer()
+            stream.waiting.append((taken, peer))
             return None
         stream.last = ts
         return self._decode(taken, peer)
@@ -529,7 +541,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         with self._lock:
             self._suspects.discard(gid)
             stream = self._streams.pop(gid, None)
-            if stream is not None and stream.waiting is not None:
+            if stream is not None and stream.waiting:
                 self._waiting -= 1
         super()._on_peer_gone(gid)
 
