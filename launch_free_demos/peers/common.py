@@ -145,7 +145,7 @@ class Received:
     """What a peer subscriber saw; :meth:`report` in image_subscriber's terms."""
 
     args: argparse.Namespace
-    transport: str
+    backends: Dict[str, int] = field(default_factory=dict)
     latencies: List[float] = field(default_factory=list)
     view_ms: List[float] = field(default_factory=list)
     seen: set = field(default_factory=set)
@@ -154,12 +154,13 @@ class Received:
     checksum_failures: int = 0
     started: float = field(default_factory=time.monotonic)
 
-    def frame(self, header: bytes, latency: float, started_ns: int,
-              view: numpy.ndarray) -> None:
-        """Note a frame: its ``latency`` (ms, taken at the callback's start), ``started_ns``
-        (perf_counter_ns then) and its readable ``view``, whose time is taken now."""
-        self.view_ms.append((time.perf_counter_ns() - started_ns) / 1e6)
+    def frame(self, header: bytes, latency: float, view_ns: int, view: numpy.ndarray,
+              backend: str) -> None:
+        """Note a frame: its ``latency`` (ms, taken at the callback's start), the ns from then
+        to its readable ``view``, and how it came (``backend``: shared memory or not)."""
+        self.view_ms.append(view_ns / 1e6)
         self.latencies.append(latency)
+        self.backends[backend] = self.backends.get(backend, 0) + 1
         self.received += 1
         check = check_frame(header, view)
         if check.counter in self.seen:
@@ -187,7 +188,7 @@ class Received:
             'received': self.received, 'distinct': len(self.seen),
             'duplicates': self.duplicates, 'gaps': len(missing), 'missing': missing[:20],
             'checksum_failures': self.checksum_failures,
-            'backends': {self.transport: self.received} if self.received else {},
+            'backends': self.backends,
             'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
             'timed_out': bool(expected) and len(self.seen) < expected,
         }

@@ -97,7 +97,7 @@ def subscribe(args, stop: Stop) -> int:
     waitset = (iox2.WaitSetBuilder.new().signal_handling_mode(iox2.SignalHandlingMode.Disabled)
                .create(iox2.ServiceType.Ipc))
     guard = waitset.attach_notification(listener)
-    received = Received(args, 'iceoryx2')
+    received = Received(args)
     period = args.report_period_sec or 0.25
     next_log = time.monotonic() + period
     while not received.done() and not stop.requested:
@@ -110,7 +110,7 @@ def subscribe(args, stop: Stop) -> int:
             latency = latency_ms(header)
             view = numpy.frombuffer(sample.payload().as_memory_view(),
                                     dtype=numpy.uint8).reshape(shape)
-            received.frame(header, latency, started, view)
+            received.frame(header, latency, time.perf_counter_ns() - started, view, 'iceoryx2')
             del view
             sample.delete()  # return it to the publisher
         if args.report_period_sec and time.monotonic() >= next_log:

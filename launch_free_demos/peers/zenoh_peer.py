@@ -87,17 +87,16 @@ def publish(args, stop: Stop) -> int:
 
 def subscribe(args, stop: Stop) -> int:
     shape = payload_shape(args)
-    received = Received(args, 'zenoh shm')
-    shared = []
+    received = Received(args)
 
     def on_sample(sample: zenoh.Sample) -> None:
         started = time.perf_counter_ns()  # the callback starts
         header = sample.attachment.to_bytes()
         latency = latency_ms(header)
-        if not shared:
-            shared.append(sample.payload.as_shm() is not None)
         view = numpy.frombuffer(sample.payload.to_bytes(), dtype=numpy.uint8).reshape(shape)
-        received.frame(header, latency, started, view)
+        view_ns = time.perf_counter_ns() - started
+        shared = sample.payload.as_shm() is not None  # else zenoh fell back to a copy
+        received.frame(header, latency, view_ns, view, 'zenoh shm' if shared else 'zenoh')
 
     session = open_session(args, listen=False)
     try:
@@ -108,9 +107,7 @@ def subscribe(args, stop: Stop) -> int:
             if args.report_period_sec:
                 received.log_progress()
         subscriber.undeclare()
-        report = received.report()
-        report['shared_memory'] = bool(shared and shared[0])
-        print_report(report)
+        print_report(received.report())
     finally:
         session.close()
     return 0
