@@ -4,16 +4,17 @@ Runs README's quick mode, ``./dev benchmark --quick``, in a subprocess, inside t
 session's ROS domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
 test``) the same module runs with the interpreter under test, as ``./dev`` would exec it.
 """
+import contextlib
 import os
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import pytest
 
 from installed import in_dev_venv
+from launch_free_demos import benchmark
 from launch_free_demos.benchmark import (
     ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
     StealMeter, measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
@@ -173,25 +174,31 @@ def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
                 float(cell.split()[0])  # a number of ms (it may be negative for so few frames)
 
 
-def _peer_files():
-    shm = {n for n in os.listdir('/dev/shm') if n.startswith('rbpy_iox2_') or
-           n.endswith('.zenoh')}
-    return shm | {n for n in os.listdir(tempfile.gettempdir()) if n.startswith('rbpy_bench_peer_')}
-
-
 @pytest.mark.parametrize('peer', PEERS, ids=[t.peer_module for t in PEERS])
-def test_a_peer_is_measured_as_our_nodes_are_and_leaves_no_files(peer):
+def test_a_peer_is_measured_as_our_nodes_are_and_leaves_no_files(peer, monkeypatch):
     """A peer transport's publisher and subscriber in two processes, through the benchmark's
-    own measurement: every frame arrives intact, latency, time to a numpy view and CPU per
-    frame of both are measured, and its files (in /dev/shm and its directory) are removed."""
+    own measurement: every frame arrives intact (through shared memory), latency, time to a
+    numpy view and CPU per frame of both are measured, and the run's files (its directory, its
+    /dev/shm files, zenoh segments nobody holds) are gone after it."""
     pytest.importorskip(peer.peer_module)
-    before = _peer_files()
+    used, scratch = [], benchmark.peer_scratch
+
+    @contextlib.contextmanager
+    def noted(transport):
+        with scratch(transport) as params:
+            used.append(params)
+            yield params
+
+    monkeypatch.setattr(benchmark, 'peer_scratch', noted)
+    since = time.time() - 1.0
     result = measure(peer.label, '1 KiB', 1, 6, 10.0)
     assert result.complete and result.distinct == [6], result
     assert result.backends == {peer.label: 6}
     assert result.latency['p50'] > 0 and result.view['p50'] > 0
     assert result.pub_cpu_ms is not None and result.sub_cpu_ms is not None
-    assert not _peer_files() - before
+    [params] = used
+    assert not os.path.exists(params['root_path'])
+    assert not benchmark.peer_shm_leftovers(params.get('shm_prefix', 'rbpy_none_'), since)
 
 
 def test_peer_scratch_removes_what_a_run_left_and_keeps_what_is_in_use(tmp_path):

@@ -23,7 +23,7 @@ import sys
 import time
 import zlib
 from dataclasses import dataclass, field
-from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy
 
@@ -132,6 +132,32 @@ class Ticker:
         if delay > 0:
             time.sleep(delay)
         self.next += self.period
+
+
+def publish_frames(args: argparse.Namespace, stop: 'Stop', matched: Callable[[], int],
+                   send: Callable[[int], None]) -> int:
+    """A peer publisher's life, as image_publisher's: wait until ``matched()`` counts
+    ``wait_for_subscribers``, settle, ``send(counter)`` ``count`` frames at ``rate_hz``, linger
+    until the subscribers leave, print the report. Returns the exit status."""
+    deadline = time.monotonic() + args.wait_timeout_sec
+    while matched() < args.wait_for_subscribers:
+        if time.monotonic() > deadline or stop.requested:
+            print(f'{args.label}: {matched()} of {args.wait_for_subscribers} subscribers after '
+                  f'{args.wait_timeout_sec} s', file=sys.stderr)
+            return 1
+        time.sleep(0.01)
+    time.sleep(args.settle_sec)
+    ticker, published = Ticker(args), 0
+    while published < args.count and not stop.requested:
+        ticker.wait()
+        send(published)
+        published += 1
+    linger_until = time.monotonic() + args.linger_sec
+    while matched() > 0 and time.monotonic() < linger_until and not stop.requested:
+        time.sleep(0.05)
+    print_report({'role': 'publisher', 'node': args.label, 'published': published,
+                  'params': vars(args)})
+    return 0
 
 
 def _percentiles(values: List[float]) -> Dict[str, float]:

@@ -21,8 +21,8 @@ import iceoryx2 as iox2
 import numpy
 
 from launch_free_demos.peers.common import (
-    Received, Stop, Ticker, frame_header, latency_ms, parse_parameters, payload_shape,
-    payload_size, pixels, print_report, write_frame)
+    Received, Stop, frame_header, latency_ms, parse_parameters, payload_shape, payload_size,
+    pixels, print_report, publish_frames, write_frame)
 
 #: Samples a subscriber may hold and queue (frames come at a low rate, each taken at once).
 BUFFER_SIZE = 2
@@ -59,34 +59,19 @@ def publish(args, stop: Stop) -> int:
     publisher = pubsub.publisher_builder().initial_max_slice_len(nbytes).create()
     notifier = event.notifier_builder().create()
     source = pixels(nbytes)
-    deadline = time.monotonic() + args.wait_timeout_sec
-    while pubsub.dynamic_config.number_of_subscribers < args.wait_for_subscribers:
-        if time.monotonic() > deadline or stop.requested:
-            print(f'iceoryx2_peer: {pubsub.dynamic_config.number_of_subscribers} of '
-                  f'{args.wait_for_subscribers} subscribers after {args.wait_timeout_sec} s',
-                  file=sys.stderr)
-            return 1
-        time.sleep(0.01)
-    time.sleep(args.settle_sec)
-    ticker, published = Ticker(args), 0
-    while published < args.count and not stop.requested:
-        ticker.wait()
+
+    def send(counter: int) -> None:
         sample = publisher.loan_slice_uninit(nbytes)
         target = numpy.frombuffer(sample.payload().as_memory_view(), dtype=numpy.uint8)
-        crc = write_frame(target, source, published)  # in place, in shared memory
+        crc = write_frame(target, source, counter)  # in place, in shared memory
         del target
-        header = frame_header(published, crc)  # stamped just before sending
+        header = frame_header(counter, crc)  # stamped just before sending
         ctypes.memmove(ctypes.addressof(sample.user_header().contents), header, len(header))
         sample.assume_init().send()
         notifier.notify()
-        published += 1
-    linger_until = time.monotonic() + args.linger_sec
-    while (pubsub.dynamic_config.number_of_subscribers > 0 and
-           time.monotonic() < linger_until and not stop.requested):
-        time.sleep(0.05)
-    print_report({'role': 'publisher', 'node': args.label, 'published': published,
-                  'params': vars(args)})
-    return 0
+
+    return publish_frames(args, stop, lambda: pubsub.dynamic_config.number_of_subscribers,
+                          send)
 
 
 def subscribe(args, stop: Stop) -> int:

@@ -24,8 +24,8 @@ import zenoh
 import zenoh.shm
 
 from launch_free_demos.peers.common import (
-    Received, Stop, Ticker, frame_header, latency_ms, parse_parameters, payload_shape,
-    payload_size, pixels, print_report, write_frame)
+    Received, Stop, frame_header, latency_ms, parse_parameters, payload_shape, payload_size,
+    pixels, print_report, publish_frames, write_frame)
 
 #: Frames the publisher's shared-memory pool holds (in flight and being freed).
 POOL_FRAMES = 4
@@ -58,31 +58,19 @@ def publish(args, stop: Stop) -> int:
         source = pixels(nbytes)
         frame = bytearray(nbytes)  # the camera frame: ZShmMut cannot be written through numpy
         frame_view = numpy.frombuffer(frame, dtype=numpy.uint8)
-        deadline = time.monotonic() + args.wait_timeout_sec
-        while args.wait_for_subscribers and not publisher.matching_status.matching:
-            if time.monotonic() > deadline or stop.requested:
-                print(f'zenoh_peer: no subscriber after {args.wait_timeout_sec} s',
-                      file=sys.stderr)
-                return 1
-            time.sleep(0.01)
-        time.sleep(args.settle_sec)
-        ticker, published = Ticker(args), 0
-        while published < args.count and not stop.requested:
-            ticker.wait()
+
+        def send(counter: int) -> None:
             buffer = provider.alloc(nbytes, policy)
-            crc = write_frame(frame_view, source, published)
+            crc = write_frame(frame_view, source, counter)
             buffer[0:nbytes] = frame  # the one copy into shared memory
-            publisher.put(buffer, attachment=frame_header(published, crc))
-            published += 1
-        linger_until = time.monotonic() + args.linger_sec
-        while (publisher.matching_status.matching and time.monotonic() < linger_until and
-               not stop.requested):
-            time.sleep(0.05)
-        print_report({'role': 'publisher', 'node': args.label, 'published': published,
-                      'params': vars(args)})
+            publisher.put(buffer, attachment=frame_header(counter, crc))  # stamped just now
+
+        def matched() -> int:  # zenoh tells whether some subscriber matches, not how many
+            return args.wait_for_subscribers if publisher.matching_status.matching else 0
+
+        return publish_frames(args, stop, matched, send)
     finally:
         session.close()
-    return 0
 
 
 def subscribe(args, stop: Stop) -> int:
