@@ -1004,8 +1004,9 @@ def plot(path: str, mode: Mode, lat: Dict, memcpy: Dict, fanout: Dict,
     for label in ALL_ROWS + list(peers):
         points = []
         for payload in mode.payloads:
+            run = lat.get((label, payload))  # a peer runs only at the peers table's payloads
             latency = memcpy[payload]['warm'] if label == MEMCPY else \
-                memcpy[payload]['idle'] if label == MEMCPY_IDLE else lat[(label, payload)].latency
+                memcpy[payload]['idle'] if label == MEMCPY_IDLE else run.latency if run else None
             if latency:
                 points.append((sizes[payload], latency['p50'], latency['p90']))
         if points:
