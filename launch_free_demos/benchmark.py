@@ -57,9 +57,9 @@ import ctypes
 import dataclasses
 import datetime
 import fcntl
-import os
 import importlib.metadata
 import importlib.util
+import os
 import platform
 import re
 import secrets
