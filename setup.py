@@ -89,7 +89,8 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'demo_buffer_backend',
-                                    'demo_buffer_backend.*', 'launch_free_demos']),
+                                    'demo_buffer_backend.*', 'launch_free_demos',
+                                    'launch_free_demos.*']),
     ext_modules=[native_extension()],
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),

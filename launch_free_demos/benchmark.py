@@ -10,6 +10,13 @@ with depth 10. Transports:
 - ``rosidl_buffer_py cpu``: image_publisher backend cpu -> image_subscriber accepting cpu;
 - ``demo from_cpu`` / ``demo allocate``: image_publisher backend demo (frame copied into shared
   memory / written in place) -> image_subscriber accepting demo;
+- peers, what a user would pick instead (``launch_free_demos/peers``; optional, from
+  ``requirements-bench.txt``, skipped with a note when not installed): ``iceoryx2`` (its Python
+  bindings: loaned shared-memory samples, WaitSet wake-up) and ``zenoh shm`` (zenoh's Python
+  bindings, shared-memory payloads); their nodes send and check the same frames, log the same
+  progress lines and print the same report, so they are measured as ours are (the peers
+  table, beside stock rclpy, the CPU path and demo allocate, with the time from the callback's
+  start to a readable numpy view);
 - ``one memcpy``: ``numpy.copyto`` of the payload in this process, the physical reference:
   back to back (caches warm) and after an idle pause as long as the latency runs' frame period
   (what one copy costs a node that wakes up for a frame: ``demo from_cpu`` pays this copy).
@@ -45,16 +52,22 @@ Output: a markdown report on stdout and in ``DIR/benchmark.md``, and ``DIR/bench
 checks are printed as computed ratios: a benchmark reports, it asserts nothing about time.
 """
 import argparse
+import contextlib
 import ctypes
 import dataclasses
 import datetime
 import fcntl
+import importlib.metadata
+import importlib.util
 import os
 import platform
 import re
+import secrets
+import shutil
 import signal
 import statistics
 import sys
+import tempfile
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -63,7 +76,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy
 
 from launch_free_demos.runner import (
-    STACK_DUMP_SECONDS, NodeProcess, Run, remove_fastdds_leftovers)
+    STACK_DUMP_SECONDS, NodeProcess, Run, lock_free, remove_fastdds_leftovers)
 
 # label, width, height, encoding
 PAYLOADS = [
@@ -90,6 +103,9 @@ class Transport:
     backend: Optional[str] = None  # None: a legacy node, no rosidl_buffer_py parameters
     fill: str = 'allocate'
     accept: Optional[str] = None
+    #: a peer transport (launch_free_demos/peers): the Python module it needs and its pip name
+    peer_module: Optional[str] = None
+    pip_name: Optional[str] = None
 
 
 STOCK, CPU, DEMO_FROM_CPU, DEMO_ALLOCATE = (
@@ -102,8 +118,22 @@ TRANSPORTS = [
     Transport(DEMO_FROM_CPU, 'image_publisher', 'image_subscriber', 'demo', 'from_cpu', 'demo'),
     Transport(DEMO_ALLOCATE, 'image_publisher', 'image_subscriber', 'demo', 'allocate', 'demo'),
 ]
-TRANSPORT = {t.label: t for t in TRANSPORTS}
+ICEORYX2, ZENOH = 'iceoryx2', 'zenoh shm'
+#: What a user would pick instead of this package, measured the same way (the peers table):
+#: optional, benchmark-only dependencies (requirements-bench.txt), skipped when absent.
+PEERS = [
+    Transport(ICEORYX2, 'iceoryx2_peer', 'iceoryx2_peer', peer_module='iceoryx2',
+              pip_name='iceoryx2'),
+    Transport(ZENOH, 'zenoh_peer', 'zenoh_peer', peer_module='zenoh', pip_name='eclipse-zenoh'),
+]
+#: Executable name -> module of the peer nodes (``python -m``; their own command line).
+PEER_NODES = {'iceoryx2_peer': 'launch_free_demos.peers.iceoryx2_peer',
+              'zenoh_peer': 'launch_free_demos.peers.zenoh_peer'}
+TRANSPORT = {t.label: t for t in TRANSPORTS + PEERS}
 ALL_ROWS = [t.label for t in TRANSPORTS] + [MEMCPY, MEMCPY_IDLE]
+#: Rows of the peers table: stock rclpy, this package (CPU path, demo backend filled in
+#: place), the peers, the in-process copy.
+PEER_TABLE_OURS = [STOCK, CPU, DEMO_ALLOCATE]
 #: Measured together, frames interleaved, in ``Mode.latency_rounds`` rounds (their ratio is a
 #: target near 1).
 PAIRED = (STOCK, CPU)
@@ -130,16 +160,21 @@ class Mode:
     #: payloads of the mixed-graph table (launch_free_demos.bench_mixed): what a legacy
     #: listener costs the buffer-aware subscriber beside it and the publisher
     mixed_payloads: List[str] = field(default_factory=list)
+    #: payloads of the peers table; those not in ``payloads`` get their own stock and
+    #: rosidl_buffer_py runs, only when a peer is installed
+    peer_payloads: List[str] = field(default_factory=list)
 
 
+PEER_PAYLOADS = ['1 KiB', '1 MiB', '1920x1080 rgb8', BIG]
 MODES = {
     'full': Mode('full', [p[0] for p in PAYLOADS], 30, 5.0, [p[0] for p in PAYLOADS],
                  [10.0, 30.0, 60.0, 120.0, 240.0], 2.0, ['1920x1080 rgb8', BIG], [1, 2, 4, 8],
-                 50, latency_rounds=5, mixed_payloads=['1920x1080 rgb8', BIG]),
+                 50, latency_rounds=5, mixed_payloads=['1920x1080 rgb8', BIG],
+                 peer_payloads=PEER_PAYLOADS),
     'quick': Mode('quick', [SMALL, '1920x1080 rgb8', BIG], 8, 5.0, [BIG], [30.0, 60.0], 1.0,
-                  [BIG], [1, 4], 20),
+                  [BIG], [1, 4], 20, peer_payloads=PEER_PAYLOADS),
     'smoke': Mode('smoke', [SMALL, '640x480 rgb8'], 5, 5.0, ['640x480 rgb8'], [30.0], 1.0,
-                  ['640x480 rgb8'], [1, 2], 10),
+                  ['640x480 rgb8'], [1, 2], 10, peer_payloads=[SMALL, '640x480 rgb8']),
 }
 
 LOG_RECEIVED = re.compile(r'\[(\d+\.\d+)\] \[[^\]]*\]: received (\d+) \((\d+) distinct\)')
@@ -286,12 +321,84 @@ class MeasuredNode(NodeProcess):
         return self.hwm_kib / 1024 if self.hwm_kib is not None else None
 
 
+@dataclass
+class PeerNode(MeasuredNode):
+    """A peer node (``launch_free_demos/peers``), measured as the ROS nodes are; its command
+    line is its own: ``--name=value`` for every parameter."""
+
+    def command(self) -> List[str]:
+        return [sys.executable, '-m', PEER_NODES[self.executable], f'--label={self.label}',
+                *(f'--{name}={value}' for name, value in self.parameters.items())]
+
+
 class MeasuredRun(Run):
     def start(self, label: str, executable: str, **parameters) -> MeasuredNode:
-        node = MeasuredNode(label, executable, dict(parameters))
+        kind = PeerNode if executable in PEER_NODES else MeasuredNode
+        node = kind(label, executable, dict(parameters))
         self.nodes[label] = node  # registered first: reaped by __exit__ whatever happens
         node.start(self.echo)
         return node
+
+
+# --- peers: what they need, and the files they leave ---------------------------------------
+
+def peer_version(transport: Transport) -> Optional[str]:
+    """The installed version of a peer's Python package, or None when it cannot be imported."""
+    if importlib.util.find_spec(transport.peer_module) is None:
+        return None
+    try:
+        return importlib.metadata.version(transport.pip_name)
+    except importlib.metadata.PackageNotFoundError:
+        return 'installed'
+
+
+def skipped_note(transport: Transport) -> str:
+    return (f'{transport.pip_name} not installed (pip install -r requirements-bench.txt): '
+            f'skipped')
+
+
+#: A zenoh shared-memory segment: zenoh holds a flock on each one while it uses it, and
+#: leaves some behind when its session closes.
+_ZENOH_SEGMENT = re.compile(r'^\d+\.zenoh$')
+
+
+def peer_shm_leftovers(prefix: str, since: float) -> List[str]:
+    """Files in /dev/shm that a peer run left: those named with the run's iceoryx2 prefix
+    (iceoryx2 keeps a management segment after its nodes exit; a killed node leaves all of
+    them), and zenoh segments made at or after ``since`` that no process holds any more."""
+    left = []
+    for name in sorted(os.listdir('/dev/shm')):
+        path = os.path.join('/dev/shm', name)
+        if name.startswith(prefix):
+            left.append(name)
+        elif _ZENOH_SEGMENT.match(name):
+            try:
+                recent = os.stat(path).st_mtime >= since
+            except FileNotFoundError:
+                continue
+            if recent and lock_free(path):
+                left.append(name)
+    return left
+
+
+@contextlib.contextmanager
+def peer_scratch(transport: Transport):
+    """Parameters that give one peer run files of its own (a directory; for iceoryx2 also a
+    file prefix in /dev/shm); on exit, after the run's processes are reaped, whatever of them
+    is left is removed."""
+    root = tempfile.mkdtemp(prefix='rbpy_bench_peer_')
+    prefix = f'rbpy_iox2_{os.getpid()}_{secrets.token_hex(4)}_'  # rbpy_<owner pid>_: ours
+    since = time.time() - 1.0
+    try:
+        yield {'root_path': root, **({'shm_prefix': prefix} if transport.label == ICEORYX2
+                                    else {})}
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+        for name in peer_shm_leftovers(prefix, since):
+            try:
+                os.remove(os.path.join('/dev/shm', name))
+            except FileNotFoundError:
+                pass
 
 
 # --- one measurement ------------------------------------------------------------------------
@@ -306,6 +413,7 @@ class Result:
     complete: bool = False
     distinct: List[int] = field(default_factory=list)
     latency: Dict[str, float] = field(default_factory=dict)  # median over subscribers
+    view: Dict[str, float] = field(default_factory=dict)     # time to a numpy view, ditto
     pub_cpu_ms: Optional[float] = None                     # see cpu_per_message
     sub_cpu_ms: Optional[float] = None                     # mean over subscribers
     pub_rss_mib: Optional[float] = None
@@ -396,11 +504,13 @@ def _measure_once(legs: List[Leg], payload: str, subscribers: int, count: int, r
     _, width, height, encoding = PAYLOAD[payload]
     expected_sec = count / rate
     runs: List[_LegRun] = []
-    with MeasuredRun() as run:
+    with contextlib.ExitStack() as scratch, MeasuredRun() as run:  # run reaped, then scratch
         started = []
         for n, leg in enumerate(legs):
             t = TRANSPORT[leg.transport]
             topic = next_topic(f'{leg.transport.split()[0]}_{width}x{height}_{subscribers}s')
+            if t.peer_module is not None:
+                topic = topic.lstrip('/')  # a zenoh key expression has no leading /
             sub_params = dict(topic=topic, expected_count=count,
                               timeout_sec=expected_sec + 120.0, report_period_sec=log_period)
             pub_params = dict(topic=topic, count=count, rate_hz=rate,
@@ -413,6 +523,11 @@ def _measure_once(legs: List[Leg], payload: str, subscribers: int, count: int, r
                 sub_params['acceptable_buffer_backends'] = t.accept
                 pub_params.update(backend=t.backend, fill=t.fill,
                                   wait_for_buffer_peers=subscribers)
+            if t.peer_module is not None:  # files of its own, removed after the run
+                own = scratch.enter_context(peer_scratch(t))
+                sub_params.update(own, role='subscriber', width=width, height=height,
+                                  encoding=encoding, wait_for_subscribers=subscribers)
+                pub_params.update(own, role='publisher')
             subs = [run.start(f'bench{n}_sub{i}', t.subscriber, **sub_params)
                     for i in range(subscribers)]
             started.append((leg, subs, t.publisher, pub_params))
@@ -481,6 +596,9 @@ def _leg_result(leg_run: _LegRun, count: int, diagnostics: str) -> Result:
             result.backends[backend] = result.backends.get(backend, 0) + n
     result.latency = {q: statistics.median(r['latency_ms'][q] for r in reports)
                       for q in ('p50', 'p90', 'p99', 'max')}
+    if all(r.get('view_ms') for r in reports):
+        result.view = {q: statistics.median(r['view_ms'][q] for r in reports)
+                       for q in ('p50', 'p90', 'p99', 'max')}
     result.pub_rss_mib = pub.peak_rss_mib
     rss = [s.peak_rss_mib for s in subs if s.peak_rss_mib is not None]
     result.sub_rss_mib = max(rss) if rss else None
@@ -538,6 +656,17 @@ def receive_rate(marks: List[Tuple[float, int]], count: int) -> Optional[float]:
     if len(inside) < 2 or inside[-1][0] - inside[0][0] < 0.2 or inside[-1][1] == inside[0][1]:
         return None
     return (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+
+
+def latency_run(label: str, payload: str, mode: Mode, progress, round_name: str = '') -> Result:
+    """One latency run of one transport (one subscriber, ``mode.frames`` at ``mode.rate``),
+    logged with the CPU steal it met."""
+    steal = StealMeter()
+    r = measure(label, payload, 1, mode.frames, mode.rate)
+    progress(f'latency {label:<22} {payload:>15}{round_name}: p50 {_fmt(r.latency.get("p50"))} '
+             f'ms, pub CPU {_fmt(r.pub_cpu_ms)} ms/msg, view {_fmt(r.view.get("p50"), 3)} ms, '
+             f'backends {r.backends}, CPU steal {_pct(steal.fraction())}')
+    return r
 
 
 def max_sustained_rate(transport: str, payload: str, mode: Mode) -> Tuple[Optional[float], str]:
@@ -645,11 +774,15 @@ def _fmt(value: Optional[float], digits: int = 2) -> str:
     return '—' if value is None else f'{value:.{digits}f}'
 
 
-def _lat(latency: Dict[str, float]) -> str:
+PEER_QUANTILES = ('p50', 'p90', 'max')
+
+
+def _lat(latency: Dict[str, float], quantiles=('p50', 'p90', 'p99'), fine: bool = False) -> str:
+    """Latency quantiles in ms; ``fine``: three decimals below 1 ms (the peers table)."""
     if not latency:
         return '—'
-    return ' / '.join(_fmt(latency[q], 2 if latency[q] < 100 else 0) for q in ('p50', 'p90',
-                                                                                 'p99'))
+    return ' / '.join(_fmt(latency[q], 3 if fine and latency[q] < 1 else
+                           2 if latency[q] < 100 else 0) for q in quantiles)
 
 
 def _ratio(a: Optional[float], b: Optional[float]) -> Optional[float]:
@@ -813,18 +946,67 @@ def markdown(mode: Mode, lat: Dict, memcpy: Dict, rates: Dict, fanout: Dict,
     return '\n'.join(out) + '\n'
 
 
-def plot(path: str, mode: Mode, lat: Dict, memcpy: Dict, fanout: Dict) -> None:
+def peers_markdown(mode: Mode, payloads: List[str], lat: Dict, memcpy: Dict,
+                   versions: Dict[str, Optional[str]], argv: Optional[List[str]]) -> str:
+    """The peers table: this package beside what a user would pick instead, same method."""
+    command = ' '.join(['./dev benchmark', *(sys.argv[1:] if argv is None else argv)])
+    rounds = (f', the median run (by latency p50) of {mode.latency_rounds} rounds for the '
+              f'peers, {" and ".join(PAIRED)}' if mode.latency_rounds > 1 else '')
+    out = [f'## Peers side by side\n\nProduced by `{command}`. Every transport runs the same '
+           f'frames the same way: publisher and subscriber in separate processes, the frame '
+           f'written into the transport\'s memory before it is sent (in place, except '
+           f'zenoh: its shared-memory buffer takes only bytes, so the frame is copied in from a '
+           f'bytearray), CRC32 on both sides, {mode.frames} frames at {mode.rate:g} Hz, one '
+           f'subscriber{rounds}. Latency: ms from a stamp taken just before publish to the '
+           f'start of the subscriber\'s callback, p50 / p90 / max. CPU: ms of process CPU time '
+           f'per frame, as in the table above. View: ms from the callback\'s start to a '
+           f'readable numpy array over the payload, p50 (rosidl_buffer_py.image.from_input_msg '
+           f'with clone=False for stock rclpy and this package, a numpy array over the loaned '
+           f'sample for iceoryx2, payload.to_bytes() for zenoh, which has no buffer protocol: '
+           f'a full copy). The memcpy rows are one numpy.copyto of the payload in one process '
+           f'(the latency column is the copy time).\n']
+    out.append('Peers: ' + '; '.join(
+        f'{t.label} ({t.pip_name} {versions[t.label]})' if versions.get(t.label) else
+        skipped_note(t) for t in PEERS) + '.\n')
+    out.append('| payload | transport | latency p50 / p90 / max ms | pub CPU ms/frame | '
+               'sub CPU ms/frame | view ms | frames |')
+    out.append('|---|---|---|---|---|---|---|')
+    for payload in payloads:
+        for label in PEER_TABLE_OURS + [t.label for t in PEERS]:
+            r = lat.get((label, payload))
+            if r is None:  # a peer that is not installed
+                continue
+            frames = f'{min(r.distinct) if r.distinct else 0}/{r.count}' + (
+                '' if r.complete else ' !')
+            out.append(f'| {payload} | {label} | {_lat(r.latency, PEER_QUANTILES, fine=True)} | '
+                       f'{_fmt(r.pub_cpu_ms)} | {_fmt(r.sub_cpu_ms)} | '
+                       f'{_fmt(r.view.get("p50"), 3)} | {frames} |')
+        for label, key in ((MEMCPY, 'warm'), (MEMCPY_IDLE, 'idle')):
+            copy = _lat(memcpy[payload][key], PEER_QUANTILES, fine=True)
+            out.append(f'| {payload} | {label} | {copy} | — | — | — | — |')
+    skipped = [skipped_note(t) for t in PEERS if not versions.get(t.label)]
+    if skipped:
+        out.append('\n' + '. '.join(skipped) + '.')
+    missing = [p for p in mode.peer_payloads if p not in payloads]
+    if missing:
+        out.append(f'\n{", ".join(missing)}: measured only when a peer is installed.')
+    return '\n'.join(out) + '\n'
+
+
+def plot(path: str, mode: Mode, lat: Dict, memcpy: Dict, fanout: Dict,
+         peers: List[str] = ()) -> None:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(13, 5.2))
     sizes = {p: payload_bytes(p) for p in mode.payloads}
-    for label in ALL_ROWS:
+    for label in ALL_ROWS + list(peers):
         points = []
         for payload in mode.payloads:
+            run = lat.get((label, payload))  # a peer runs only at the peers table's payloads
             latency = memcpy[payload]['warm'] if label == MEMCPY else \
-                memcpy[payload]['idle'] if label == MEMCPY_IDLE else lat[(label, payload)].latency
+                memcpy[payload]['idle'] if label == MEMCPY_IDLE else run.latency if run else None
             if latency:
                 points.append((sizes[payload], latency['p50'], latency['p90']))
         if points:
@@ -892,6 +1074,13 @@ def main(argv=None) -> int:
         print(f'[{time.monotonic() - began:6.1f} s] {text}', file=sys.stderr, flush=True)
 
     memcpy = {p: measure_memcpy(p, mode.memcpy_repeat, 1.0 / mode.rate) for p in mode.payloads}
+    peer_versions = {t.label: peer_version(t) for t in PEERS}
+    installed_peers = [label for label, version in peer_versions.items() if version]
+    for t in PEERS:
+        if not peer_versions[t.label]:
+            progress(skipped_note(t))
+    # payloads the peers table adds to the latency table's are measured only with a peer
+    peer_payloads = [p for p in mode.peer_payloads if p in mode.payloads or installed_peers]
     lat: Dict[Tuple[str, str], Result] = {}
     rounds: Dict[Tuple[str, str], List[Result]] = {}
     for payload in mode.payloads:
@@ -909,16 +1098,27 @@ def main(argv=None) -> int:
                          f'{_fmt(r.latency.get("p50"))} ms, pub CPU {_fmt(r.pub_cpu_ms)} ms/msg,'
                          f' backends {r.backends}, CPU steal {_pct(steal.fraction())}')
         for t in TRANSPORTS:
-            if t.label in PAIRED:
-                continue
-            steal = StealMeter()
-            r = measure(t.label, payload, 1, mode.frames, mode.rate)
-            rounds[(t.label, payload)] = [r]
-            progress(f'latency {t.label:<22} {payload:>15}: p50 {_fmt(r.latency.get("p50"))} ms,'
-                     f' pub CPU {_fmt(r.pub_cpu_ms)} ms/msg, backends {r.backends}, CPU steal '
-                     f'{_pct(steal.fraction())}')
-        for t in TRANSPORTS:
-            lat[(t.label, payload)] = median_run(rounds[(t.label, payload)])
+            if t.label not in PAIRED:
+                rounds[(t.label, payload)] = [latency_run(t.label, payload, mode, progress)]
+        if payload in peer_payloads:  # in the same rounds' conditions as ours
+            for index in range(mode.latency_rounds):
+                for label in installed_peers:
+                    rounds.setdefault((label, payload), []).append(latency_run(
+                        label, payload, mode, progress, f' round {index + 1}'))
+        for label in [t.label for t in TRANSPORTS] + installed_peers:
+            if (label, payload) in rounds:
+                lat[(label, payload)] = median_run(rounds[(label, payload)])
+    for payload in peer_payloads:
+        if payload in mode.payloads:
+            continue
+        # a payload only the peers table has: its own runs of ours, once, and of the peers
+        memcpy[payload] = measure_memcpy(payload, mode.memcpy_repeat, 1.0 / mode.rate)
+        for label in PEER_TABLE_OURS:
+            lat[(label, payload)] = latency_run(label, payload, mode, progress)
+        for label in installed_peers:
+            lat[(label, payload)] = median_run([
+                latency_run(label, payload, mode, progress, f' round {index + 1}')
+                for index in range(mode.latency_rounds)])
     rates: Dict[Tuple[str, str], Tuple[Optional[float], str]] = {}
     for payload in mode.rate_payloads:
         for t in TRANSPORTS:
@@ -940,7 +1140,12 @@ def main(argv=None) -> int:
     for payload in mode.mixed_payloads:
         _, width, height, _ = PAYLOAD[payload]
         graphs = list(bench_mixed.GRAPHS)
-        per_frame = bench_mixed.measure(width, height, 10.0, 10, 40, 2, graphs)
+        try:
+            per_frame = bench_mixed.measure(width, height, 10.0, 10, 40, 2, graphs)
+        except RuntimeError as exc:  # a graph lost frames: say so, keep the rest of the report
+            mixed.append(f'{payload}: not measured, {str(exc)[:300]}')
+            progress(f'mixed graph {payload}: not measured ({str(exc)[:300]})')
+            continue
         mixed.append(bench_mixed.table(per_frame, graphs, payload.split()[0], 10.0, 10, 40, 2))
         progress(f'mixed graph {payload}: ' + ', '.join(
             f'{graph} {label} {statistics.median(v):.2f} ms'
@@ -959,11 +1164,12 @@ def main(argv=None) -> int:
               f', {time.monotonic() - began:.0f} s. Publisher and subscribers in separate '
               f'processes on this machine; a shared machine makes every number noisy.')
     text = markdown(mode, lat, memcpy, rates, fanout, checks, header)
+    text += '\n' + peers_markdown(mode, peer_payloads, lat, memcpy, peer_versions, argv)
     if mixed:
         text += ('\n\n## Mixed graph: a legacy listener beside a buffer-aware subscriber\n\n'
                  + '\n\n'.join(mixed) + '\n')
     png = os.path.join(args.out, 'benchmark.png')
-    plot(png, mode, lat, memcpy, fanout)
+    plot(png, mode, lat, memcpy, fanout, installed_peers)
     with open(os.path.join(args.out, 'benchmark.md'), 'w') as f:
         f.write(text + '\n![benchmark plot](benchmark.png)\n')
     print(text)

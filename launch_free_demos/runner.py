@@ -46,7 +46,7 @@ _FASTDDS_LOCK = re.compile(r'^(fastrtps_(?:port\d+|[0-9a-f]{16}))_(?:el|sl)$')
 _FASTDDS_PORT = re.compile(r'^fastrtps_port(\d+)$')
 
 
-def _lock_free(path: str) -> bool:
+def lock_free(path: str) -> bool:
     """True when nobody holds the flock on ``path`` (its owner process is gone)."""
     try:
         with open(path, 'ab') as f:
@@ -73,7 +73,7 @@ def fastdds_leftovers(since: float, domain_id: int) -> List[str]:
     dead = []
     for name in sorted(names):
         match = _FASTDDS_LOCK.match(name)
-        if match and recent(name) and _lock_free(os.path.join('/dev/shm', name)):
+        if match and recent(name) and lock_free(os.path.join('/dev/shm', name)):
             base = match.group(1)
             dead += [name, base] + ([f'sem.{base}_mutex'] if base.startswith('fastrtps_port')
                                     else [])

@@ -4,6 +4,7 @@ Runs README's quick mode, ``./dev benchmark --quick``, in a subprocess, inside t
 session's ROS domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
 test``) the same module runs with the interpreter under test, as ``./dev`` would exec it.
 """
+import contextlib
 import os
 import subprocess
 import sys
@@ -13,9 +14,10 @@ from pathlib import Path
 import pytest
 
 from installed import in_dev_venv
+from launch_free_demos import benchmark
 from launch_free_demos.benchmark import (
-    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MODES, STOCK, Result, StealMeter, median_run,
-    paired_ratios)
+    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
+    StealMeter, measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
 
 ROOT = Path(__file__).resolve().parent.parent
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
@@ -56,6 +58,30 @@ def test_markdown_has_every_transport_row_for_every_payload(smoke_run):
             assert {str(n) for n in MODES['quick'].fanout_subscribers} <= counts
     assert '## Target checks' in saved
     assert 'latency CPU path / stock' in saved
+
+
+def test_peers_table_shows_installed_peers_and_skips_absent_ones(smoke_run):
+    """The peers table: our rows (with a time to a numpy view) for the quick payloads; each
+    peer's rows when it is installed, else the note that says how to install it (CI has
+    none)."""
+    out, _ = smoke_run
+    saved = (out / 'benchmark.md').read_text()
+    assert '## Peers side by side' in saved
+    section = saved.split('## Peers side by side', 1)[1].split('\n## ', 1)[0]
+    assert f'Produced by `./dev benchmark --quick --out {out}`' in section
+    rows = {(cells[0], cells[1]): cells for cells in table_rows(section)}
+    for payload in MODES['quick'].payloads:
+        for label in PEER_TABLE_OURS:
+            cells = rows[(payload, label)]
+            float(cells[5])  # time to a numpy view, ms
+            assert cells[6] == '8/8' or cells[6].endswith('!'), cells
+        assert (payload, MEMCPY) in rows
+    for t in PEERS:
+        shown = {payload for payload, label in rows if label == t.label}
+        if peer_version(t) is None:
+            assert skipped_note(t) in section and not shown
+        else:
+            assert shown == set(MODES['quick'].peer_payloads), shown
 
 
 def test_plot_is_a_png(smoke_run):
@@ -146,3 +172,54 @@ def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
         for cell in cells:
             if graph != 'graph' and cell != '-':
                 float(cell.split()[0])  # a number of ms (it may be negative for so few frames)
+
+
+@pytest.mark.parametrize('peer', PEERS, ids=[t.peer_module for t in PEERS])
+def test_a_peer_is_measured_as_our_nodes_are_and_leaves_no_files(peer, monkeypatch):
+    """A peer transport's publisher and subscriber in two processes, through the benchmark's
+    own measurement: every frame arrives intact (through shared memory), latency, time to a
+    numpy view and CPU per frame of both are measured, and the run's files (its directory, its
+    /dev/shm files, zenoh segments nobody holds) are gone after it."""
+    pytest.importorskip(peer.peer_module)
+    used, scratch = [], benchmark.peer_scratch
+
+    @contextlib.contextmanager
+    def noted(transport):
+        with scratch(transport) as params:
+            used.append(params)
+            yield params
+
+    monkeypatch.setattr(benchmark, 'peer_scratch', noted)
+    since = time.time() - 1.0
+    result = measure(peer.label, '1 KiB', 1, 6, 10.0)
+    assert result.complete and result.distinct == [6], result
+    assert result.backends == {peer.label: 6}
+    assert result.latency['p50'] > 0 and result.view['p50'] > 0
+    assert result.pub_cpu_ms is not None and result.sub_cpu_ms is not None
+    [params] = used
+    assert not os.path.exists(params['root_path'])
+    assert not benchmark.peer_shm_leftovers(params.get('shm_prefix', 'rbpy_none_'), since)
+
+
+def test_peer_scratch_removes_what_a_run_left_and_keeps_what_is_in_use(tmp_path):
+    """The iceoryx2 run's prefixed files go, its directory goes; a zenoh segment goes when no
+    process holds its flock any more (zenoh holds one while it uses a segment)."""
+    import fcntl
+    iceoryx2 = next(t for t in PEERS if t.peer_module == 'iceoryx2')
+    name = f'{os.getpid()}{time.monotonic_ns() % 10**6}'
+    held_path, dead_path = f'/dev/shm/{name}1.zenoh', f'/dev/shm/{name}2.zenoh'
+    with open(held_path, 'wb') as held:
+        fcntl.flock(held, fcntl.LOCK_SH)
+        try:
+            with peer_scratch(iceoryx2) as params:
+                root, prefix = Path(params['root_path']), params['shm_prefix']
+                assert prefix.startswith('rbpy_') and root.is_dir()
+                (root / 'services').mkdir()
+                Path('/dev/shm', prefix + 'x.global_mgmt').write_bytes(b'')
+                Path(dead_path).write_bytes(b'')
+            assert not root.exists() and not Path('/dev/shm', prefix + 'x.global_mgmt').exists()
+            assert not Path(dead_path).exists() and Path(held_path).exists()
+        finally:
+            for path in (held_path, dead_path):
+                if os.path.exists(path):
+                    os.remove(path)

@@ -95,12 +95,24 @@ def _imported_modules(paths):
     return modules - set(sys.stdlib_module_names) - OWN_MODULES
 
 
+def bench_modules():
+    """Module -> requirement of requirements-bench.txt, the benchmark's optional peers (the
+    comment of each line names the module it provides; they have no package.xml key)."""
+    modules = {}
+    for requirement, keys in requirement_lines('requirements-bench.txt'):
+        assert len(keys) == 1, f'requirements-bench.txt: {requirement!r} names no one module'
+        modules[keys.pop()] = requirement
+    return modules
+
+
 def test_every_imported_module_is_declared():
     """The package's imports are exec (or, for the benchmark's plots, test) dependencies; the
-    tests' imports are exec or test dependencies; setup.py's are build dependencies."""
+    tests' imports are exec or test dependencies; setup.py's are build dependencies. Only the
+    benchmark's peer nodes import the optional modules of requirements-bench.txt."""
     keys = package_xml_keys()
+    peers = ROOT / 'launch_free_demos' / 'peers'
     package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos')
-               for p in (ROOT / d).rglob('*.py')]
+               for p in (ROOT / d).rglob('*.py') if peers not in p.parents]
     tests = list((ROOT / 'test').rglob('*.py'))
     for paths, allowed in ((package, keys['exec'] | {'python3-matplotlib'}),
                            (tests, keys['exec'] | keys['test']),
@@ -110,6 +122,27 @@ def test_every_imported_module_is_declared():
         assert not unknown, f'imported, no package.xml key known: {sorted(unknown)}'
         undeclared = {MODULE_KEYS[m] for m in modules} - allowed
         assert not undeclared, f'imported but not declared: {sorted(undeclared)}'
+    peer_modules = _imported_modules(peers.rglob('*.py'))
+    assert peer_modules - set(bench_modules()) <= {'numpy'}, peer_modules
+
+
+def test_bench_requirements_are_optional_and_match_the_benchmark_peers():
+    """requirements-bench.txt names exactly the peers' modules; neither ./dev setup, CI nor
+    setup.py reads it (./dev's help and README say how to install it), and no package.xml key
+    is one of them."""
+    from launch_free_demos.benchmark import PEERS
+    modules = bench_modules()
+    assert {t.peer_module: t.pip_name for t in PEERS} == {
+        module: re.split(r'[<>=!~\[ ]', requirement)[0] for module, requirement in modules.items()}
+    dev = (ROOT / 'dev').read_text()
+    setup_function = dev.split('setup() {', 1)[1].split('\n}\n', 1)[0]
+    for name, text in (('./dev setup', setup_function),
+                       ('setup.py', (ROOT / 'setup.py').read_text()),
+                       ('.ci/run', (ROOT / '.ci' / 'run').read_text())):
+        assert 'requirements-bench' not in text, name
+    assert 'requirements-bench.txt' in dev.split('set -euo', 1)[0]  # ./dev's help says how
+    assert not set(modules) & set().union(*package_xml_keys().values())
+    assert 'pip install -r requirements-bench.txt' in (ROOT / 'README.md').read_text()
 
 
 def test_python_requires_matches_what_dev_requires():

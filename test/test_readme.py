@@ -32,6 +32,9 @@ COVERAGE = {
     './dev bench-transport': 'here',                      # with fewer frames and payloads
     './dev benchmark --quick': 'test_benchmark.py',
     './dev benchmark': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
+    # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
+    # benchmark's peers, test_benchmark runs each peer where it is installed
+    '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
     './dev setup': 'here',
     '.venv/bin/python -m launch_free_demos.scenarios': 'test_transport.py',  # every scenario
     '.venv/bin/python -m launch_free_demos.equivalence [names] [--echo]': 'test_equivalence.py',

@@ -1,7 +1,9 @@
 """image_subscriber: receive and verify the frames of image_publisher, then report.
 
 The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
-frames), the first and last frame seen, checksum failures, backends seen, wrong-backend frames and latency percentiles. The
+frames), the first and last frame seen, checksum failures, backends seen, wrong-backend frames,
+latency percentiles and the time from the callback's start to a readable numpy array over the
+image (``view_ms``). The
 parameters are listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
 """
 import collections
@@ -15,6 +17,7 @@ from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
 from rosidl_buffer_py import codec
+from rosidl_buffer_py.image import from_input_msg
 from rosidl_buffer_py.nodes.common import (
     QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, print_report,
     qos_profile, run_node, with_default)
@@ -83,6 +86,7 @@ class ImageSubscriber(Node):
         self.params = p
         qos = qos_profile(p)
         self.latencies = []
+        self.view_ms = []
         self.counters = collections.Counter()
         self.backends = collections.Counter()
         self.problems = []
@@ -110,7 +114,9 @@ class ImageSubscriber(Node):
         self.on_image(msg)
 
     def on_image(self, msg: Image) -> None:
+        started = time.perf_counter_ns()
         self.latencies.append(latency_ms(msg))
+        self.time_view(msg, started)
         self.last_size = f'{msg.width}x{msg.height} {msg.encoding}, {len(msg.data):,} bytes'
         self.counters['received'] += 1
         data = msg.data
@@ -134,6 +140,16 @@ class ImageSubscriber(Node):
         if self.params['work_sec']:
             time.sleep(self.params['work_sec'])
 
+    def time_view(self, msg: Image, started_ns: int) -> None:
+        """Note how long after ``started_ns`` (the callback's start) a readable numpy array over
+        the image exists: what a user's callback does first (the benchmark's "time to a numpy
+        view"). No copy: ``from_input_msg(msg, clone=False)``."""
+        try:
+            from_input_msg(msg, clone=False)
+        except (TypeError, ValueError):  # metadata no image follows: check_frame judges it
+            return
+        self.view_ms.append((time.perf_counter_ns() - started_ns) / 1e6)
+
     def problem(self, text: str) -> None:
         if len(self.problems) < 20:
             self.problems.append(text)
@@ -153,7 +169,6 @@ class ImageSubscriber(Node):
 
     def report(self) -> dict:
         p = self.params
-        lat = numpy.array(self.latencies) if self.latencies else numpy.zeros(1)
         missing = []
         if self.seen:
             span = p['expected_count'] or (max(self.seen) + 1)
@@ -169,8 +184,7 @@ class ImageSubscriber(Node):
             'checksum_failures': self.counters['checksum_failures'],
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
-            'latency_ms': {name: round(float(numpy.percentile(lat, q)), 3) for name, q in
-                           (('p50', 50), ('p90', 90), ('p99', 99), ('max', 100))},
+            'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
             'timed_out': bool(p['expected_count']) and len(self.seen) < p['expected_count'],
         }
         if hasattr(self.subscription, 'statistics'):
@@ -188,6 +202,13 @@ class ImageSubscriber(Node):
 
     def finish(self) -> None:
         print_report(self.report())
+
+
+def _percentiles(values) -> dict:
+    """p50 / p90 / p99 / max of ``values`` in ms, rounded to the microsecond (0 when empty)."""
+    data = numpy.array(values) if values else numpy.zeros(1)
+    return {name: round(float(numpy.percentile(data, q)), 3) for name, q in
+            (('p50', 50), ('p90', 90), ('p99', 99), ('max', 100))}
 
 
 def main(args=None) -> int:
