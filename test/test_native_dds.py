@@ -20,6 +20,7 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 
+from in_process import spin_until
 from rosidl_buffer_py import _dds
 
 PEER = os.path.join(os.path.dirname(__file__), 'native_dds_peer.py')
@@ -599,6 +600,42 @@ def test_matched_subscription_gids(ctx):
     assert time.monotonic() - t0 < 5
     node.destroy_subscription(local)
     assert _wait(lambda: _dds.matched_subscription_gids(pub) == [])
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('reliability', ['reliable', 'best_effort'])
+def test_exclude_from_next_write_keeps_a_sample_from_the_named_readers(ctx, reliability):
+    """Every other sample is kept from one of two readers; the other gets all of them. Taking
+    the filter off gives every reader every sample again."""
+    from rclpy.qos import ReliabilityPolicy
+    from std_msgs.msg import String
+    qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE if reliability ==
+                     'reliable' else ReliabilityPolicy.BEST_EFFORT)
+    topic = '/' + _unique('exclude')
+    node = _node(ctx, 'exclude')
+    pub = node.create_publisher(String, topic, qos)
+    got = {'a': [], 'b': []}
+    sub_a = node.create_subscription(String, topic, lambda m: got['a'].append(m.data), qos)
+    node.create_subscription(String, topic, lambda m: got['b'].append(m.data), qos)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 2)
+    for i in range(10):
+        assert _dds.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)] if i % 2 else [])
+        pub.publish(String(data=str(i)))
+    assert spin_until(executor, lambda: len(got['b']) == 10)
+    executor.spin_once(timeout_sec=0.2)
+    assert got == {'a': [str(i) for i in range(0, 10, 2)], 'b': [str(i) for i in range(10)]}
+    assert _dds.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)])
+    _dds.remove_write_exclusions(pub)  # the registration goes with the filter
+    _dds.remove_write_exclusions(pub)  # nothing left to remove
+    pub.publish(String(data='after'))
+    assert spin_until(executor, lambda: got['a'][-1:] == got['b'][-1:] == ['after'])
+    with pytest.raises(ValueError, match=r'reader_gids\[0\] must be 16 bytes'):
+        _dds.exclude_from_next_write(pub, [b'short'])
+    with pytest.raises(TypeError):
+        _dds.exclude_from_next_write(sub_a, [])  # not a publisher
+    executor.shutdown()
     node.destroy_node()
 
 

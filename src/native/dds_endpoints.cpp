@@ -451,9 +451,15 @@ PyObject * matched_subscription_gids(PyObject *, PyObject * pub_arg)
   return gid_list(gids);
 }
 
-/// The rmw publisher of a pinned rcl publisher (GIL released inside); nullptr with DdsError.
-rmw_publisher_t * rmw_publisher_of(PinnedHandle * pub)
+/// Pin `pub_arg` (an rclpy publisher or its handle) into `pub` and return its rmw publisher
+/// (GIL released inside); nullptr with TypeError/DdsError.
+rmw_publisher_t * pin_rmw_publisher(PyObject * pub_arg, PinnedHandle * pub)
 {
+  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
+    pub->acquire(pub_arg, "publisher") < 0)
+  {
+    return nullptr;
+  }
   DdsEndpoint dds;  // checks validity and the rmw implementation
   if (resolve_endpoint(pub->get(), true, &dds) < 0) {
     return nullptr;
@@ -501,12 +507,7 @@ PyObject * exclude_from_next_write(PyObject *, PyObject * args)
   }
   Py_DECREF(gids_seq);
   PinnedHandle pub;
-  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
-    pub.acquire(pub_arg, "publisher") < 0)
-  {
-    return nullptr;
-  }
-  rmw_publisher_t * rmw_pub = rmw_publisher_of(&pub);
+  rmw_publisher_t * rmw_pub = pin_rmw_publisher(pub_arg, &pub);
   if (rmw_pub == nullptr) {
     return nullptr;
   }
@@ -527,12 +528,7 @@ PyObject * exclude_from_next_write(PyObject *, PyObject * args)
 PyObject * remove_write_exclusions(PyObject *, PyObject * pub_arg)
 {
   PinnedHandle pub;
-  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
-    pub.acquire(pub_arg, "publisher") < 0)
-  {
-    return nullptr;
-  }
-  rmw_publisher_t * rmw_pub = rmw_publisher_of(&pub);
+  rmw_publisher_t * rmw_pub = pin_rmw_publisher(pub_arg, &pub);
   if (rmw_pub == nullptr) {
     return nullptr;
   }

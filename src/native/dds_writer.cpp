@@ -117,6 +117,20 @@ ReaderExclusions * installed_exclusions(eprosima::fastrtps::rtps::RTPSWriter * r
   return it->second;
 }
 
+/// The RTPSWriter of an rmw_fastrtps_cpp publisher's DataWriter. False with *error when rmw's
+/// layout is not verified; true with *rtps null when Fast DDS's does not check out.
+bool main_rtps_writer(
+  rmw_publisher_t * publisher, rmw_private::PublisherParts * info,
+  eprosima::fastrtps::rtps::RTPSWriter ** rtps, std::string * error)
+{
+  if (!rmw_private::publisher_parts(publisher, info, error)) {
+    return false;
+  }
+  std::string unavailable;
+  *rtps = rmw_private::rtps_writer_of(info->writer, &unavailable);
+  return true;
+}
+
 }  // namespace
 
 bool exclude_from_next_write(
@@ -125,12 +139,10 @@ bool exclude_from_next_write(
 {
   *available = false;
   rmw_private::PublisherParts info;
-  if (!rmw_private::publisher_parts(publisher, &info, error)) {
+  eprosima::fastrtps::rtps::RTPSWriter * rtps;
+  if (!main_rtps_writer(publisher, &info, &rtps, error)) {
     return false;
   }
-  std::string unavailable;
-  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(
-    info.writer, &unavailable);
   if (rtps == nullptr) {
     return true;
   }
@@ -162,12 +174,10 @@ bool exclude_from_next_write(
 bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error)
 {
   rmw_private::PublisherParts info;
-  if (!rmw_private::publisher_parts(publisher, &info, error)) {
+  eprosima::fastrtps::rtps::RTPSWriter * rtps;
+  if (!main_rtps_writer(publisher, &info, &rtps, error)) {
     return false;
   }
-  std::string unavailable;
-  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(
-    info.writer, &unavailable);
   if (rtps == nullptr) {
     return true;
   }
