@@ -163,11 +163,13 @@ def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
     assert completed.returncode == 0, completed.stdout + completed.stderr
     rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
-    assert set(rows) == {'graph', 'pure', 'mixed', 'stock'}, completed.stdout
+    assert set(rows) == {'graph', 'pure', 'mixed', 'neighbour', 'stock', 'stock mixed'}, \
+        completed.stdout
     present = {graph: [cell != '-' for cell in cells] for graph, cells in rows.items()
                if graph != 'graph'}
     assert present == {'pure': [True, False, True], 'mixed': [True, True, True],
-                       'stock': [False, True, True]}, completed.stdout
+                       'neighbour': [True, True, True], 'stock': [False, True, True],
+                       'stock mixed': [True, True, True]}, completed.stdout
     for graph, cells in rows.items():
         for cell in cells:
             if graph != 'graph' and cell != '-':
