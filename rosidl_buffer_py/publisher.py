@@ -61,6 +61,8 @@ MAX_PROBE_DEPTH = 100
 DISCOVERY_POLL_SECONDS = 0.02
 #: Cached routes are recomputed at least this often, whatever else says they are current.
 ROUTES_RECHECK_SECONDS = 0.5
+#: ... and this often while a served peer's channel is not known to reach its reader yet.
+CONFIRM_RECHECK_SECONDS = 0.05
 
 
 @dataclass
@@ -88,6 +90,9 @@ class _SubscriptionPeer:
     acknowledged: bool = False
     #: Source timestamp of the last message published when the acknowledgment was seen.
     acknowledged_after: int = 0
+    #: The channel's reader is known to get what the channel carries (it acknowledged channel
+    #: samples): only then are main-topic samples kept from the peer (see ``_current_routes``).
+    reaches_reader: bool = False
 
 
 class _Routes(NamedTuple):
@@ -107,7 +112,8 @@ class _Routes(NamedTuple):
     recheck_at: float
     #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
     unserved: Tuple[bytes, ...]
-    #: GIDs of ``peers``: their main-topic readers do not get main-topic samples.
+    #: GIDs of the ``peers`` whose channel is known to reach them: their main-topic readers do
+    #: not get main-topic samples.
     served: Tuple[bytes, ...]
 
 
@@ -443,14 +449,24 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             elif peer.matched_since is not None:  # settling: ready at the end of it, or once
                 recheck_at = min(recheck_at, now if peer.handshake else  # acknowledged
                                  peer.matched_since + CHANNEL_SETTLE_SECONDS)
+            if ready and not peer.reaches_reader and peer.handshake:
+                # served since the last routes (its fence is written) and every channel sample
+                # acknowledged: its reader matched, and gets the rest
+                peer.reaches_reader = peer.acknowledged or (
+                    peer.serving and peer.channel.wait_for_all_acked(0.0))
+                if not peer.reaches_reader:
+                    recheck_at = min(recheck_at, now + CONFIRM_RECHECK_SECONDS)
             peer.serving = ready
         served = {peer.info.gid for peer in peers}
         unserved = tuple(gid for gid in _dds.matched_subscription_gids(self)
                          if gid not in served)
         main = bool(unserved) or self._main_always
         targets = [peer.channel for peer in peers] + ([self] if main else [])
-        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved,
-                       tuple(served))
+        # Main-topic samples skip only peers whose channel is known to reach them: a channel
+        # serving by its settle time alone may not yet (the reader matches the writer late),
+        # and meanwhile the subscription still needs the main-topic copies.
+        withheld = tuple(peer.info.gid for peer in peers if peer.reaches_reader)
+        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved, withheld)
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -504,7 +520,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             if peer.matched_since is not None:
                 # its reader left; if it comes back, the channel settles: no probe may follow a
                 # route fence (the subscription may take later samples as messages)
-                peer.handshake = peer.acknowledged = False
+                peer.handshake = peer.acknowledged = peer.reaches_reader = False
             peer.matched_since = None
             return False
         now = time.monotonic()
