@@ -11,6 +11,7 @@ under colcon once per CI run, without running the suite twice. Naming test files
 test/test_codec.py``), ``RBPY_COLCON_SPLIT=0`` or a venv without colcon run them directly.
 """
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -24,6 +25,13 @@ if not list((_ROOT / 'rosidl_buffer_py').glob('_native*.so')):
     sys.path[:] = [p for p in sys.path if Path(p or '.').resolve() != _ROOT]
 
 from launch_free_demos.domains import claim_domain_ids  # noqa: E402 (after the path fix)
+
+# A shell starts a background job (`cmd &` without job control) with SIGINT ignored, and an
+# ignored signal stays ignored in every process started below it: the nodes the Ctrl-C tests
+# interrupt would then not see Ctrl-C at all. A handler (not an ignore) is reset to the default
+# by exec, so the processes tests start get Ctrl-C as a terminal would give it.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 #: Test files the direct run keeps when the suite is split (the rest run inside colcon test):
 #: README's ./dev commands need the ./dev checkout, and test_colcon.py is the colcon run.
