@@ -112,9 +112,9 @@ class _Routes(NamedTuple):
     recheck_at: float
     #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
     unserved: Tuple[bytes, ...]
-    #: GIDs of the ``peers`` whose channel is known to reach them: their main-topic readers do
-    #: not get main-topic samples.
-    served: Tuple[bytes, ...]
+    #: GIDs of the ``peers`` whose channel is known to reach them: main-topic samples are
+    #: withheld from their main-topic readers.
+    withheld: Tuple[bytes, ...]
 
 
 class _Encoder:
@@ -314,14 +314,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             used = self._routes
             if used is None:
                 used = self._routes = self._current_routes()
-            self._write(encoder, timestamp, used.peers, used.main, used.served)
+            self._write(encoder, timestamp, used.peers, used.main, used.withheld)
             routes = self._valid_routes()
             main = used.main
             if routes is not used:
                 self._write(encoder, timestamp,
                             [p for p in routes.peers if not any(p is u for u in used.peers)],
                             routes.main and not used.main,
-                            tuple(dict.fromkeys(used.served + routes.served)))
+                            tuple(dict.fromkeys(used.withheld + routes.withheld)))
                 main = main or routes.main
             if main:
                 self._sent_main += 1
@@ -336,9 +336,9 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             self._deadline.activity()
 
     def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool,
-               served: Tuple[bytes, ...] = ()) -> None:
+               withheld: Tuple[bytes, ...] = ()) -> None:
         """Write one message to ``peers``' channels (after their route fence, if pending) and,
-        when ``main``, to the main topic, whose sample the ``served`` subscriptions (their
+        when ``main``, to the main topic, whose sample the ``withheld`` subscriptions (their
         channels carry this message) do not get."""
         for peer in peers:
             if peer.fence_pending:
@@ -348,7 +348,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             # publish does (no Python-level CDR work)
             targets = [peer.channel for peer in peers] + ([self] if main else [])
             if main:
-                self._exclude_from_main(served)
+                self._exclude_from_main(withheld)
             if targets:
                 _dds.write_message(encoder.msg, timestamp, targets)
             for peer in peers:
@@ -370,7 +370,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             peer.backend_in_use = CPU_BACKEND
         if main:
             cpu_targets.append(self)
-            self._exclude_from_main(served)
+            self._exclude_from_main(withheld)
         if not cpu_targets:
             return
         if encoder.host_buffer:
@@ -385,18 +385,19 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             else:
                 target.publish(data, timestamp)
 
-    def _exclude_from_main(self, served: Tuple[bytes, ...]) -> None:
-        """Keep the next main-topic sample from the subscriptions ``served`` on channels.
+    def _exclude_from_main(self, withheld: Tuple[bytes, ...]) -> None:
+        """Keep the next main-topic sample from the subscriptions ``withheld`` (their channels
+        carry it).
 
         Registered right before that write (for the DataWriter's next sequence number); an
         empty set is registered only to replace a non-empty one left by a write that failed.
         """
-        if self._exclusions is False or not (served or self._excluding):
+        if self._exclusions is False or not (withheld or self._excluding):
             return
-        self._exclusions = _dds.exclude_from_next_write(self, served)
-        self._excluding = bool(served) and self._exclusions
+        self._exclusions = _dds.exclude_from_next_write(self, withheld)
+        self._excluding = bool(withheld) and self._exclusions
         if self._excluding:
-            self._withheld += len(served)
+            self._withheld += len(withheld)
         elif self._exclusions is False:
             _logger.warning(
                 f'publisher of {self._topic_name}: this Fast DDS DataWriter cannot keep '

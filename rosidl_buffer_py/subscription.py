@@ -27,7 +27,8 @@ No copy waits for its twin on a clock. Channel messages that wait for their fenc
 from the channel meanwhile and queued here, in order, so a slow main topic (DDS repairing the
 first large frames) delays them but cannot make the channel's DDS history overflow. The only
 timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds the wait for a fenced message that was lost (a
-reader history that overflowed), as DDS's own KEEP_LAST loses it. Messages of legacy publishers arrive on the main topic only, as with stock.
+reader history that overflowed), as DDS's own KEEP_LAST loses it. Messages of legacy publishers
+arrive on the main topic only, as with stock.
 """
 import collections
 import copy
@@ -289,7 +290,8 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         """The next main-topic sample to consider; duplicates are dropped uncopied first.
 
         While some publisher serves us on its channel, its main-topic copies (written for
-        legacy subscribers) are duplicates: their key (publisher GID, source timestamp) is read
+        legacy subscribers; its DataWriter keeps most from us, see
+        ``_dds.exclude_from_next_write``) are duplicates: their key (publisher GID, source timestamp) is read
         from the DDS sample info and they are discarded without copying their payload.
 
         Publishers write only CPU data on the main topic: it is deserialized in C, as rclpy
@@ -336,21 +338,13 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
     def _next_from_channels(self):
         """``(message or None, taken)`` from the channels (rotating), or None when all are
-        empty or waiting for their fence."""
+        empty (a stream waiting for its fence queues what its channel gives meanwhile)."""
         channels = self._channels
         count = len(channels)
         for i in range(count):
             peer = channels[(self._next_channel + i) % count]
             stream = self._streams[peer.info.gid]
-            if stream.waiting:
-                if not self._fence_passed(stream):
-                    # keep taking meanwhile: the messages queue here, in order
-                    taken = self._take_channel(peer)
-                    if taken is None:
-                        continue
-                    msg = self._accept_channel(taken, peer, stream)
-                    self._next_channel = (self._next_channel + i) % count
-                    return msg, taken
+            if stream.waiting and self._fence_passed(stream):
                 taken, _ = stream.waiting.popleft()
                 if not stream.waiting:
                     self._waiting -= 1
@@ -358,7 +352,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 if taken.timestamp > stream.last:
                     stream.last = taken.timestamp
                     msg = self._decode(taken, peer)
-            else:
+            else:  # (while the stream waits for its fence, this queues what it takes)
                 taken = self._take_channel(peer)
                 if taken is None:
                     continue
