@@ -171,6 +171,20 @@ def print_report(report: dict) -> None:
     print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
 
 
+class _Interrupts:
+    """SIGINT and SIGTERM raise KeyboardInterrupt, as Python's default SIGINT handler does, and
+    are remembered: :func:`run_node` tells an interrupt from an error by them."""
+
+    def __init__(self) -> None:
+        self.received: list = []
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, self._handle)
+
+    def _handle(self, signum: int, frame) -> None:
+        self.received.append(signal.Signals(signum).name)
+        raise KeyboardInterrupt
+
+
 #: How long a node may take to tear down after its report before it is ended (see run_node).
 TEARDOWN_TIMEOUT_SEC = 20.0
 
@@ -191,10 +205,10 @@ def run_node(make_node: Callable, run: Callable, *, program: str = '', summary: 
     # SIGUSR1 prints every thread's Python stack to stderr: the process runner sends it to a
     # node that ignores SIGINT, before SIGKILL, so that a stuck node says where it is stuck.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    # SIGTERM takes Ctrl-C's path. Both handlers are installed before rclpy.init(), which chains
+    # its own to them (waking the executor and shutting the context down, as on Ctrl-C).
+    signals = _Interrupts()
     rclpy.init(args=sys.argv)
-    # SIGTERM takes Ctrl-C's path. (Shutting the context down from the handler instead leaves
-    # the next rclpy.spin_once() building a global executor on a dead context: a traceback.)
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
     node = None
     status = 0
     try:
@@ -205,6 +219,13 @@ def run_node(make_node: Callable, run: Callable, *, program: str = '', summary: 
         status = USAGE_ERROR
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # A KeyboardInterrupt raised while rclpy's C++ code runs Python (the message class's
+        # constructor, inside Subscription.take_message) comes out of pybind11 as RuntimeError
+        # "Unable to convert call argument '0' to Python object", and rclpy calls on the context
+        # its signal handler shut down raise too: after a signal, they are that signal.
+        if not signals.received:
+            raise
     finally:
         # a second Ctrl-C or SIGTERM must not interrupt the report and the cleanup
         signal.signal(signal.SIGINT, signal.SIG_IGN)
