@@ -348,6 +348,8 @@ class State:
         self.presence: Optional[presence.Presence] = None
         #: recipient token -> (alive, monotonic ns until which the answer holds)
         self.liveness: Dict[str, Tuple[bool, int]] = {}
+        #: the presence files of live recipients, kept open (a re-test is one fcntl)
+        self.presences = presence.Watch()
         self.stop_housekeeping = threading.Event()
 
     # --- deferred releases -----------------------------------------------------------------
@@ -464,6 +466,7 @@ class State:
             if self.presence is not None:
                 self.presence.close(remove=True)
                 self.presence = None
+            self.presences.close()
 
     def forget_after_fork(self) -> None:
         """In a forked child: drop the parent's resources without touching its segments."""
@@ -480,6 +483,7 @@ class State:
         if self.presence is not None:  # the parent's: close our copy of the fd, keep the file
             self.presence.close(remove=False)
             self.presence = None
+        self.presences.close()
 
     # --- publisher side ----------------------------------------------------------------------
     def allocate(self, nbytes: int) -> Optional[Tuple[memoryview, Pin]]:
@@ -602,17 +606,19 @@ class State:
         if token == own_token():
             alive = True  # this process: in-process subscriptions
         else:
-            alive = presence.alive(token)
+            alive = self.presences.alive(token)
             self.counters['liveness_checks'] += 1
         self.liveness[token] = (alive, now_ns + int(LIVENESS_TTL * 1e9))
         if len(self.liveness) > 4 * MAX_MAPPINGS:  # forget long-expired answers
             self.liveness = {t: a for t, a in self.liveness.items() if now_ns < a[1]}
+            self.presences.keep_only(self.liveness)
         return alive
 
     def forget_liveness(self, token: Optional[str]) -> None:
         """Test ``token``'s presence again on next use (its peer endpoint went away)."""
         with self.locked:
             self.liveness.pop(token, None)
+            self.presences.forget(token)
 
     def _claim(self, slot: _Slot, nbytes: int, stale_ok: bool) -> bool:
         untaken = self._lock_free(slot, stale_ok)

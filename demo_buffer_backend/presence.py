@@ -18,7 +18,7 @@ import os
 import re
 import secrets
 import time
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 from demo_buffer_backend import locks, shm
 
@@ -103,31 +103,81 @@ def alive(token: str) -> bool:
     an unexpected error) the answer is True, which only keeps the protection of the bytes. A dead
     one's file is removed here.
     """
+    answer, kept = _test(token, keep=False)
+    return answer
+
+
+class Watch:
+    """Presence files of peers found alive, kept open: testing one again is a single fcntl
+    (``F_OFD_GETLK``) on the open file, where :func:`alive` opens, checks, reads and closes it.
+    The kernel drops the owner's lock when it dies, whether or not the file is still linked, so
+    an unlocked file means gone; its token is then tested afresh by :func:`alive` (a pool
+    restarted after a shutdown locks a new file under the same token)."""
+
+    def __init__(self) -> None:
+        self._fds: Dict[str, int] = {}
+
+    def alive(self, token: str) -> bool:
+        fd = self._fds.get(token)
+        if fd is not None:
+            try:
+                if locks.is_locked_by_other(fd, shm.OWNER_BYTE):
+                    return True
+            except OSError:
+                pass
+            self.forget(token)
+        answer, kept = _test(token, keep=True)
+        if kept is not None:
+            self._fds[token] = kept
+        return answer
+
+    def forget(self, token: Optional[str]) -> None:
+        """Close ``token``'s file, if kept (its peer went away, or the watch is closing)."""
+        fd = self._fds.pop(token, None)
+        if fd is not None:
+            os.close(fd)
+
+    def keep_only(self, tokens) -> None:
+        """Close the files of tokens not in ``tokens``."""
+        for token in [t for t in self._fds if t not in tokens]:
+            self.forget(token)
+
+    def close(self) -> None:
+        self.keep_only(())
+
+
+def _test(token: str, keep: bool) -> Tuple[bool, Optional[int]]:
+    """:func:`alive`'s answer and, with ``keep`` and a live, finished presence file, its open fd
+    (the caller closes it)."""
     path = path_of(token)
     try:
         fd = os.open(path, _OPEN_FLAGS)
     except FileNotFoundError:
-        return False
+        return False, None
     except OSError as exc:
         if exc.errno in (errno.EACCES, errno.EPERM, errno.ELOOP):
-            return False  # not ours (another uid, or a symlink): a peer that cannot reach us
-        return True
+            return False, None  # not ours (another uid, or a symlink): a peer that cannot reach us
+        return True, None
+    kept = None
     try:
         st = os.fstat(fd)
         if shm.untrusted(st):
-            return False
+            return False, None
         finished = os.pread(fd, len(shm.PRESENCE_MAGIC), 0) == shm.PRESENCE_MAGIC
         if locks.is_locked_by_other(fd, shm.OWNER_BYTE):
-            return True
+            if keep and finished:
+                kept = fd
+            return True, kept
         if not finished and time.time() - st.st_mtime < shm.UNFINISHED_SEGMENT_AGE:
-            return True  # being created
+            return True, None  # being created
         try:  # dead: scavenge it now (unless the name was just taken by a new file)
             if os.stat(path, follow_symlinks=False).st_ino == st.st_ino:
                 os.unlink(path)
         except OSError:
             pass
-        return False
+        return False, None
     except OSError:
-        return True
+        return True, None
     finally:
-        os.close(fd)
+        if kept is None:
+            os.close(fd)

@@ -721,6 +721,38 @@ def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, pee
     print(f'slots reusable {latency * 1000:.0f} ms after the SIGKILL')
 
 
+def _open_fds_on(path):
+    found = []
+    for fd in os.listdir('/proc/self/fd'):
+        try:
+            if os.readlink(f'/proc/self/fd/{fd}') == path:
+                found.append(int(fd))
+        except OSError:
+            pass
+    return found
+
+
+def test_presence_watch_keeps_a_live_peers_file_open_until_it_dies(backend, peers):
+    """A re-test of a live peer is one fcntl on its presence file, kept open; once the peer
+    dies (SIGKILL) the next test says so and the file is closed (and removed)."""
+    peer = peers()
+    token = _token(peer.metadata)
+    path = presence.path_of(token)
+    watch = presence.Watch()
+    try:
+        assert watch.alive(token) and watch.alive(token)
+        assert len(_open_fds_on(path)) == 1
+        watch.forget(token)
+        assert _open_fds_on(path) == []
+        assert watch.alive(token) and len(_open_fds_on(path)) == 1
+        peer.kill9()
+        assert not watch.alive(token)
+        assert _open_fds_on(path) == [] and not _presence_of(peer.pid)
+        assert not watch.alive(token)
+    finally:
+        watch.close()
+
+
 def test_liveness_is_cached_not_tested_per_allocation(backend, peers):
     demo_buffer_backend.configure(max_slots=1, reclaim_timeout=3600)
     slow = peers()
