@@ -176,6 +176,31 @@ def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
                 float(cell.split()[0])  # a number of ms (it may be negative for so few frames)
 
 
+def test_bench_hotpath_times_every_stage_of_every_transport():
+    """README's ./dev bench-hotpath, short: the latency split of each transport, and a median
+    for every stage it times on each side (the functions it wraps still exist)."""
+    command = [str(ROOT / 'dev'), 'bench-hotpath'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench_hotpath']
+    completed = subprocess.run(command + ['--frames', '8', '--rate', '20'], cwd=ROOT,
+                               capture_output=True, text=True, timeout=300,
+                               env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    for what in ('stamp -> reception (publisher, DDS)', 'reception -> callback (subscriber)',
+                 'total', 'publish()'):
+        assert len(rows[what]) == 3 and all(float(c.split()[0]) > 0 for c in rows[what]), \
+            completed.stdout
+    demo_only = ['backend describe (demo ledger)', 'descriptor message encode',
+                 'backend open (demo pool)', 'of it: segment checks and take record']
+    ours = ['writes (descriptor or CPU message)', 'channel takes (empty ones too)',
+            'delivery path: take to message'] + demo_only
+    for stage in ours:
+        stock, cpu, demo = rows[stage]
+        assert stock == '' and float(demo.split()[0]) > 0, (stage, completed.stdout)
+        assert (cpu == '') == (stage in demo_only), (stage, completed.stdout)
+    assert 'after 50 ms idle' in completed.stdout
+
+
 @pytest.mark.parametrize('peer', PEERS, ids=[t.peer_module for t in PEERS])
 def test_a_peer_is_measured_as_our_nodes_are_and_leaves_no_files(peer, monkeypatch):
     """A peer transport's publisher and subscriber in two processes, through the benchmark's

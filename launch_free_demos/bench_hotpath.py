@@ -1,0 +1,294 @@
+"""Where one message's time goes on the hot path, stage by stage, at camera rates.
+
+For stock rclpy, this package's CPU path and the demo backend, a publisher and a subscriber run in
+two processes and exchange ``--frames`` frames at ``--rate`` Hz: every message wakes a node that
+was idle, its caches cold, as a camera's frames find it. Each transport runs twice, once with
+the publisher in this process and once with the subscriber here; the side in this process has
+the stages of its hot path timed (``perf_counter_ns`` around the named functions, about a
+microsecond each). Prints:
+
+- the latency split at the DDS timestamps: from the frame's stamp (taken right before
+  ``publish()``) to its reception by the subscriber's DataReader (the publisher's work and DDS),
+  and from there to the start of the callback (the subscriber's wake-up, take and delivery);
+- every timed stage's time per message (its total over the run / the messages);
+- one native call of the publish path timed back to back and after ``--rate``'s idle time: the
+  factor by which this machine's cold caches multiply everything above.
+
+A benchmark: it prints and asserts nothing. ``./dev bench-hotpath [--frames 60] [--rate 10]``
+"""
+import argparse
+import functools
+import os
+import statistics
+import sys
+import time
+from collections import defaultdict
+from typing import Callable, Dict, List, Optional, Tuple
+
+from launch_free_demos.domains import claim_domain_ids
+from launch_free_demos.runner import Run
+
+#: Frames left out of the latency medians (the first after bring-up); calls left out of the
+#: warm and cold medians.
+SKIP = 5
+TOPIC = '/bench/hotpath'
+TRANSPORTS = ('stock rclpy', 'cpu', 'demo')
+
+
+class Stages:
+    """Timers around functions: ``wrap(owner, name)`` records the duration of every call."""
+
+    def __init__(self) -> None:
+        self.samples: Dict[str, List[int]] = defaultdict(list)
+        self._undo: List[Tuple[object, str, Callable]] = []
+
+    def wrap(self, owner, name: str, label: str) -> None:
+        original = getattr(owner, name)
+        samples = self.samples[label]
+
+        @functools.wraps(original)
+        def timed(*args, **kwargs):
+            started = time.perf_counter_ns()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                samples.append(time.perf_counter_ns() - started)
+
+        setattr(owner, name, timed)
+        self._undo.append((owner, name, original))
+
+    def restore(self) -> None:
+        for owner, name, original in reversed(self._undo):
+            setattr(owner, name, original)
+        self._undo.clear()
+
+    def per_message_us(self, messages: int) -> Dict[str, Tuple[float, int]]:
+        """Per stage: its total time over the run / ``messages``, in µs, and its call count
+        (a take that finds nothing is a call too: a median per call would hide the others)."""
+        return {label: (sum(v) / messages / 1e3, len(v))
+                for label, v in self.samples.items() if v}
+
+
+def _publisher_stages(stages: Stages, transport: str) -> None:
+    import rclpy.publisher
+
+    from demo_buffer_backend import pool
+    from rosidl_buffer_py import publisher
+    if transport == 'stock rclpy':
+        stages.wrap(rclpy.publisher.Publisher, 'publish', 'publish()')
+        return
+    stages.wrap(publisher.Publisher, 'publish', 'publish()')
+    stages.wrap(publisher.Publisher, '_write', '  writes (descriptor or CPU message)')
+    stages.wrap(publisher.Publisher, '_valid_routes', '  route re-check (after the writes)')
+    if transport == 'demo':
+        stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
+        stages.wrap(pool.State, '_alive', '      recipient liveness')
+        stages.wrap(publisher._Encoder, 'with_descriptor', '    descriptor message encode')
+
+
+def _subscriber_stages(stages: Stages, transport: str) -> None:
+    from demo_buffer_backend import backend, pool
+    from rosidl_buffer_py import subscription
+    if transport == 'stock rclpy':
+        return  # rclpy's take and conversion are one C call
+    # (the channel's guard condition holds the bound _deliver_available: _next is timed)
+    stages.wrap(subscription.Subscription, '_next', 'delivery path: take to message')
+    stages.wrap(subscription.Subscription, '_take_channel', '  channel takes (empty ones too)')
+    if transport == 'demo':
+        stages.wrap(subscription.codec, 'decode', '  descriptor message decode')
+        stages.wrap(backend.DemoBackend, 'from_descriptor_with_endpoint',
+                    '  backend open (demo pool)')
+        stages.wrap(pool.State, '_open', '    of it: segment checks and take record')
+    stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
+
+
+def _frame(width: int, stamp_ns: int, data):
+    from sensor_msgs.msg import Image
+    msg = Image()
+    msg.width, msg.height, msg.encoding, msg.step = width, 1, 'mono8', width
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    msg.data = data
+    return msg
+
+
+def run_publisher_here(transport: str, width: int, frames: int, rate: float,
+                       stages: Stages) -> None:
+    """This process publishes ``frames`` frames; a subscriber process takes them."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+
+    import rosidl_buffer_py
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    sub_exe, params = (('legacy_image_subscriber', {}) if transport == 'stock rclpy' else
+                       ('image_subscriber', {'acceptable_buffer_backends': transport}))
+    try:
+        node = rclpy.create_node('hotpath_pub', context=context)
+        if transport == 'stock rclpy':
+            pub = node.create_publisher(_image_type(), TOPIC, QoSProfile(depth=10))
+        else:
+            pub = rosidl_buffer_py.create_publisher(node, _image_type(), TOPIC,
+                                                    QoSProfile(depth=10))
+        backend = rosidl_buffer_py.get_installed_backends()['demo'] if transport == 'demo' \
+            else None
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        with Run() as run:
+            run.start('hotpath_sub', sub_exe, topic=TOPIC, timeout_sec=frames / rate + 60.0,
+                      report_period_sec=0.0, **params)
+            deadline = time.monotonic() + 30.0
+            while time.monotonic() < deadline and not _ready(pub, transport):
+                executor.spin_once(timeout_sec=0.05)
+            time.sleep(0.5)
+            _publisher_stages(stages, transport)
+            try:
+                for _ in range(frames):
+                    data = backend.allocate(width) if backend else bytes(width)
+                    executor.spin_once(timeout_sec=0.0)
+                    time.sleep(1.0 / rate)
+                    pub.publish(_frame(width, time.time_ns(), data))
+            finally:
+                stages.restore()
+            time.sleep(0.5)
+            run.stop_all()
+        executor.shutdown()
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def _image_type():
+    from sensor_msgs.msg import Image
+    return Image
+
+
+def _ready(pub, transport: str) -> bool:
+    if transport == 'stock rclpy':
+        return pub.get_subscription_count() > 0
+    return any(peer['channel_serving'] for peer in pub.buffer_peers())
+
+
+def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
+                        stages: Stages) -> List[Tuple[int, int]]:
+    """A publisher process sends ``frames`` frames; this process takes them. Returns, per frame,
+    (stamp to reception, reception to callback) in ns."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile
+
+    import rosidl_buffer_py
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    split: List[Tuple[int, int]] = []
+
+    def on_frame(msg, info) -> None:
+        now = time.time_ns()
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        split.append((info['received_timestamp'] - stamp, now - info['received_timestamp']))
+
+    pub_params = dict(topic=TOPIC, count=frames, rate_hz=rate, wait_for_subscribers=1,
+                      width=width, height=1, encoding='mono8', linger_sec=1.0)
+    try:
+        node = rclpy.create_node('hotpath_sub', context=context)
+        if transport == 'stock rclpy':
+            node.create_subscription(_image_type(), TOPIC, on_frame, QoSProfile(depth=10))
+            pub_exe = 'legacy_image_publisher'
+        else:
+            rosidl_buffer_py.create_subscription(node, _image_type(), TOPIC, on_frame,
+                                                 QoSProfile(depth=10),
+                                                 acceptable_buffer_backends=transport)
+            pub_exe = 'image_publisher'
+            pub_params.update(backend=transport, wait_for_buffer_peers=1)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        _subscriber_stages(stages, transport)
+        try:
+            with Run() as run:
+                run.start('hotpath_pub', pub_exe, **pub_params)
+                deadline = time.monotonic() + frames / rate + 60.0
+                while len(split) < frames and time.monotonic() < deadline:
+                    executor.spin_once(timeout_sec=0.25)
+                run.stop_all()
+        finally:
+            stages.restore()
+        executor.shutdown()
+    finally:
+        rclpy.try_shutdown(context=context)
+    return split
+
+
+def cold_penalty(idle: float, count: int = 30) -> Tuple[float, float]:
+    """Median µs of one descriptor-message encode (native) back to back, and after ``idle``."""
+    from demo_buffer_backend import DemoBuffer
+    from rosidl_buffer_py import codec
+    msg = _frame(1024, time.time_ns(), DemoBuffer.allocate(1024))
+    descriptor = ('demo', bytes(70))
+    warm, cold = [], []
+    for pause, sink in ((0.0, warm), (idle, cold)):
+        for _ in range(count):
+            if pause:
+                time.sleep(pause)
+            started = time.perf_counter_ns()
+            codec.encode(msg, descriptor)
+            sink.append(time.perf_counter_ns() - started)
+    return statistics.median(warm[SKIP:]) / 1e3, statistics.median(cold[SKIP:]) / 1e3
+
+
+def _us(value: Optional[float]) -> str:
+    return '' if value is None else f'{value:.0f}'
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--frames', type=int, default=60)
+    parser.add_argument('--rate', type=float, default=10.0)
+    parser.add_argument('--bytes', type=int, default=1024, dest='nbytes',
+                        help='payload size (a mono8 image one row high)')
+    args = parser.parse_args(argv)
+    if args.frames <= SKIP:
+        parser.error(f'--frames must be more than {SKIP}, got {args.frames}')
+    os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids(1)[0])
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    splits, stage_rows = {}, {}
+    for transport in TRANSPORTS:
+        pub_stages, sub_stages = Stages(), Stages()
+        run_publisher_here(transport, args.nbytes, args.frames, args.rate, pub_stages)
+        split = run_subscriber_here(transport, args.nbytes, args.frames, args.rate, sub_stages)
+        if len(split) <= SKIP:
+            print(f'{transport}: only {len(split)} frames arrived', file=sys.stderr)
+            return 1
+        splits[transport] = [statistics.median(s[i] for s in split[SKIP:]) / 1e3
+                             for i in (0, 1)]
+        stage_rows[transport] = (pub_stages.per_message_us(args.frames),
+                                 sub_stages.per_message_us(len(split)))
+        print(f'{transport}: {len(split)} frames', file=sys.stderr, flush=True)
+    print(f'\nOne {args.nbytes}-byte frame at {args.rate:g} Hz, publisher and subscriber in '
+          f'two processes; medians of {args.frames - SKIP} frames, in µs.\n')
+    print('| | ' + ' | '.join(TRANSPORTS) + ' |')
+    print('|---' * (len(TRANSPORTS) + 1) + '|')
+    for i, what in enumerate(('stamp -> reception (publisher, DDS)',
+                              'reception -> callback (subscriber)')):
+        print(f'| {what} | ' + ' | '.join(f'{splits[t][i]:.0f}' for t in TRANSPORTS) + ' |')
+    print('| total | ' + ' | '.join(f'{sum(splits[t]):.0f}' for t in TRANSPORTS) + ' |')
+    for side, index in (('publisher', 0), ('subscriber', 1)):
+        labels = list(dict.fromkeys(label for t in reversed(TRANSPORTS)  # demo's: all of them
+                                    for label in stage_rows[t][index]))
+        if not labels:
+            continue
+        print(f'\n{side} stages, mean µs per message (calls in the run):\n')
+        print('| stage | ' + ' | '.join(TRANSPORTS) + ' |')
+        print('|---' * (len(TRANSPORTS) + 1) + '|')
+        for label in labels:
+            cells = []
+            for t in TRANSPORTS:
+                found = stage_rows[t][index].get(label)
+                cells.append('' if found is None else f'{found[0]:.0f} ({found[1]})')
+            print(f'| {label} | ' + ' | '.join(cells) + ' |')
+    warm, cold = cold_penalty(1.0 / args.rate)
+    print(f'\nThe same native call (a descriptor message encode): {warm:.1f} µs back to back, '
+          f'{cold:.1f} µs after {1000 / args.rate:.0f} ms idle ({cold / warm:.0f}x).')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
