@@ -58,6 +58,7 @@ COVERAGE = {
     './dev bench-record': 'test_record.py',               # 1 s of small frames
     './dev bench-mixed': 'test_benchmark.py',             # small frames, fewer of them
     './dev bench-bringup': 'test_bringup.py',             # small frames, 2 trials
+    './dev bench-hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     'colcon test': 'test_colcon.py',
 }
 
