@@ -325,11 +325,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 main = main or routes.main
             if main:
                 self._sent_main += 1
-                # noted after both writes: a fence written in the re-check above names the
-                # previous message, since this one also went on that peer's channel (the
-                # subscription drops main-topic copies from the fence's own message on)
+                # A peer the re-check above started serving got this message on its channel,
+                # after a route fence naming the previous one: that stays its last main-topic
+                # message (the subscription drops main-topic copies from the fence's own
+                # message on, and _channel_ready compares it with the acknowledgment).
+                started = () if routes is used else {peer.info.gid for peer in routes.peers}
                 for gid in (used if used.main else routes).unserved:
-                    self._main_timestamps[gid] = timestamp
+                    if gid not in started:
+                        self._main_timestamps[gid] = timestamp
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:
@@ -524,6 +527,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 peer.handshake = peer.acknowledged = peer.reaches_reader = False
             peer.matched_since = None
             return False
+        if peer.serving:
+            # Once its route fence is out, the channel carries every message while it stays
+            # matched: the subscription drops main-topic copies from the fence's message on,
+            # so serving the peer on the main topic again would lose those messages.
+            return True
         now = time.monotonic()
         if peer.matched_since is None:
             peer.matched_since = now

@@ -19,6 +19,7 @@ from in_process import frame, spin_until
 from launch_free_demos.runner import Run
 from launch_free_demos.scenarios import SCENARIOS, SMALL
 from rosidl_buffer_py import _dds, advertisement, codec
+from rosidl_buffer_py import publisher as publisher_module
 from rosidl_buffer_py.nodes.frames import check_frame
 
 #: What a publisher node reports when not one subscriber matched its main topic in time.
@@ -198,6 +199,51 @@ def test_in_process(context, publishers, subscriptions, backend, accept, expecte
     executor.shutdown()
     pub_node.destroy_node()
     sub_node.destroy_node()
+
+
+def test_publishing_from_the_first_matched_instant_switches_each_route_once(context,
+                                                                            monkeypatch):
+    """Publishers that start at the first matched instant (main topic) bring their channels up
+    while publishing: each subscription gets one route fence per publisher, and every message
+    exactly once. A channel that started serving in a publish's re-check was once taken off
+    again (the main-topic message of that same publish counted as its last), and the
+    subscription, which drops main-topic copies from the fence's message on, lost the
+    messages of the second switch (CI's equivalence scenario reliable_pub_first_matched_ours).
+    Here channels serve by their acknowledged probes only (no settle time) and routes are
+    re-checked on every publish: the conditions of that race, every time."""
+    monkeypatch.setattr(publisher_module, 'CHANNEL_SETTLE_SECONDS', 60.0)
+    monkeypatch.setattr(publisher_module, 'ROUTES_RECHECK_SECONDS', 0.0)
+    frames, topic = 30, '/first_matched_image'
+    node = rclpy.create_node('first_matched', context=context)
+    accepts = ('cpu', 'demo', 'any')
+    received = {accept: [] for accept in accepts}
+    subs = [rosidl_buffer_py.create_subscription(
+        node, Image, topic, lambda m, a=accept: received[a].append(check_frame(m).counter),
+        RELIABLE, acceptable_buffer_backends=accept) for accept in accepts]
+    pubs = {backend: rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+            for backend in ('cpu', 'demo')}
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: all(
+        p.get_subscription_count() == len(subs) for p in pubs.values()))
+    for counter in range(frames):
+        for index, (backend, pub) in enumerate(pubs.items()):
+            pub.publish(frame(index * frames + counter, backend))
+        deadline = time.monotonic() + 0.02  # 50 Hz, the executor spinning meanwhile
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.005)
+    expected = list(range(frames * len(pubs)))
+    assert spin_until(executor, lambda: all(len(r) >= len(expected)
+                                            for r in received.values())), (
+        {a: sorted(set(expected) - set(r)) for a, r in received.items()},
+        [s.statistics() for s in subs])
+    executor.spin_once(timeout_sec=0.2)
+    for accept, got in received.items():
+        assert sorted(got) == expected, (accept, got)  # exactly once
+    for sub in subs:
+        stats = sub.statistics()
+        assert stats['fences'] == len(pubs) and stats['fence_timeouts'] == 0, stats
+    node.destroy_node()
 
 
 def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
