@@ -325,14 +325,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 main = main or routes.main
             if main:
                 self._sent_main += 1
-                # A peer the re-check above started serving got this message on its channel,
-                # after a route fence naming the previous one: that stays its last main-topic
-                # message (the subscription drops main-topic copies from the fence's own
-                # message on, and _channel_ready compares it with the acknowledgment).
-                started = () if routes is used else {peer.info.gid for peer in routes.peers}
+                # noted after both writes: a fence written in the re-check above names the
+                # previous message, since this one also went on that peer's channel (the
+                # subscription drops main-topic copies from the fence's own message on)
                 for gid in (used if used.main else routes).unserved:
-                    if gid not in started:
-                        self._main_timestamps[gid] = timestamp
+                    self._main_timestamps[gid] = timestamp
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:
