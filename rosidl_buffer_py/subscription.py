@@ -117,7 +117,7 @@ class _Stream:
     #: Channel messages waiting for the fenced main-topic message (taken from the channel
     #: meanwhile, so its DDS history cannot overflow while the main topic is slow), and since
     #: when the first one waits.
-    waiting: Deque[Tuple[_Taken, _PublisherPeer]] = field(default_factory=collections.deque)
+    waiting: Deque[_Taken] = field(default_factory=collections.deque)
     waiting_since: float = 0.0
 
     def duplicate(self, timestamp: int) -> bool:
@@ -345,7 +345,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             peer = channels[(self._next_channel + i) % count]
             stream = self._streams[peer.info.gid]
             if stream.waiting and self._fence_passed(stream):
-                taken, _ = stream.waiting.popleft()
+                taken = stream.waiting.popleft()
                 if not stream.waiting:
                     self._waiting -= 1
                 msg = None
@@ -408,7 +408,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 stream.waiting_since = time.monotonic()
                 self._waiting += 1
                 self._arm_fence_timer()
-            stream.waiting.append((taken, peer))
+            stream.waiting.append(taken)
             return None
         stream.last = ts
         return self._decode(taken, peer)
