@@ -107,7 +107,6 @@ class _Routes(NamedTuple):
 
     peers: Tuple[_SubscriptionPeer, ...]
     main: bool
-    targets: list  #: their channels, then the main-topic publisher when ``main``
     signature: tuple
     recheck_at: float
     #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
@@ -462,12 +461,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         unserved = tuple(gid for gid in _dds.matched_subscription_gids(self)
                          if gid not in served)
         main = bool(unserved) or self._main_always
-        targets = [peer.channel for peer in peers] + ([self] if main else [])
         # Main-topic samples skip only peers whose channel is known to reach them: a channel
         # serving by its settle time alone may not yet (the reader matches the writer late),
         # and meanwhile the subscription still needs the main-topic copies.
         withheld = tuple(peer.info.gid for peer in peers if peer.reaches_reader)
-        return _Routes(tuple(peers), main, targets, signature, recheck_at, unserved, withheld)
+        return _Routes(tuple(peers), main, signature, recheck_at, unserved, withheld)
 
     # diagnostics ----------------------------------------------------------------------------
 
