@@ -103,8 +103,7 @@ def alive(token: str) -> bool:
     an unexpected error) the answer is True, which only keeps the protection of the bytes. A dead
     one's file is removed here.
     """
-    answer, kept = _test(token, keep=False)
-    return answer
+    return _test(token, keep=False)[0]
 
 
 class Watch:
