@@ -25,8 +25,17 @@ import time
 from collections import defaultdict
 from typing import Callable, Dict, List, Optional, Tuple
 
+import rclpy
+import rclpy.publisher
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import Image
+
+import rosidl_buffer_py
+from demo_buffer_backend import DemoBuffer, backend as demo_backend, pool
 from launch_free_demos.domains import claim_domain_ids
 from launch_free_demos.runner import Run
+from rosidl_buffer_py import codec, publisher, subscription
 
 #: Frames left out of the latency medians (the first after bring-up); calls left out of the
 #: warm and cold medians.
@@ -70,10 +79,6 @@ class Stages:
 
 
 def _publisher_stages(stages: Stages, transport: str) -> None:
-    import rclpy.publisher
-
-    from demo_buffer_backend import pool
-    from rosidl_buffer_py import publisher
     if transport == 'stock rclpy':
         stages.wrap(rclpy.publisher.Publisher, 'publish', 'publish()')
         return
@@ -87,23 +92,20 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
 
 
 def _subscriber_stages(stages: Stages, transport: str) -> None:
-    from demo_buffer_backend import backend, pool
-    from rosidl_buffer_py import subscription
     if transport == 'stock rclpy':
         return  # rclpy's take and conversion are one C call
     # (the channel's guard condition holds the bound _deliver_available: _next is timed)
     stages.wrap(subscription.Subscription, '_next', 'delivery path: take to message')
     stages.wrap(subscription.Subscription, '_take_channel', '  channel takes (empty ones too)')
     if transport == 'demo':
-        stages.wrap(subscription.codec, 'decode', '  descriptor message decode')
-        stages.wrap(backend.DemoBackend, 'from_descriptor_with_endpoint',
+        stages.wrap(codec, 'decode', '  descriptor message decode')
+        stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',
                     '  backend open (demo pool)')
         stages.wrap(pool.State, '_open', '    of it: segment checks and take record')
     stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
 
 
 def _frame(width: int, stamp_ns: int, data):
-    from sensor_msgs.msg import Image
     msg = Image()
     msg.width, msg.height, msg.encoding, msg.step = width, 1, 'mono8', width
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
@@ -114,11 +116,6 @@ def _frame(width: int, stamp_ns: int, data):
 def run_publisher_here(transport: str, width: int, frames: int, rate: float,
                        stages: Stages) -> None:
     """This process publishes ``frames`` frames; a subscriber process takes them."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile
-
-    import rosidl_buffer_py
     context = rclpy.Context()
     rclpy.init(context=context)
     sub_exe, params = (('legacy_image_subscriber', {}) if transport == 'stock rclpy' else
@@ -126,9 +123,9 @@ def run_publisher_here(transport: str, width: int, frames: int, rate: float,
     try:
         node = rclpy.create_node('hotpath_pub', context=context)
         if transport == 'stock rclpy':
-            pub = node.create_publisher(_image_type(), TOPIC, QoSProfile(depth=10))
+            pub = node.create_publisher(Image, TOPIC, QoSProfile(depth=10))
         else:
-            pub = rosidl_buffer_py.create_publisher(node, _image_type(), TOPIC,
+            pub = rosidl_buffer_py.create_publisher(node, Image, TOPIC,
                                                     QoSProfile(depth=10))
         backend = rosidl_buffer_py.get_installed_backends()['demo'] if transport == 'demo' \
             else None
@@ -157,11 +154,6 @@ def run_publisher_here(transport: str, width: int, frames: int, rate: float,
         rclpy.try_shutdown(context=context)
 
 
-def _image_type():
-    from sensor_msgs.msg import Image
-    return Image
-
-
 def _ready(pub, transport: str) -> bool:
     if transport == 'stock rclpy':
         return pub.get_subscription_count() > 0
@@ -172,11 +164,6 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
                         stages: Stages) -> List[Tuple[int, int]]:
     """A publisher process sends ``frames`` frames; this process takes them. Returns, per frame,
     (stamp to reception, reception to callback) in ns."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import QoSProfile
-
-    import rosidl_buffer_py
     context = rclpy.Context()
     rclpy.init(context=context)
     split: List[Tuple[int, int]] = []
@@ -191,10 +178,10 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
     try:
         node = rclpy.create_node('hotpath_sub', context=context)
         if transport == 'stock rclpy':
-            node.create_subscription(_image_type(), TOPIC, on_frame, QoSProfile(depth=10))
+            node.create_subscription(Image, TOPIC, on_frame, QoSProfile(depth=10))
             pub_exe = 'legacy_image_publisher'
         else:
-            rosidl_buffer_py.create_subscription(node, _image_type(), TOPIC, on_frame,
+            rosidl_buffer_py.create_subscription(node, Image, TOPIC, on_frame,
                                                  QoSProfile(depth=10),
                                                  acceptable_buffer_backends=transport)
             pub_exe = 'image_publisher'
@@ -219,8 +206,6 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
 
 def cold_penalty(idle: float, count: int = 30) -> Tuple[float, float]:
     """Median µs of one descriptor-message encode (native) back to back, and after ``idle``."""
-    from demo_buffer_backend import DemoBuffer
-    from rosidl_buffer_py import codec
     msg = _frame(1024, time.time_ns(), DemoBuffer.allocate(1024))
     descriptor = ('demo', bytes(70))
     warm, cold = [], []
