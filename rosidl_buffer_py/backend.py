@@ -18,6 +18,16 @@ MAX_DESCRIPTOR_SIZE = 4096
 GID_SIZE = 16
 
 
+class EndpointGone(Exception):
+    """Raised by :meth:`BufferBackend.create_descriptor_with_endpoint` when the backend knows
+    that the peer endpoint's process is gone (before DDS's lease says so).
+
+    The publisher then writes nothing more to that peer (no descriptor, no CPU copy): its
+    route ends as if the peer had unmatched. Returning ``None`` means something else: the peer
+    is alive but cannot use this memory, and gets CPU bytes.
+    """
+
+
 class EndpointKind(enum.Enum):
     """Which side of a topic an endpoint is."""
 
@@ -95,7 +105,8 @@ class BufferBackend(ABC):
         """Describe ``buffer`` for the peer ``endpoint_info``.
 
         Return the descriptor bytes (at most :data:`MAX_DESCRIPTOR_SIZE`), or ``None`` when this
-        peer cannot use this backend: the message is then sent to it as CPU bytes.
+        peer cannot use this backend: the message is then sent to it as CPU bytes. Raise
+        :class:`EndpointGone` when the peer's process is known to be gone: nothing is sent.
         """
 
     @abstractmethod
