@@ -101,6 +101,12 @@ class Scenario:
     #: subscriptions' side of the match (see STARTUP_RACE_MESSAGES).
     startup_race: bool = False
     timeout: float = 60.0
+    #: VOLATILE late joiner -> the TRANSIENT_LOCAL history it may or may not get. Fast DDS
+    #: 2.14 itself gives a VOLATILE reader that matches a TRANSIENT_LOCAL writer late either
+    #: nothing or the writer's whole retained history, depending on discovery order: the
+    #: oracle shows both (``--oracle-vs-oracle transient_local_early_ours``), so each is
+    #: accepted, and nothing else.
+    volatile_history: Dict[str, List[int]] = field(default_factory=dict)
 
 
 def _end_steps(signal: str) -> List[dict]:
@@ -184,20 +190,28 @@ def _late_joiners() -> List[Scenario]:
     return scenarios
 
 
+#: Messages each publisher of a late-joiner scenario writes before the late joiners come.
+PUBLISHED_BEFORE = 8
+
+
 def _late_scenario(name: str, about: str, ends: Dict[str, dict], early: List[str],
                    history: Dict[str, int]) -> Scenario:
     pubs = [i for i, e in ends.items() if e['kind'] == 'pub']
     late = [i for i, e in ends.items() if e['kind'] == 'sub' and i not in early]
     expected = {}  # the history a stock publisher gives each late joiner
+    volatile = {}  # what a VOLATILE one may get from each publisher (see Scenario)
     for i in late:
+        topic = ends[i]['topic']
         if ends[i]['qos'].get('durability') == 'transient_local':
-            topic = ends[i]['topic']
             expected[i] = history[topic] * sum(ends[p]['topic'] == topic for p in pubs)
+        else:
+            volatile[i] = list(range(PUBLISHED_BEFORE - history[topic], PUBLISHED_BEFORE))
     pub_steps = ([step('await', names=['early_up'])] if early else []) + [
         step('create', ids=pubs)]
     if early:
         pub_steps += [step('wait_matched', ids=pubs, count=len(early)), step('sleep', s=1.0)]
-    pub_steps += [step('publish', ids=pubs, n=8, rate=RATE), step('signal', name='published'),
+    pub_steps += [step('publish', ids=pubs, n=PUBLISHED_BEFORE, rate=RATE),
+                  step('signal', name='published'),
                   step('await', names=['late_ready']), step('publish', ids=pubs, n=5,
                                                              rate=RATE),
                   step('signal', name='done'),
@@ -211,7 +225,8 @@ def _late_scenario(name: str, about: str, ends: Dict[str, dict], early: List[str
     if early:
         processes['early'] = [step('create', ids=early), step('signal', name='early_up'),
                               *_end_steps('early_end')]
-    return Scenario(name, about, ends, processes, deferred={'late': 'published'})
+    return Scenario(name, about, ends, processes, deferred={'late': 'published'},
+                    volatile_history=volatile)
 
 
 def _events_scenario(legacy: bool) -> Scenario:
@@ -570,6 +585,19 @@ def runs(seqs: List[int]) -> str:
     return ','.join(parts) or '-'
 
 
+def _volatile_history_apart(outcome: dict, either: List[int]) -> dict:
+    """A VOLATILE late joiner's outcome with whatever it got of the publishers' earlier
+    messages counted as history, whichever phase it arrived in: nothing waits for that
+    history (see Scenario.volatile_history), so part of it can arrive after the phase ended."""
+    history = {pid: list(seqs) for pid, seqs in outcome['history'].items()}
+    live = {}
+    for pid, seqs in outcome['live'].items():
+        history.setdefault(pid, []).extend(q for q in seqs if q <= either[-1])
+        live[pid] = [q for q in seqs if q > either[-1]]
+    return {**outcome, 'history': {pid: seqs for pid, seqs in history.items() if seqs},
+            'live': live}
+
+
 def compare(scenario: Scenario, stock: dict, ours: dict) -> List[str]:
     """Every difference between the two outcomes that the tolerances do not cover."""
     diffs = []
@@ -618,9 +646,14 @@ def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[st
         diffs.append(f'incompatible QoS logged {ow}x (stock {sw}x, at most once per peer: '
                      f'{peers})')
     if s['kind'] == 'sub':
+        either = scenario.volatile_history.get(eid)
+        if either is not None:
+            s, o = _volatile_history_apart(s, either), _volatile_history_apart(o, either)
         for pid in sorted(set(s['history']) | set(o['history'])):
             sh, oh = s['history'].get(pid, []), o['history'].get(pid, [])
-            if sh != oh:  # a late joiner's history is deterministic: exact
+            if either is not None and sh in ([], either) and oh in ([], either):
+                continue  # Fast DDS's own race for a VOLATILE late joiner (see Scenario)
+            if sh != oh:  # a TRANSIENT_LOCAL late joiner's history is deterministic: exact
                 diffs.append(f'history from {pid}: {runs(oh)} (stock {runs(sh)})')
         for pid in sorted(set(s['live']) | set(o['live'])):
             sl, ol = s['live'].get(pid, []), o['live'].get(pid, [])

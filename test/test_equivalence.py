@@ -92,3 +92,19 @@ def test_compare_startup_race():
     assert compare(raced, stock, _outcome(live=range(10, 30)))  # more than a startup race
     assert compare(raced, stock, _outcome(live=[2, 0, 1] + list(range(3, 30))))
     assert compare(raced, stock, _outcome(live=list(range(2, 20)) + list(range(21, 30))))
+
+
+def test_compare_volatile_late_joiner_history_is_either_none_or_the_whole_retained_history():
+    """Fast DDS gives a VOLATILE reader that matches a TRANSIENT_LOCAL writer late either no
+    history or all of it (the oracle shows both): exactly those two are equal, nothing else."""
+    graph = _graph()
+    graph.volatile_history = {'s': [3, 4, 5, 6, 7]}
+    none, whole = _outcome(live=range(8, 13)), _outcome(live=range(8, 13), history=range(3, 8))
+    assert compare(graph, none, whole) == [] and compare(graph, whole, none) == []
+    assert compare(graph, none, _outcome(live=range(8, 13), history=range(4, 8)))
+    assert compare(graph, whole, _outcome(live=range(8, 13), history=[3, 5, 4, 6, 7]))
+    assert compare(_graph(), none, whole)  # a TRANSIENT_LOCAL late joiner: exact
+    # nothing waits for that history: its tail may arrive after the phase ended
+    split = _outcome(live=range(7, 13), history=range(3, 7))
+    assert compare(graph, none, split) == [] and compare(graph, split, whole) == []
+    assert compare(graph, split, _outcome(live=range(7, 13), history=range(4, 7)))
