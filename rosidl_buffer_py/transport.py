@@ -198,17 +198,19 @@ class BufferEndpoint:
             self._update_peer(known, compatible)
 
     def _start_reannounce_timer(self, node, callback_group) -> None:
-        """Check once a second for channels that stay unmatched (see below).
+        """Prepare the check, once a second, for channels that stay unmatched (see below).
 
-        The timer retires (cancels itself) once every channel is matched, and a new peer
-        re-arms it: each wake-up of rclpy's executor costs a node about half a millisecond of
-        CPU, which at camera rates was most of what a publisher spent beyond stock rclpy's.
+        The timer exists only while some peer's channel is to be watched: it is created with
+        the first peer, retires (cancels itself) once every channel is matched, and a new peer
+        re-arms it. An endpoint without buffer-aware peers never wakes its executor, as a stock
+        one; each wake-up costs a node about half a millisecond of CPU, which at camera rates
+        was most of what a publisher spent beyond stock rclpy's.
         """
         self._announced_at = time.monotonic()
         self._spun_at = 0.0
         self._timer_retired = False
-        self._reannounce_timer = node.create_timer(
-            UNMATCHED_REANNOUNCE_SECONDS, self._on_reannounce_timer, callback_group)
+        self._reannounce_timer = None
+        self._reannounce_timer_args = (node, callback_group)
 
     def _on_reannounce_timer(self) -> None:
         self._spun_at = time.monotonic()  # evidence that an executor spins our node
@@ -223,7 +225,11 @@ class BufferEndpoint:
     def _rearm_reannounce_timer(self) -> None:
         """A new peer's channel is to be watched (under the lock, on the executor's thread:
         only a spun node retires its timer, and a spun node handles discovery there)."""
-        if self._timer_retired:
+        if self._reannounce_timer is None:
+            node, callback_group = self._reannounce_timer_args
+            self._reannounce_timer = node.create_timer(
+                UNMATCHED_REANNOUNCE_SECONDS, self._on_reannounce_timer, callback_group)
+        elif self._timer_retired:
             self._timer_retired = False
             self._reannounce_timer.reset()
 
@@ -323,7 +329,7 @@ class BufferEndpoint:
         with self._lock:
             for gid in list(self._peers):
                 self._drop_peer(gid)
-            for entity in self._node_entities():
+            for entity in filter(None, self._node_entities()):
                 try:
                     (self._node.destroy_timer if hasattr(entity, 'timer_period_ns')
                      else self._node.destroy_guard_condition)(entity)

@@ -284,6 +284,24 @@ def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
     node.destroy_node()
 
 
+def test_an_endpoint_without_buffer_aware_peers_never_wakes_its_executor(context):
+    """Beside legacy endpoints only, ours create no timer (a stock endpoint wakes nothing);
+    the first buffer-aware peer brings the unmatched-channel check."""
+    node = rclpy.create_node('no_timer', context=context)
+    sub = rosidl_buffer_py.create_subscription(node, Image, '/no_timer', lambda m: None,
+                                               RELIABLE)
+    plain = node.create_publisher(Image, '/no_timer', RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: sub.get_publisher_count() == 1)
+    assert sub._reannounce_timer is None and not list(node.timers), list(node.timers)
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/no_timer', RELIABLE)
+    assert spin_until(executor, lambda: sub._reannounce_timer is not None)
+    node.destroy_publisher(plain)
+    node.destroy_publisher(pub)
+    node.destroy_node()
+
+
 def test_reannounce_timer_retires_while_every_channel_is_matched(context):
     """The once-a-second check for unmatched channels stops once all are matched (an idle
     executor wake-up costs CPU) and a new peer re-arms it; delivery goes on meanwhile."""
