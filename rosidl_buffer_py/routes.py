@@ -1,0 +1,408 @@
+"""The route protocol: which route a message takes to each subscription, and how a subscription
+turns what arrives on its routes into one ordered stream per publisher.
+
+Pure logic (no DDS, no rclpy): :class:`rosidl_buffer_py.publisher.Publisher` and
+:class:`rosidl_buffer_py.subscription.Subscription` feed it events (a channel matched, probes
+acknowledged, a sample taken, time passing, a peer gone) and carry out its decisions (write here,
+withhold there, deliver, queue, drop).
+
+Publisher side: one :class:`Route` per buffer-aware subscription, the route of its private
+channel, and one :class:`RouteTable` per publisher::
+
+    UNMATCHED --matched--> PROBING  --acknowledged--> ACKNOWLEDGED --main written--> FENCING
+        ^         (RELIABLE KEEP_LAST <= MAX_PROBE_DEPTH)    |  (or no main-topic message yet)
+        |     \\--matched--> SETTLING --settle time---------+-----------------------> FENCING
+        |                                                                        fence written
+        +-------unmatched-------- CONFIRMED <--channel acknowledged-- SERVING <------'
+    any --gone--> GONE (nothing is written to it any more)
+
+Until FENCING the main topic serves the subscription. A route becomes FENCING only when what
+its channel carries from then on reaches the subscription's reader: the reader acknowledged the
+probes (so it matched the channel writer), or the channel has been matched for the settle time.
+Its first channel message is preceded by a *route fence* naming the last message the main topic
+carried for it, which the subscription delivers first. Once serving, a route stays on its
+channel while the channel is matched (the subscription drops main-topic copies from the fence
+on). CONFIRMED: the channel's samples were acknowledged too, so main-topic samples are withheld
+from that subscription (the DataWriter sends it a GAP instead of the payload).
+
+Subscription side: one :class:`Stream` per publisher::
+
+    MAIN --channel message--> CHANNEL
+      \\--fence--> WAITING --fenced main-topic message delivered, or FENCE_TIMEOUT--> CHANNEL
+
+Every copy of a message carries its publisher's source timestamp, increasing per publisher; a
+stream delivers each timestamp at most once and in increasing order. In WAITING, channel
+messages are queued (taken from DDS, so the channel's history cannot overflow) until the main
+topic delivered the fenced message; main-topic messages are never held.
+"""
+import collections
+import enum
+from dataclasses import dataclass, field
+from typing import Deque, Dict, Generic, Hashable, Iterable, List, NamedTuple, Optional, Tuple, \
+    TypeVar
+
+#: How long a channel must have been matched before it serves its subscription, when its
+#: reader's readiness cannot be acknowledged (BEST_EFFORT, KEEP_ALL or a deep KEEP_LAST).
+CHANNEL_SETTLE_SECONDS = 0.2
+#: A route whose probes are not acknowledged yet gets one more at most this often.
+PROBE_INTERVAL_SECONDS = 0.01
+#: A RELIABLE KEEP_LAST channel up to this depth proves that its reader matched by acknowledging
+#: ``depth + 1`` probes (a heartbeat asks for acknowledgments when the writer's history is full).
+MAX_PROBE_DEPTH = 100
+#: How often a serving route asks whether its channel samples were acknowledged (CONFIRMED).
+CONFIRM_INTERVAL_SECONDS = 0.05
+#: Routes are recomputed at least this often, whatever else says they are current.
+RECHECK_SECONDS = 0.5
+#: How long channel messages wait for a fenced main-topic message before it counts as lost
+#: (as DDS's KEEP_LAST loses a sample when the reader's history overflows).
+FENCE_TIMEOUT_SECONDS = 1.0
+
+
+class RouteState(enum.Enum):
+    """Where a publisher serves one buffer-aware subscription (see the module's diagram)."""
+
+    UNMATCHED = 'unmatched'        #: the channel has no reader: the main topic serves it
+    PROBING = 'probing'            #: channel matched, probes written, not acknowledged yet
+    SETTLING = 'settling'          #: channel matched, waiting for the settle time
+    ACKNOWLEDGED = 'acknowledged'  #: probes acknowledged; waits for a main-topic message to fence
+    FENCING = 'fencing'            #: served on the channel; a fence precedes the next message
+    SERVING = 'serving'            #: served on the channel (main-topic copies still reach it)
+    CONFIRMED = 'confirmed'        #: served on the channel; main-topic samples withheld from it
+    GONE = 'gone'                  #: its process is gone: nothing is written to it
+
+
+#: States in which the channel carries every message.
+ON_CHANNEL = frozenset({RouteState.FENCING, RouteState.SERVING, RouteState.CONFIRMED})
+
+
+class Fence(NamedTuple):
+    """The control message that precedes a route's first channel message."""
+
+    #: Source timestamp of the last message the main topic carried for the subscription (0: none).
+    last_main: int
+
+
+@dataclass
+class Route:
+    """The route of one buffer-aware subscription of a publisher."""
+
+    #: Readiness is acknowledged (probes), not waited for (RELIABLE KEEP_LAST <= MAX_PROBE_DEPTH).
+    handshake: bool
+    #: Probes written first: the channel's KEEP_LAST depth + 1 (a heartbeat then asks for acks).
+    first_probes: int = 1
+    state: RouteState = RouteState.UNMATCHED
+    matched_since: float = 0.0
+    #: When probes were last written (None: none since the channel matched).
+    probed_at: Optional[float] = None
+    #: Source timestamp of the last message published when the acknowledgment was seen.
+    acknowledged_after: int = 0
+    #: Source timestamp of the last message the main topic carried for the subscription.
+    last_main: Optional[int] = None
+    #: When the channel's own samples were last asked about (SERVING with a handshake).
+    asked_at: float = 0.0
+
+    @property
+    def on_channel(self) -> bool:
+        return self.state in ON_CHANNEL
+
+    @property
+    def needs_main(self) -> bool:
+        """The main topic serves this subscription (its channel does not yet)."""
+        return self.state not in ON_CHANNEL and self.state is not RouteState.GONE
+
+    @property
+    def withheld(self) -> bool:
+        """Main-topic samples are kept from this subscription (its channel reaches it)."""
+        return self.state is RouteState.CONFIRMED
+
+    # events --------------------------------------------------------------------------------
+
+    def channel_matched(self, matched: bool, now: float) -> None:
+        """The channel's matched state, as DDS reports it now."""
+        state = self.state
+        if state is RouteState.GONE:
+            return
+        if not matched:
+            if state is not RouteState.UNMATCHED:
+                if state in ON_CHANNEL:
+                    # a fence went out: the subscription may take later channel samples as
+                    # messages, so no probe may follow; if the reader comes back, it settles
+                    self.handshake = False
+                self.state = RouteState.UNMATCHED
+                self.probed_at = None
+            return
+        if state is RouteState.UNMATCHED:
+            self.matched_since = now
+            self.state = RouteState.PROBING if self.handshake else RouteState.SETTLING
+
+    def probes_due(self, now: float) -> int:
+        """How many probes to write now (PROBING only): ``first_probes`` at first, then one at
+        most every ``PROBE_INTERVAL_SECONDS`` while unacknowledged. The caller writes them."""
+        if self.state is not RouteState.PROBING:
+            return 0
+        if self.probed_at is None:
+            self.probed_at = now
+            return self.first_probes
+        if now - self.probed_at >= PROBE_INTERVAL_SECONDS:
+            self.probed_at = now
+            return 1
+        return 0
+
+    @property
+    def awaits_acknowledgment(self) -> bool:
+        """Whether the caller should ask DDS if the channel's samples were acknowledged: the
+        probes (PROBING, once written), or the first channel messages (SERVING, handshake)."""
+        return ((self.state is RouteState.PROBING and self.probed_at is not None) or
+                (self.state is RouteState.SERVING and self.handshake))
+
+    def acknowledged(self, last_published: int) -> None:
+        """Every sample written on the channel so far was acknowledged by its reader."""
+        if self.state is RouteState.PROBING:
+            self.acknowledged_after = last_published
+            # The fence names the last main-topic message written for the subscription, which
+            # it waits for: none, or one written after this acknowledgment (its main-topic
+            # reader had matched our writer by then; an older one may have left our KEEP_LAST
+            # history before the new reader asked for it).
+            self.state = (RouteState.FENCING if self.last_main is None
+                          else RouteState.ACKNOWLEDGED)
+        elif self.state is RouteState.SERVING and self.handshake:
+            self.state = RouteState.CONFIRMED
+
+    def tick(self, now: float) -> None:
+        """Time passed: a channel matched for the settle time serves its subscription."""
+        if (self.state in (RouteState.PROBING, RouteState.SETTLING, RouteState.ACKNOWLEDGED)
+                and now - self.matched_since >= CHANNEL_SETTLE_SECONDS):
+            self.state = RouteState.FENCING
+
+    def next_tick(self, now: float) -> Optional[float]:
+        """When this route next needs the caller's attention (a timed transition, a probe or an
+        acknowledgment to ask for), or None."""
+        state = self.state
+        if state in (RouteState.PROBING, RouteState.SETTLING, RouteState.ACKNOWLEDGED):
+            at = self.matched_since + CHANNEL_SETTLE_SECONDS
+            if state is RouteState.PROBING:
+                at = min(at, now if self.probed_at is None else
+                         self.probed_at + PROBE_INTERVAL_SECONDS)
+            return at
+        if state is RouteState.SERVING and self.handshake:
+            return now + CONFIRM_INTERVAL_SECONDS
+        return None
+
+    def take_fence(self) -> Optional[Fence]:
+        """The fence to write before this message on the channel (FENCING), else None."""
+        if self.state is not RouteState.FENCING:
+            return None
+        self.state = RouteState.SERVING
+        return Fence(self.last_main or 0)
+
+    def main_written(self, timestamp: int) -> None:
+        """The main topic carried message ``timestamp`` for this subscription."""
+        if not self.needs_main:
+            return
+        self.last_main = timestamp
+        if self.state is RouteState.ACKNOWLEDGED and timestamp > self.acknowledged_after:
+            self.state = RouteState.FENCING
+
+    def gone(self) -> None:
+        """The subscription's process is known to be gone: nothing more is written to it."""
+        self.state = RouteState.GONE
+
+
+K = TypeVar('K', bound=Hashable)
+
+
+class Plan(NamedTuple):
+    """Where one message goes, as :meth:`RouteTable.plan` decided."""
+
+    #: Keys of the routes served on their channel (a fence first where one is due).
+    channel: Tuple[Hashable, ...]
+    #: Whether the main topic is written (some matched subscription is not on a channel, or
+    #: the publisher is TRANSIENT_LOCAL and keeps the history there).
+    main: bool
+    #: Subscriptions the main-topic sample is kept from (their channel reaches them).
+    withheld: Tuple[Hashable, ...]
+    #: Subscriptions the main topic serves (their last main-topic message is noted).
+    main_served: Tuple[Hashable, ...]
+    #: Recompute at the latest then.
+    recheck_at: float
+
+
+class RouteTable(Generic[K]):
+    """The routes of one publisher, by subscription key (its GID)."""
+
+    def __init__(self, *, main_always: bool = False) -> None:
+        #: TRANSIENT_LOCAL: every message goes to the main topic, whose history late joiners get.
+        self.main_always = main_always
+        self.routes: Dict[K, Route] = {}
+        #: Last main-topic message per subscription not (yet) known as a buffer-aware peer.
+        self._last_main: Dict[K, int] = {}
+
+    def add(self, key: K, *, handshake: bool, depth: int = 0) -> Route:
+        """A buffer-aware subscription was discovered: its route starts UNMATCHED."""
+        route = Route(handshake=handshake and 0 < depth <= MAX_PROBE_DEPTH,
+                      first_probes=depth + 1, last_main=self._last_main.pop(key, None))
+        self.routes[key] = route
+        return route
+
+    def remove(self, key: K) -> None:
+        """A subscription went away (or stopped being buffer-aware)."""
+        self.routes.pop(key, None)
+        self._last_main.pop(key, None)
+
+    def plan(self, now: float, matched: Iterable[K]) -> Plan:
+        """Decide the routes of the next messages; ``matched`` are the keys of the main topic's
+        matched subscriptions (legacy ones included). Timed transitions happen here."""
+        channel, withheld = [], []
+        recheck_at = now + RECHECK_SECONDS
+        for key, route in self.routes.items():
+            route.tick(now)
+            if route.on_channel:
+                channel.append(key)
+                if route.withheld:
+                    withheld.append(key)
+            at = route.next_tick(now)
+            if at is not None:
+                recheck_at = min(recheck_at, at)
+        on_channel = set(channel)
+        main_served = tuple(key for key in matched if key not in on_channel)
+        return Plan(tuple(channel), bool(main_served) or self.main_always, tuple(withheld),
+                    main_served, recheck_at)
+
+    def main_written(self, keys: Iterable[K], timestamp: int) -> None:
+        """The main topic carried message ``timestamp`` for these subscriptions."""
+        for key in keys:
+            route = self.routes.get(key)
+            if route is None:
+                self._last_main[key] = timestamp
+            else:
+                route.main_written(timestamp)
+
+
+# --- subscription side -----------------------------------------------------------------------
+
+class StreamState(enum.Enum):
+    """How a subscription receives one publisher (see the module's diagram)."""
+
+    MAIN = 'main'          #: main topic only
+    WAITING = 'waiting'    #: fenced: channel messages wait for the fenced main-topic message
+    CHANNEL = 'channel'    #: on the channel: main-topic copies from the switch on are duplicates
+
+
+class Verdict(enum.Enum):
+    """What to do with one arriving copy of a message."""
+
+    DELIVER = 'deliver'
+    DUPLICATE = 'duplicate'  #: delivered already, or to be from the other route: dropped
+    QUEUED = 'queued'        #: kept until its stream's fence passes (see :meth:`Stream.release`)
+
+
+T = TypeVar('T')
+
+
+@dataclass
+class Stream(Generic[T]):
+    """One publisher's messages as a subscription delivers them."""
+
+    #: RELIABLE subscriptions wait for a fenced message; BEST_EFFORT ones may lose it anyway.
+    reliable: bool = True
+    state: StreamState = StreamState.MAIN
+    #: Source timestamp of the last delivered message: older copies are late or duplicates.
+    last: int = 0
+    #: From the fence: main-topic messages up to ``fence`` come before channel messages, and
+    #: main-topic copies from ``switch`` on duplicate channel messages.
+    fence: int = 0
+    switch: Optional[int] = None
+    waiting: Deque[Tuple[int, T]] = field(default_factory=collections.deque)
+    waiting_since: float = 0.0
+    timeouts: int = 0
+
+    def main(self, timestamp: int) -> Verdict:
+        """A main-topic copy arrived."""
+        if timestamp <= self.last or (self.switch is not None and timestamp >= self.switch):
+            return Verdict.DUPLICATE
+        self.last = timestamp
+        return Verdict.DELIVER
+
+    def fenced(self, timestamp: int, fence: Fence, now: float) -> None:
+        """The publisher switched us to its channel from message ``timestamp`` on."""
+        self.switch, self.fence = timestamp, fence.last_main
+        self._enter_waiting_or_channel(now)
+
+    def channel(self, timestamp: int, item: T, now: float) -> Verdict:
+        """A channel copy arrived (``item`` is queued while the stream waits for its fence)."""
+        if timestamp <= self.last:
+            return Verdict.DUPLICATE
+        if self.switch is None:  # no fence: channel messages are newer than main's
+            self.switch = timestamp
+            self._enter_waiting_or_channel(now)
+        if self.state is StreamState.WAITING:
+            self.waiting.append((timestamp, item))
+            return Verdict.QUEUED
+        self.last = timestamp
+        return Verdict.DELIVER
+
+    def release(self, now: float, main_drained: bool = True) -> Optional[T]:
+        """The next queued channel message that may be delivered now, or None. Ends WAITING once
+        the fenced message was delivered, or once ``FENCE_TIMEOUT_SECONDS`` passed while the
+        main topic had nothing left to take (it was lost on the way: counted). A subscription
+        that was slow to take never loses a message that is there."""
+        if self.state is StreamState.WAITING:
+            if self.last < self.fence and (
+                    not main_drained or now - self.waiting_since < FENCE_TIMEOUT_SECONDS):
+                return None
+            if self.last < self.fence:
+                self.timeouts += 1  # the fenced message was lost on the way
+            self.state = StreamState.CHANNEL
+        while self.waiting:
+            timestamp, item = self.waiting.popleft()
+            if timestamp > self.last:
+                self.last = timestamp
+                return item
+        return None
+
+    @property
+    def holding(self) -> bool:
+        """Channel messages are queued here."""
+        return bool(self.waiting)
+
+    def wait_deadline(self) -> Optional[float]:
+        """When a WAITING stream stops waiting for its fenced message."""
+        if self.state is StreamState.WAITING:
+            return self.waiting_since + FENCE_TIMEOUT_SECONDS
+        return None
+
+    def channel_lost(self) -> None:
+        """The publisher's channel went away: its next messages come on the main topic."""
+        self.state, self.switch, self.fence = StreamState.MAIN, None, 0
+
+    def _enter_waiting_or_channel(self, now: float) -> None:
+        if self.reliable and self.fence > self.last:
+            if self.state is not StreamState.WAITING:
+                self.state, self.waiting_since = StreamState.WAITING, now
+        elif self.state is not StreamState.WAITING:
+            self.state = StreamState.CHANNEL
+
+
+class StreamTable(Generic[T]):
+    """The streams of one subscription, by publisher key (its GID)."""
+
+    def __init__(self, *, reliable: bool = True) -> None:
+        self.reliable = reliable
+        self.streams: Dict[Hashable, Stream[T]] = {}
+
+    def __getitem__(self, key: Hashable) -> Stream[T]:
+        stream = self.streams.get(key)
+        if stream is None:
+            stream = self.streams[key] = Stream(reliable=self.reliable)
+        return stream
+
+    def waiting(self) -> List[Stream[T]]:
+        """The streams holding queued channel messages."""
+        return [s for s in self.streams.values() if s.holding]
+
+    def next_deadline(self) -> Optional[float]:
+        deadlines = [d for s in self.streams.values() if (d := s.wait_deadline()) is not None]
+        return min(deadlines) if deadlines else None
+
+    def pop(self, key: Hashable) -> Optional[Stream[T]]:
+        return self.streams.pop(key, None)

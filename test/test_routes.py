@@ -1,0 +1,432 @@
+"""The route protocol (rosidl_buffer_py.routes and .control), without DDS: every transition of
+both state machines from a table, then a model-based test of the invariants over random
+interleavings of publishes, matches, acknowledgments, losses, slow and dead subscribers."""
+import collections
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+import pytest
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
+
+from rosidl_buffer_py import control
+from rosidl_buffer_py.routes import (
+    CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_TIMEOUT_SECONDS, PROBE_INTERVAL_SECONDS,
+    Fence, Route, RouteState, RouteTable, Stream, StreamState, Verdict)
+
+S = RouteState
+
+
+def _route(state: RouteState, *, handshake=True, last_main=None, acknowledged_after=0,
+           probed_at=None, matched_since=0.0) -> Route:
+    return Route(handshake=handshake, first_probes=6, state=state, last_main=last_main,
+                 acknowledged_after=acknowledged_after, probed_at=probed_at,
+                 matched_since=matched_since)
+
+
+# (start state, route arguments, event, event arguments) -> end state
+ROUTE_TRANSITIONS = [
+    (S.UNMATCHED, {}, 'channel_matched', (True, 1.0), S.PROBING),
+    (S.UNMATCHED, {'handshake': False}, 'channel_matched', (True, 1.0), S.SETTLING),
+    (S.UNMATCHED, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.PROBING, {'probed_at': 0.0}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.SETTLING, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.ACKNOWLEDGED, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.FENCING, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.SERVING, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.CONFIRMED, {}, 'channel_matched', (False, 1.0), S.UNMATCHED),
+    (S.SERVING, {}, 'channel_matched', (True, 1.0), S.SERVING),  # stays while matched
+    (S.PROBING, {'probed_at': 0.0}, 'acknowledged', (5,), S.FENCING),  # no main message yet
+    (S.PROBING, {'probed_at': 0.0, 'last_main': 3}, 'acknowledged', (5,), S.ACKNOWLEDGED),
+    (S.SETTLING, {}, 'acknowledged', (5,), S.SETTLING),
+    (S.SERVING, {}, 'acknowledged', (5,), S.CONFIRMED),
+    (S.SERVING, {'handshake': False}, 'acknowledged', (5,), S.SERVING),
+    (S.ACKNOWLEDGED, {'acknowledged_after': 5}, 'main_written', (6,), S.FENCING),
+    (S.ACKNOWLEDGED, {'acknowledged_after': 5}, 'main_written', (5,), S.ACKNOWLEDGED),
+    (S.PROBING, {}, 'tick', (CHANNEL_SETTLE_SECONDS,), S.FENCING),
+    (S.PROBING, {}, 'tick', (CHANNEL_SETTLE_SECONDS / 2,), S.PROBING),
+    (S.SETTLING, {}, 'tick', (CHANNEL_SETTLE_SECONDS,), S.FENCING),
+    (S.ACKNOWLEDGED, {}, 'tick', (CHANNEL_SETTLE_SECONDS,), S.FENCING),
+    (S.SERVING, {}, 'tick', (10.0,), S.SERVING),
+    (S.FENCING, {}, 'take_fence', (), S.SERVING),
+    (S.SERVING, {}, 'take_fence', (), S.SERVING),
+    *[(state, {}, 'gone', (), S.GONE) for state in RouteState],
+    (S.GONE, {}, 'channel_matched', (True, 1.0), S.GONE),
+    (S.GONE, {}, 'main_written', (9,), S.GONE),
+]
+
+
+@pytest.mark.parametrize('start, kwargs, event, args, end', ROUTE_TRANSITIONS,
+                         ids=[f'{t[0].value}-{t[2]}{t[3]}-{t[4].value}'
+                              for t in ROUTE_TRANSITIONS])
+def test_route_transition(start, kwargs, event, args, end):
+    route = _route(start, **kwargs)
+    getattr(route, event)(*args)
+    assert route.state is end
+
+
+def test_route_decisions_per_state():
+    """Which routes a state implies: the main topic until the channel serves, withholding only
+    once the channel's samples were acknowledged, nothing at all once gone."""
+    for state in RouteState:
+        route = _route(state)
+        assert route.on_channel == (state in (S.FENCING, S.SERVING, S.CONFIRMED)), state
+        assert route.needs_main == (state in (S.UNMATCHED, S.PROBING, S.SETTLING,
+                                              S.ACKNOWLEDGED)), state
+        assert route.withheld == (state is S.CONFIRMED), state
+
+
+def test_probes_first_a_history_then_one_per_interval():
+    route = _route(S.PROBING)
+    assert route.probes_due(1.0) == 6 and route.awaits_acknowledgment
+    assert route.probes_due(1.0 + PROBE_INTERVAL_SECONDS / 2) == 0
+    assert route.probes_due(1.0 + PROBE_INTERVAL_SECONDS) == 1
+    assert _route(S.SETTLING).probes_due(1.0) == 0
+    assert not _route(S.PROBING).awaits_acknowledgment  # nothing written: nothing to ask
+
+
+def test_the_fence_names_the_last_main_topic_message_then_the_route_serves():
+    route = _route(S.PROBING, probed_at=0.0)
+    route.main_written(7)
+    route.acknowledged(7)
+    assert route.state is S.ACKNOWLEDGED  # message 7 may be gone from the history: one more
+    route.main_written(8)
+    assert route.take_fence() == Fence(8) and route.state is S.SERVING
+    route.main_written(9)  # on the channel now: the main topic no longer serves it
+    assert route.last_main == 8 and route.take_fence() is None
+
+
+def test_a_route_that_lost_its_channel_after_its_fence_settles_without_probes():
+    route = _route(S.SERVING)
+    route.channel_matched(False, 1.0)
+    route.channel_matched(True, 2.0)
+    assert route.state is S.SETTLING and route.probes_due(2.0) == 0
+
+
+def test_next_tick_names_each_timed_transition():
+    assert _route(S.SETTLING, matched_since=1.0).next_tick(1.0) == 1.0 + CHANNEL_SETTLE_SECONDS
+    assert _route(S.PROBING, matched_since=1.0).next_tick(1.0) == 1.0  # probes are due now
+    assert _route(S.PROBING, matched_since=1.0, probed_at=1.0).next_tick(1.0) == \
+        1.0 + PROBE_INTERVAL_SECONDS
+    assert _route(S.SERVING).next_tick(1.0) == 1.0 + CONFIRM_INTERVAL_SECONDS
+    assert _route(S.SERVING, handshake=False).next_tick(1.0) is None
+    assert _route(S.CONFIRMED).next_tick(1.0) is None and _route(S.GONE).next_tick(1.0) is None
+
+
+def test_table_plans_main_topic_for_legacy_and_unserved_subscriptions():
+    table = RouteTable()
+    route = table.add('a', handshake=True, depth=5)
+    table.main_written(['a', 'legacy', 'later'], 3)  # 'later' is not a known peer yet
+    assert route.last_main == 3
+    assert table.add('later', handshake=False).last_main == 3
+    plan = table.plan(0.0, ['a', 'legacy'])
+    assert plan.channel == () and plan.main and set(plan.main_served) == {'a', 'legacy'}
+    route.state = S.CONFIRMED
+    plan = table.plan(0.0, ['a', 'legacy'])
+    assert plan.channel == ('a',) and plan.withheld == ('a',) and plan.main_served == ('legacy',)
+    assert not table.plan(0.0, ['a']).main
+    assert RouteTable(main_always=True).plan(0.0, []).main  # TRANSIENT_LOCAL keeps history
+    table.routes['a'].gone()
+    assert table.plan(0.0, ['a']).channel == ()
+
+
+def test_deep_or_unbounded_histories_settle_instead_of_probing():
+    table = RouteTable()
+    assert table.add('deep', handshake=True, depth=101).handshake is False
+    assert table.add('all', handshake=True, depth=0).handshake is False
+    assert table.add('five', handshake=True, depth=5).first_probes == 6
+
+
+# --- the stream -------------------------------------------------------------------------------
+
+def test_stream_main_topic_only_delivers_in_order_once():
+    stream = Stream()
+    assert [stream.main(t) for t in (1, 2, 2, 1, 3)] == [
+        Verdict.DELIVER, Verdict.DELIVER, Verdict.DUPLICATE, Verdict.DUPLICATE, Verdict.DELIVER]
+
+
+def test_stream_fence_holds_channel_messages_until_the_fenced_message():
+    stream = Stream()
+    stream.main(1)
+    stream.fenced(3, Fence(2), now=0.0)
+    assert stream.state is StreamState.WAITING
+    assert stream.channel(3, 'm3', now=0.0) is Verdict.QUEUED
+    assert stream.release(0.1) is None
+    assert stream.main(2) is Verdict.DELIVER
+    assert stream.main(3) is Verdict.DUPLICATE  # from the switch on: the channel's
+    assert stream.release(0.1) == 'm3' and stream.state is StreamState.CHANNEL
+    assert stream.channel(4, 'm4', now=0.2) is Verdict.DELIVER
+
+
+def test_stream_fence_without_a_missing_message_switches_at_once():
+    stream = Stream()
+    stream.main(5)
+    stream.fenced(6, Fence(5), now=0.0)
+    assert stream.state is StreamState.CHANNEL
+    assert stream.channel(6, 'm6', now=0.0) is Verdict.DELIVER
+
+
+def test_stream_fence_timeout_counts_the_lost_message():
+    stream = Stream()
+    stream.fenced(3, Fence(2), now=0.0)
+    stream.channel(3, 'm3', now=0.0)
+    assert stream.wait_deadline() == FENCE_TIMEOUT_SECONDS
+    assert stream.release(FENCE_TIMEOUT_SECONDS - 0.01) is None
+    assert stream.release(FENCE_TIMEOUT_SECONDS) == 'm3' and stream.timeouts == 1
+
+
+def test_stream_fence_never_times_out_while_the_main_topic_has_samples_to_take():
+    stream = Stream()
+    stream.fenced(3, Fence(2), now=0.0)
+    stream.channel(3, 'm3', now=0.0)
+    assert stream.release(5.0, main_drained=False) is None and stream.timeouts == 0
+    assert stream.main(2) is Verdict.DELIVER and stream.release(5.0) == 'm3'
+
+
+def test_best_effort_stream_never_waits():
+    stream = Stream(reliable=False)
+    stream.fenced(3, Fence(2), now=0.0)
+    assert stream.state is StreamState.CHANNEL and stream.channel(3, 'm', 0.0) is Verdict.DELIVER
+
+
+def test_stream_channel_without_fence_switches_and_lost_channel_goes_back_to_main():
+    stream = Stream()
+    assert stream.channel(4, 'm4', now=0.0) is Verdict.DELIVER
+    assert stream.main(5) is Verdict.DUPLICATE  # the channel carries it
+    stream.channel_lost()
+    assert stream.state is StreamState.MAIN and stream.main(5) is Verdict.DELIVER
+
+
+# --- control messages -------------------------------------------------------------------------
+
+def test_control_messages_round_trip_and_are_told_from_messages():
+    for message in (control.PROBE, Fence(0), Fence(2 ** 64 - 1), Fence(123456789)):
+        raw = control.encode(message)
+        assert control.is_control(raw) and control.parse(raw) == message
+    cdr = b'\x00\x01\x00\x00' + bytes(12)  # every CDR message rmw or the codec writes
+    assert control.parse(cdr) is None
+
+
+@pytest.mark.parametrize('raw', [
+    b'\x00\x01RB', b'\x00\x01RB' + bytes(13), b'\x00\x01RB\x03' + bytes(11),
+    b'\x00\x01RB\x01\x00\x00\x00' + (1).to_bytes(8, 'little'),
+    b'\x00\x01RB\x02\x01\x00\x00' + bytes(8)])
+def test_malformed_control_messages_are_rejected(raw):
+    with pytest.raises(control.ControlError):
+        control.parse(raw)
+
+
+def test_control_encode_refuses_what_it_cannot_carry():
+    with pytest.raises(ValueError, match='uint64'):
+        control.encode(Fence(-1))
+    with pytest.raises(TypeError, match='Probe or a Fence'):
+        control.encode('probe')
+
+
+# --- the model: one publisher, one buffer-aware subscription, real protocol objects ----------
+
+@dataclass
+class Link:
+    """A RELIABLE KEEP_LAST DDS link (main topic or channel), modelled: in order, samples may be
+    lost only when the reader's history overflows (older ones first), or when the writer's
+    history had dropped them before a late reader matched."""
+
+    depth: int
+    queue: collections.deque = field(default_factory=collections.deque)
+
+    def write(self, item) -> None:
+        self.queue.append(item)
+        while len(self.queue) > self.depth:
+            self.queue.popleft()
+
+
+class RouteProtocol(RuleBasedStateMachine):
+    """A publisher's RouteTable and a subscription's Stream connected by two modelled links;
+    random publishes, matches, acknowledgments, takes, time and death."""
+
+    DEPTH = 5
+    LOSSY = True
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.timestamp = 0
+        self.table = RouteTable()
+        self.route = self.table.add('s', handshake=True, depth=self.DEPTH)
+        self.stream = Stream()
+        self.main = Link(self.DEPTH)
+        self.channel = Link(self.DEPTH)
+        self.channel_up = self.seen_up = False
+        self.published: List[int] = []
+        self.delivered: List[int] = []
+        self.queued_at: Dict[int, float] = {}
+        self.written_after_gone = 0
+        self.dead = False
+
+    # the publisher side -----------------------------------------------------------------
+
+    @rule()
+    def publish(self):
+        self.timestamp += 1
+        ts = self.timestamp
+        self.published.append(ts)
+        self.route.channel_matched(self.channel_up, self.now)
+        self.seen_up = self.channel_up
+        for _ in range(self.route.probes_due(self.now)):
+            self.channel.write(('control', control.encode(control.PROBE), ts - 1))
+        plan = self.table.plan(self.now, [] if self.dead else ['s'])
+        if self.dead and self.route.state is not RouteState.GONE:
+            self.route.gone()
+            plan = self.table.plan(self.now, [])
+        for key in plan.channel:
+            if self.dead:
+                self.written_after_gone += 1
+            fence = self.route.take_fence()
+            if fence is not None:
+                self.channel.write(('control', control.encode(fence), ts))
+            self.channel.write(('data', None, ts))
+        if plan.main:
+            if 's' not in plan.withheld:
+                if self.dead:
+                    self.written_after_gone += 1
+                self.main.write(('data', None, ts))
+            self.table.main_written(plan.main_served, ts)
+
+    @rule()
+    def channel_matches(self):
+        self.channel_up = True
+
+    @precondition(lambda self: self.channel_up and (self.LOSSY or not self.channel.queue))
+    @rule()
+    def channel_unmatches(self):
+        """The channel's reader goes (what it had not taken is lost with it); the subscription
+        forgets the channel and its publisher's next messages come on the main topic."""
+        self.channel_up = False
+        self.channel.queue.clear()
+        self.stream.channel_lost()
+
+    @precondition(lambda self: self.route.awaits_acknowledgment and self.channel_up and
+                  not self.channel.queue)
+    @rule()
+    def channel_acknowledges(self):
+        """DDS says every channel sample was acknowledged: the reader took them into its
+        history (here: the subscription took them)."""
+        self.route.acknowledged(self.timestamp)
+
+    @rule(seconds=st.sampled_from([0.005, 0.05, 0.3, 1.2]))
+    def time_passes(self, seconds):
+        self.now += seconds
+
+    @rule()
+    def subscriber_dies(self):
+        self.dead = True
+
+    # the subscription side --------------------------------------------------------------
+
+    @precondition(lambda self: self.main.queue and not self.dead)
+    @rule()
+    def take_main(self):
+        _, _, ts = self.main.queue.popleft()
+        if self.stream.main(ts) is Verdict.DELIVER:
+            self.delivered.append(ts)
+        self._release()
+
+    @precondition(lambda self: self.channel.queue and self.channel_up and not self.dead)
+    @rule()
+    def take_channel(self):
+        kind, raw, ts = self.channel.queue.popleft()
+        if kind == 'control':
+            message = control.parse(raw)
+            if isinstance(message, Fence):
+                self.stream.fenced(ts, message, self.now)
+            return
+        verdict = self.stream.channel(ts, ts, self.now)
+        if verdict is Verdict.DELIVER:
+            self.delivered.append(ts)
+        elif verdict is Verdict.QUEUED:
+            self.queued_at[ts] = self.now
+        self._release()
+
+    @rule()
+    def subscription_wakes(self):
+        self._release()
+
+    def _release(self):
+        while (item := self.stream.release(self.now, not self.main.queue)) is not None:
+            self.delivered.append(item)
+
+    # invariants ---------------------------------------------------------------------------
+
+    @invariant()
+    def delivered_at_most_once_in_publish_order(self):
+        assert self.delivered == sorted(set(self.delivered)), self.delivered
+
+    @invariant()
+    def nothing_written_to_a_dead_peer(self):
+        assert self.written_after_gone == 0
+
+    @invariant()
+    def nothing_held_past_the_fence_timeout(self):
+        """A channel message waits for its fenced main-topic message while that one can still
+        come (the main topic has samples to take), else at most FENCE_TIMEOUT_SECONDS."""
+        self._release()
+        if self.main.queue:
+            return
+        for ts, since in self.queued_at.items():
+            if ts in self.stream_waiting_timestamps():
+                assert self.now - since < FENCE_TIMEOUT_SECONDS + 1e-9, (ts, since, self.now)
+
+    def stream_waiting_timestamps(self):
+        return {ts for ts, _ in self.stream.waiting}
+
+    @invariant()
+    def main_topic_serves_until_the_channel_does(self):
+        route = self.route
+        if route.state in (RouteState.FENCING, RouteState.SERVING, RouteState.CONFIRMED):
+            assert self.seen_up  # as the publisher last saw it
+        if route.withheld:
+            assert route.handshake  # only an acknowledged channel keeps main-topic samples away
+
+    @invariant()
+    def nothing_lost_while_links_keep_up(self):
+        """Every message published is delivered, on one route or the other, unless a link
+        overflowed (KEEP_LAST drops, as DDS would) or the subscriber died: checked by the
+        drain at teardown."""
+
+    def teardown(self):
+        if self.dead:
+            return
+        # drain both links completely, then let time run out any fence wait
+        self.channel_up = True
+        for _ in range(1000):
+            if self.channel.queue:
+                self.take_channel()
+            elif self.main.queue:
+                self.take_main()
+            else:
+                break
+        self.now += FENCE_TIMEOUT_SECONDS
+        self._release()
+        assert self.delivered == sorted(set(self.delivered))
+
+
+TestRouteProtocol = RouteProtocol.TestCase
+TestRouteProtocol.settings = settings(max_examples=300, stateful_step_count=60, deadline=None,
+                                      suppress_health_check=[HealthCheck.too_slow])
+
+
+class LosslessRouteProtocol(RouteProtocol):
+    """The same with links deep enough never to overflow: then nothing is lost at all."""
+
+    DEPTH = 10_000
+    LOSSY = False
+
+    def teardown(self):
+        super().teardown()
+        if not self.dead:
+            assert self.delivered == self.published, (self.delivered, self.published)
+
+
+TestLosslessRouteProtocol = LosslessRouteProtocol.TestCase
+TestLosslessRouteProtocol.settings = TestRouteProtocol.settings
