@@ -84,7 +84,7 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
         return
     stages.wrap(publisher.Publisher, 'publish', 'publish()')
     stages.wrap(publisher.Publisher, '_write', '  writes (descriptor or CPU message)')
-    stages.wrap(publisher.Publisher, '_valid_routes', '  route re-check (after the writes)')
+    stages.wrap(publisher.Publisher, '_current_plan', '  route plan (cached while current)')
     if transport == 'demo':
         stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
         stages.wrap(pool.State, '_alive', '      recipient liveness')
@@ -96,7 +96,7 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
         return  # rclpy's take and conversion are one C call
     # (the channel's guard condition holds the bound _deliver_available: _next is timed)
     stages.wrap(subscription.Subscription, '_next', 'delivery path: take to message')
-    stages.wrap(subscription.Subscription, '_take_channel', '  channel takes (empty ones too)')
+    stages.wrap(subscription._PublisherPeer, 'take', '  channel takes (empty ones too)')
     if transport == 'demo':
         stages.wrap(codec, 'decode', '  descriptor message decode')
         stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',

@@ -34,15 +34,3 @@ def dds_topic(ros_topic: str) -> str:
 def is_channel_topic(dds_name: str) -> bool:
     """True when ``dds_name`` is a per-endpoint channel (hidden from buffer discovery)."""
     return f'/{CHANNEL_INFIX}/' in dds_name
-
-
-#: Backend name of a *route fence* on a channel (see :mod:`rosidl_buffer_py.publisher`): a
-#: descriptor-encoded message whose descriptor is the source timestamp (uint64 little endian) of
-#: the last message the main topic served the subscription. Backend names match
-#: ``registry.BACKEND_NAME_PATTERN`` (no ``:``), so it never collides with a backend.
-FENCE_BACKEND = ':route-fence'
-#: Backend name of a *probe* on a channel: a descriptor-encoded message with an empty descriptor
-#: that a RELIABLE publisher writes once the channel matched, and serves the subscription there
-#: once the subscription's reader acknowledged it (it matched the channel writer by then). The
-#: subscription drops it.
-PROBE_BACKEND = ':route-probe'

@@ -4,19 +4,21 @@ It is an rclpy publisher (created by ``Node.create_publisher`` with ``publisher_
 node owns it: ``destroy_publisher``, ``destroy_node`` and rclpy's event handlers work as for any
 publisher) whose DataWriter also advertises ``BUFBE:cpu=;<backend>=<meta>;...`` in USER_DATA. For
 every buffer-aware subscription it discovers, it opens a channel ``rt/<topic>/_buf/<pub gid>_<sub
-gid>`` below rcl and, once that channel is up (see ``Publisher._channel_ready``), serves the
+gid>`` below rcl and, once that channel is up (see :mod:`rosidl_buffer_py.routes`), serves the
 subscription there: a descriptor when the backend accepts the peer, CPU bytes otherwise. The main
 topic is written while some matched subscription is not served by a channel, and always for a
 TRANSIENT_LOCAL publisher (its DataWriter keeps the history late joiners get). A main-topic
 sample is kept from the subscriptions a channel serves (writer side: Fast DDS sends them a GAP
 instead of the payload, see :func:`rosidl_buffer_py._dds.exclude_from_next_write`).
 
-Each message has one designated route per subscription. Every copy of a message carries the same
-explicit source timestamp, increasing per publisher. When a subscription starts being served on
-its channel, a *route fence* precedes the first channel message: it names the last message that
-went to that subscription on the main topic, which the subscription delivers first. So a
-subscription delivers every message once and in publish order without waiting on a clock (see
-:mod:`rosidl_buffer_py.subscription`).
+Each message has one designated route per subscription, which the route protocol decides
+(:mod:`rosidl_buffer_py.routes`: one :class:`~rosidl_buffer_py.routes.Route` per buffer-aware
+subscription, in a :class:`~rosidl_buffer_py.routes.RouteTable`). This class feeds it what DDS
+says (matched channels, acknowledged samples, matched main-topic subscriptions) and carries out
+its plan: probes and route fences (:mod:`rosidl_buffer_py.control`), channel writes, the
+main-topic write and whom it is kept from. Every copy of a message carries the same explicit
+source timestamp, increasing per publisher, so a subscription delivers every message once and in
+publish order (see :mod:`rosidl_buffer_py.subscription`).
 """
 import copy
 import dataclasses
@@ -26,7 +28,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import functools
-import struct
 
 import rclpy.publisher
 from rclpy.duration import Duration
@@ -35,10 +36,10 @@ from rclpy.logging import get_logger
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
-from rosidl_buffer_py import _dds, advertisement, codec, discovery
-from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
+from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py.backend import EndpointGone, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
-from rosidl_buffer_py.channel import FENCE_BACKEND, PROBE_BACKEND, channel_topic, dds_topic
+from rosidl_buffer_py.channel import channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
@@ -49,28 +50,18 @@ from rosidl_buffer_py.transport import (
 
 _logger = get_logger('rosidl_buffer_py.publisher')
 
-#: How long a channel must have been matched before it serves its subscription.
-CHANNEL_SETTLE_SECONDS = 0.2
-#: A channel whose reader has not acknowledged the probes yet gets one more at most this often.
-PROBE_INTERVAL_SECONDS = 0.01
-#: A RELIABLE KEEP_LAST channel up to this depth proves its reader matched by acknowledging
-#: ``depth + 1`` probes (see ``Publisher._acknowledged``); a deeper one waits the settle time.
-MAX_PROBE_DEPTH = 100
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
-#: Cached routes are recomputed at least this often, whatever else says they are current.
-ROUTES_RECHECK_SECONDS = 0.5
-#: ... and this often while a served peer's channel is not known to reach its reader yet.
-CONFIRM_RECHECK_SECONDS = 0.05
 
 
 @dataclass
 class _SubscriptionPeer:
-    """A buffer-aware subscription of our topic and the channel that serves it."""
+    """A buffer-aware subscription of our topic, its channel and its route."""
 
     info: EndpointInfo
     backends: Dict[str, str]
+    route: routes.Route
     compatible: Set[str] = field(default_factory=set)
     channel: Optional['_dds.ChannelPublisher'] = None
     channel_topic: str = ''
@@ -78,42 +69,16 @@ class _SubscriptionPeer:
     sent_descriptor: int = 0
     sent_cpu: int = 0
     backend_in_use: Optional[str] = None
-    matched_since: Optional[float] = None
-    #: Served on the channel by the current routes.
-    serving: bool = False
-    #: A route fence must precede the next channel message (the peer was just switched to it).
-    fence_pending: bool = False
-    #: The channel's readiness is acknowledged (see ``Publisher._acknowledged``), not waited for.
-    handshake: bool = False
-    #: When the last probe was written (0: none yet), and whether the peer acknowledged them.
-    probed_at: float = 0.0
-    acknowledged: bool = False
-    #: Source timestamp of the last message published when the acknowledgment was seen.
-    acknowledged_after: int = 0
-    #: The channel's reader is known to get what the channel carries (it acknowledged channel
-    #: samples): only then are main-topic samples kept from the peer (see ``_current_routes``).
-    reaches_reader: bool = False
 
 
-class _Routes(NamedTuple):
-    """Where a message goes: the peers served on their channels, and the main topic.
+class _Planned(NamedTuple):
+    """The route table's plan, cached while the matched counts it was made with hold (asking
+    the middleware for the matched subscriptions' GIDs takes tens of microseconds)."""
 
-    Computing them asks the middleware for the main topic's matched subscriptions (tens of
-    microseconds), so they are cached. They stay valid while ``signature`` (matched counts of
-    the main topic and of every channel) is unchanged, until ``recheck_at`` (a channel
-    finishing its settle time, or ``ROUTES_RECHECK_SECONDS``), and until a discovery event
-    about our topic (see ``Publisher._on_peer``) drops them.
-    """
-
+    plan: routes.Plan
     peers: Tuple[_SubscriptionPeer, ...]
-    main: bool
+    #: matched counts of the main topic and of every channel when the plan was made
     signature: tuple
-    recheck_at: float
-    #: GIDs of the matched subscriptions the main topic serves (not served by a channel).
-    unserved: Tuple[bytes, ...]
-    #: GIDs of the ``peers`` whose channel is known to reach them: main-topic samples are
-    #: withheld from their main-topic readers.
-    withheld: Tuple[bytes, ...]
 
 
 class _Encoder:
@@ -198,9 +163,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._exclusions: Optional[bool] = None
         #: the last exclusion registered was not empty (the next main write must re-register)
         self._excluding = False
-        self._routes: Optional[_Routes] = None
-        #: GID -> source timestamp of the last message the main topic served that subscription
-        self._main_timestamps: Dict[bytes, int] = {}
+        self._planned: Optional[_Planned] = None
+        self._route_timer = None
         self._peers_added = 0
         self._peers_removed = 0
         self._destroyed = False
@@ -210,7 +174,9 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             return
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
         #: joiners receive (as CPU bytes; their channels serve them from then on).
-        self._main_always = qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self._table: routes.RouteTable[bytes] = routes.RouteTable(
+            main_always=qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+        self._callback_group = callback_group
         self._manual_liveliness = qos_profile.liveliness == LivelinessPolicy.MANUAL_BY_TOPIC
         self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
                                           callback_group)
@@ -223,11 +189,9 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         advertised.update({name: backend.get_backend_metadata()
                            for name, backend in self._backends.items() if name != CPU_BACKEND})
         self._advertised = advertised
+        #: RELIABLE KEEP_LAST channels can acknowledge probes (see routes.Route)
         self._handshake = (qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT and
-                           qos_profile.history != HistoryPolicy.KEEP_ALL and
-                           qos_profile.depth <= MAX_PROBE_DEPTH)
-        #: what ``_channel_ready`` writes to learn that a peer's channel reader matched
-        self._probe = bytes(codec.encode(msg_type(), (PROBE_BACKEND, b'')))
+                           qos_profile.history != HistoryPolicy.KEEP_ALL)
         self._user_data = advertisement.append(_dds.get_user_data(self), advertised)
         self._discovery = discovery.for_node(node)
         self._announce()
@@ -309,39 +273,32 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
+            planned = self._current_plan()
             timestamp = self._next_timestamp()
-            used = self._routes
-            if used is None:
-                used = self._routes = self._current_routes()
-            self._write(encoder, timestamp, used.peers, used.main, used.withheld)
-            routes = self._valid_routes()
-            main = used.main
-            if routes is not used:
-                self._write(encoder, timestamp,
-                            [p for p in routes.peers if not any(p is u for u in used.peers)],
-                            routes.main and not used.main,
-                            tuple(dict.fromkeys(used.withheld + routes.withheld)))
-                main = main or routes.main
-            if main:
+            plan = planned.plan
+            if self._write(encoder, timestamp, planned.peers, plan.main, plan.withheld):
+                self._planned = None  # a route changed state (fenced, gone): plan again
+            if plan.main:
                 self._sent_main += 1
-                # noted after both writes: a fence written in the re-check above names the
-                # previous message, since this one also went on that peer's channel (the
-                # subscription drops main-topic copies from the fence's own message on)
-                for gid in (used if used.main else routes).unserved:
-                    self._main_timestamps[gid] = timestamp
+                self._table.main_written(plan.main_served, timestamp)
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:
             self._deadline.activity()
 
     def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool,
-               withheld: Tuple[bytes, ...] = ()) -> None:
-        """Write one message to ``peers``' channels (after their route fence, if pending) and,
-        when ``main``, to the main topic, whose sample the ``withheld`` subscriptions (their
-        channels carry this message) do not get."""
+               withheld: Tuple[bytes, ...] = ()) -> bool:
+        """Write one message to ``peers``' channels (after their route fence, if one is due)
+        and, when ``main``, to the main topic, whose sample the ``withheld`` subscriptions (their
+        channels carry this message) do not get. True when a route changed state meanwhile."""
+        changed = False
         for peer in peers:
-            if peer.fence_pending:
-                self._write_fence(peer, encoder.msg, timestamp)
+            fence = peer.route.take_fence()
+            if fence is not None:
+                changed = True
+                _logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message '
+                              f'{fence.last_main})')
+                peer.channel.publish(control.encode(fence), timestamp)
         if encoder.cpu_message:
             # CPU payload: one conversion to C, rmw serializes into each target, as rclpy's
             # publish does (no Python-level CDR work)
@@ -353,12 +310,20 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            return
+            return changed
         vendor = encoder.vendor
         cpu_targets = []
         for peer in peers:
             if vendor is not None and vendor in peer.compatible:
-                descriptor = self._describe(vendor, encoder.payload, peer)
+                try:
+                    descriptor = self._describe(vendor, encoder.payload, peer)
+                except EndpointGone:
+                    # its process is gone (the backend knows before DDS does): nothing more
+                    # is written to it, neither this message nor a CPU copy
+                    _logger.debug(f'{peer.info.gid_hex} is gone: its route ends')
+                    peer.route.gone()
+                    changed = True
+                    continue
                 if descriptor is not None:
                     peer.channel.publish(encoder.with_descriptor(vendor, descriptor), timestamp)
                     peer.sent_descriptor += 1
@@ -371,18 +336,19 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             cpu_targets.append(self)
             self._exclude_from_main(withheld)
         if not cpu_targets:
-            return
+            return changed
         if encoder.host_buffer:
             # a Buffer in host memory: converted to C through its buffer protocol and
             # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
             _dds.write_message(encoder.msg, timestamp, cpu_targets)
-            return
+            return changed
         data = encoder.cpu_bytes()
         for target in cpu_targets:
             if target is self:
                 _dds.publish_serialized(self, data, timestamp)
             else:
                 target.publish(data, timestamp)
+        return changed
 
     def _exclude_from_main(self, withheld: Tuple[bytes, ...]) -> None:
         """Keep the next main-topic sample from the subscriptions ``withheld`` (their channels
@@ -403,26 +369,13 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 'main-topic samples from subscriptions served on channels; they receive and '
                 'drop them (costs CPU, loses nothing)', once=True)
 
-    def _write_fence(self, peer: _SubscriptionPeer, msg, timestamp: int) -> None:
-        """Tell a subscription just switched to its channel which main-topic message came last.
-
-        Written on the channel right before the first channel message (same source timestamp),
-        it carries the source timestamp of the last message the main topic served that
-        subscription (0: none). The subscription delivers main-topic messages up to it first.
-        """
-        last_main = self._main_timestamps.get(peer.info.gid, 0)
-        _logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message {last_main})')
-        peer.channel.publish(codec.encode(msg, (FENCE_BACKEND, _FENCE.pack(last_main))),
-                             timestamp)
-        peer.fence_pending = False
-
-    def _valid_routes(self) -> '_Routes':
-        """The cached routes if they are still current, else freshly computed (and cached)."""
-        routes = self._routes
-        if (routes is None or time.monotonic() >= routes.recheck_at or
-                self._route_signature() != routes.signature):
-            routes = self._routes = self._current_routes()
-        return routes
+    def _current_plan(self) -> _Planned:
+        """The cached plan while it holds, else the route table's new one (see :meth:`_plan`)."""
+        planned = self._planned
+        if (planned is None or time.monotonic() >= planned.plan.recheck_at or
+                self._route_signature() != planned.signature):
+            planned = self._plan()
+        return planned
 
     def _route_signature(self) -> tuple:
         """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
@@ -430,42 +383,45 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 tuple(-1 if peer.channel is None else peer.channel.matched_count()
                       for peer in self._peers.values()))
 
-    def _current_routes(self) -> '_Routes':
-        """The channels that serve their peers now, and whether the main topic is needed.
-
-        A peer that starts being served here gets a route fence before its next channel
-        message (see :meth:`_write_fence`).
-        """
-        signature = self._route_signature()
+    def _plan(self) -> _Planned:
+        """Feed the route table what DDS says now (matched channels, acknowledged samples),
+        write the probes it asks for, and cache its plan. Under the lock."""
         now = time.monotonic()
-        recheck_at = now + ROUTES_RECHECK_SECONDS
-        peers = []
-        for peer in self._peers.values():
-            ready = peer.channel is not None and self._channel_ready(peer)
-            if ready:
-                peers.append(peer)
-                if not peer.serving:
-                    peer.fence_pending = True
-            elif peer.matched_since is not None:  # settling: ready at the end of it, or once
-                recheck_at = min(recheck_at, now if peer.handshake else  # acknowledged
-                                 peer.matched_since + CHANNEL_SETTLE_SECONDS)
-            if ready and not peer.reaches_reader and peer.handshake:
-                # served since the last routes (its fence is written) and every channel sample
-                # acknowledged: its reader matched, and gets the rest
-                peer.reaches_reader = peer.acknowledged or (
-                    peer.serving and peer.channel.wait_for_all_acked(0.0))
-                if not peer.reaches_reader:
-                    recheck_at = min(recheck_at, now + CONFIRM_RECHECK_SECONDS)
-            peer.serving = ready
-        served = {peer.info.gid for peer in peers}
-        unserved = tuple(gid for gid in _dds.matched_subscription_gids(self)
-                         if gid not in served)
-        main = bool(unserved) or self._main_always
-        # Main-topic samples skip only peers whose channel is known to reach them: a channel
-        # serving by its settle time alone may not yet (the reader matches the writer late),
-        # and meanwhile the subscription still needs the main-topic copies.
-        withheld = tuple(peer.info.gid for peer in peers if peer.reaches_reader)
-        return _Routes(tuple(peers), main, signature, recheck_at, unserved, withheld)
+        signature = self._route_signature()
+        for peer, matched in zip(self._peers.values(), signature[1]):
+            route = peer.route
+            route.channel_matched(matched > 0, now)
+            if route.awaits_acknowledgment and peer.channel.wait_for_all_acked(0.0):
+                route.acknowledged(self._last_timestamp)
+                _logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
+                              f'({route.state.value})')
+            probes = route.probes_due(now)
+            if probes:
+                timestamp = self._last_timestamp or time.time_ns()
+                for _ in range(probes):
+                    peer.channel.publish(control.PROBE_BYTES, timestamp)
+        plan = self._table.plan(now, _dds.matched_subscription_gids(self))
+        peers = tuple(self._peers[gid] for gid in plan.channel)
+        self._planned = _Planned(plan, peers, signature)
+        self._arm_route_timer(plan.recheck_at - now < routes.RECHECK_SECONDS)
+        return self._planned
+
+    def _arm_route_timer(self, needed: bool) -> None:
+        """Routes in bring-up (probes, settle time, confirmation) advance on the executor too,
+        not only when a message is published: a timer runs while some route needs it."""
+        timer = self._route_timer
+        if needed and timer is None:
+            self._route_timer = self._node.create_timer(
+                routes.PROBE_INTERVAL_SECONDS, self._on_route_timer, self._callback_group)
+        elif needed and timer.is_canceled():
+            timer.reset()
+        elif not needed and timer is not None and not timer.is_canceled():
+            timer.cancel()
+
+    def _on_route_timer(self) -> None:
+        with self._lock:
+            if not self._destroyed:
+                self._plan()
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -480,7 +436,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 'compatible_backends': sorted(peer.compatible),
                 'channel_topic': peer.channel_topic,
                 'channel_matched': bool(peer.channel and peer.channel.matched_count()),
-                'channel_serving': bool(peer.channel and self._channel_ready(peer)),
+                'channel_serving': peer.route.on_channel,
+                'route_state': peer.route.state.value,
                 'backend_in_use': peer.backend_in_use,
                 'sent_as_descriptor': peer.sent_descriptor,
                 'sent_as_cpu': peer.sent_cpu,
@@ -504,70 +461,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._last_timestamp = now if now > self._last_timestamp else self._last_timestamp + 1
         return self._last_timestamp
 
-    def _channel_ready(self, peer: _SubscriptionPeer) -> bool:
-        """True once what the channel carries from now on reaches the peer's reader.
-
-        The channel writer matches the peer's reader before, sometimes long before, that reader
-        matches the writer: what is written meanwhile reaches the reader only if the writer
-        still holds it when the reader asks (KEEP_LAST), so a route fence written too early can
-        be lost. A RELIABLE reader proves that it matched by acknowledging the probes written
-        once the writer matched it (see :meth:`_acknowledged`); otherwise the channel serves
-        once it has been matched for ``CHANNEL_SETTLE_SECONDS``. Until then the main topic
-        serves the peer, so bring-up loses nothing.
-        """
-        if peer.channel.matched_count() == 0:
-            if peer.matched_since is not None:
-                # its reader left; if it comes back, the channel settles: no probe may follow a
-                # route fence (the subscription may take later samples as messages)
-                peer.handshake = peer.acknowledged = peer.reaches_reader = False
-            peer.matched_since = None
-            return False
-        if peer.serving:
-            # Once its route fence is out, the channel carries every message while it stays
-            # matched: the subscription drops main-topic copies from the fence's message on,
-            # so serving the peer on the main topic again would lose those messages.
-            return True
-        now = time.monotonic()
-        if peer.matched_since is None:
-            peer.matched_since = now
-            _logger.debug(f'channel to {peer.info.gid_hex} matched')
-        if now - peer.matched_since >= CHANNEL_SETTLE_SECONDS:
-            return True
-        if not peer.acknowledged and not (peer.handshake and self._acknowledged(peer, now)):
-            return False
-        # The route fence names the last main-topic message written for the peer, which the
-        # subscription waits for: none, or one written after the acknowledgment was seen. The
-        # peer's main-topic reader had matched our writer by then (its discovery of our writer
-        # came before that of the channel's, on the same path), so it gets that one; one
-        # written before may be gone from our KEEP_LAST history when the new reader asks.
-        last_main = self._main_timestamps.get(peer.info.gid)
-        return last_main is None or last_main > peer.acknowledged_after
-
-    def _acknowledged(self, peer: _SubscriptionPeer, now: float) -> bool:
-        """Whether the peer's reader acknowledged the probes; writes them (or one more) first.
-
-        A reader acknowledges only writers it matched, and only when a heartbeat asks, which
-        Fast DDS sends with a write while its KEEP_LAST history is full (else every few
-        seconds): so ``depth + 1`` probes go first, and one more at most every
-        ``PROBE_INTERVAL_SECONDS`` while unacknowledged. Probes are the only channel samples
-        before the route fence, so "all acknowledged" means the probes.
-        """
-        if peer.probed_at and peer.channel.wait_for_all_acked(0.0):
-            peer.acknowledged = True
-            peer.acknowledged_after = self._last_timestamp
-            _logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
-                          f'{1000 * (now - peer.matched_since):.0f} ms after its match')
-            return True
-        if now - peer.probed_at >= PROBE_INTERVAL_SECONDS:
-            timestamp = self._last_timestamp or time.time_ns()
-            for _ in range(1 if peer.probed_at else self.qos_profile.depth + 1):
-                peer.channel.publish(self._probe, timestamp)
-            peer.probed_at = now
-        return False
-
     def _describe(self, vendor: str, payload: Buffer, peer: _SubscriptionPeer) -> Optional[bytes]:
         try:
             return self._backends[vendor].create_descriptor_with_endpoint(payload, peer.info)
+        except EndpointGone:
+            raise
         except Exception as exc:  # a failing backend degrades to CPU bytes for this message
             _logger.error(f'backend {vendor!r} failed to describe a buffer for '
                           f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU bytes',
@@ -587,7 +485,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         super()._release()
 
     def _node_entities(self) -> list:
-        entities = [self._reannounce_timer, self._discovery_guard]
+        entities = [self._reannounce_timer, self._route_timer, self._discovery_guard]
         if self._deadline is not None:
             entities.append(self._deadline.timer)
         return entities
@@ -595,12 +493,13 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         # backends account per channel: which local publisher serves this peer
         info = dataclasses.replace(info, local_gid=self._gid)
-        record = _SubscriptionPeer(info=info, backends=backends)
+        depth = self.qos_profile.depth
+        record = _SubscriptionPeer(info=info, backends=backends, route=self._table.add(
+            info.gid, handshake=self._handshake and reliable_subscription(
+                self._node, self._topic_name, info.gid), depth=depth))
         record.channel_topic = channel_topic(self._topic_name, self._gid, info.gid)
         record.channel = _dds.create_channel_publisher(
             self._node, self.msg_type, record.channel_topic, self.qos_profile)
-        record.handshake = self._handshake and reliable_subscription(
-            self._node, self._topic_name, info.gid)
         self._peers_added += 1
         return record
 
@@ -608,25 +507,24 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         # any subscription of our topic coming or changing, legacy ones too, may change routes
         if peer.kind is self._peer_kind:
             with self._lock:
-                self._routes = None
+                self._planned = None
         super()._on_peer(peer)
 
     def _on_peer_gone(self, gid: bytes) -> None:
         with self._lock:
-            self._routes = None
-            self._main_timestamps.pop(gid, None)
+            self._planned = None
+            self._table.remove(gid)
         super()._on_peer_gone(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
-        record.compatible = compatible  # (_on_peer already dropped the routes)
+        record.compatible = compatible  # (_on_peer already dropped the plan)
+        self._arm_route_timer(True)  # its route advances on the executor, publishing or not
 
     def _forget_peer(self, gid: bytes) -> None:
         if gid in self._peers:
             self._peers_removed += 1
-
-
-#: The route fence's payload: the source timestamp of the last main-topic message (uint64 LE).
-_FENCE = struct.Struct('<Q')
+            self._table.remove(gid)
+            self._planned = None
 
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,

@@ -12,8 +12,8 @@ channel, and one :class:`RouteTable` per publisher::
     UNMATCHED --matched--> PROBING  --acknowledged--> ACKNOWLEDGED --main written--> FENCING
         ^         (RELIABLE KEEP_LAST <= MAX_PROBE_DEPTH)    |  (or no main-topic message yet)
         |     \\--matched--> SETTLING --settle time---------+-----------------------> FENCING
-        |                                                                        fence written
-        +-------unmatched-------- CONFIRMED <--channel acknowledged-- SERVING <------'
+        |                                    probes acknowledged: fence written |
+        +-------unmatched-------- CONFIRMED <--channel acknowledged-- SERVING <-+ fence written
     any --gone--> GONE (nothing is written to it any more)
 
 Until FENCING the main topic serves the subscription. A route becomes FENCING only when what
@@ -94,7 +94,9 @@ class Route:
     matched_since: float = 0.0
     #: When probes were last written (None: none since the channel matched).
     probed_at: Optional[float] = None
-    #: Source timestamp of the last message published when the acknowledgment was seen.
+    #: The reader acknowledged the probes (since the channel last matched), and the source
+    #: timestamp of the last message published when that was seen.
+    acknowledged_probes: bool = False
     acknowledged_after: int = 0
     #: Source timestamp of the last message the main topic carried for the subscription.
     last_main: Optional[int] = None
@@ -129,7 +131,7 @@ class Route:
                     # messages, so no probe may follow; if the reader comes back, it settles
                     self.handshake = False
                 self.state = RouteState.UNMATCHED
-                self.probed_at = None
+                self.probed_at, self.acknowledged_probes = None, False
             return
         if state is RouteState.UNMATCHED:
             self.matched_since = now
@@ -158,6 +160,7 @@ class Route:
     def acknowledged(self, last_published: int) -> None:
         """Every sample written on the channel so far was acknowledged by its reader."""
         if self.state is RouteState.PROBING:
+            self.acknowledged_probes = True
             self.acknowledged_after = last_published
             # The fence names the last main-topic message written for the subscription, which
             # it waits for: none, or one written after this acknowledgment (its main-topic
@@ -189,10 +192,12 @@ class Route:
         return None
 
     def take_fence(self) -> Optional[Fence]:
-        """The fence to write before this message on the channel (FENCING), else None."""
+        """The fence to write before this message on the channel (FENCING), else None. A
+        channel whose reader acknowledged the probes is known to reach it: CONFIRMED at once;
+        one that settled by time alone SERVES until its own samples are acknowledged."""
         if self.state is not RouteState.FENCING:
             return None
-        self.state = RouteState.SERVING
+        self.state = RouteState.CONFIRMED if self.acknowledged_probes else RouteState.SERVING
         return Fence(self.last_main or 0)
 
     def main_written(self, timestamp: int) -> None:
@@ -219,7 +224,8 @@ class Plan(NamedTuple):
     #: Whether the main topic is written (some matched subscription is not on a channel, or
     #: the publisher is TRANSIENT_LOCAL and keeps the history there).
     main: bool
-    #: Subscriptions the main-topic sample is kept from (their channel reaches them).
+    #: Subscriptions the main-topic sample is kept from (their channel reaches them, or they
+    #: are gone).
     withheld: Tuple[Hashable, ...]
     #: Subscriptions the main topic serves (their last main-topic message is noted).
     main_served: Tuple[Hashable, ...]
@@ -252,19 +258,25 @@ class RouteTable(Generic[K]):
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's
         matched subscriptions (legacy ones included). Timed transitions happen here."""
-        channel, withheld = [], []
+        channel, withheld, gone = [], [], set()
         recheck_at = now + RECHECK_SECONDS
         for key, route in self.routes.items():
             route.tick(now)
             if route.on_channel:
                 channel.append(key)
-                if route.withheld:
+                if route.withheld and not self.main_always:
+                    # (a TRANSIENT_LOCAL DataWriter that keeps samples from a reader makes
+                    # Fast DDS 2.14 report some of them as lost to it, once its KEEP_LAST
+                    # history moves on: those readers get the copies, and drop them uncopied)
                     withheld.append(key)
+            elif route.state is RouteState.GONE:
+                gone.add(key)
+                withheld.append(key)  # its reader may be matched until DDS's lease ends
             at = route.next_tick(now)
             if at is not None:
                 recheck_at = min(recheck_at, at)
-        on_channel = set(channel)
-        main_served = tuple(key for key in matched if key not in on_channel)
+        skipped = gone.union(channel)
+        main_served = tuple(key for key in matched if key not in skipped)
         return Plan(tuple(channel), bool(main_served) or self.main_always, tuple(withheld),
                     main_served, recheck_at)
 
@@ -315,10 +327,17 @@ class Stream(Generic[T]):
     waiting: Deque[Tuple[int, T]] = field(default_factory=collections.deque)
     waiting_since: float = 0.0
     timeouts: int = 0
+    #: The channel went away while messages were queued (see :meth:`channel_lost`).
+    lost: bool = False
+
+    def duplicate(self, timestamp: int) -> bool:
+        """Whether a main-topic copy with this timestamp would be dropped (asked before taking
+        it, so a duplicate is discarded without copying its payload)."""
+        return timestamp <= self.last or (self.switch is not None and timestamp >= self.switch)
 
     def main(self, timestamp: int) -> Verdict:
         """A main-topic copy arrived."""
-        if timestamp <= self.last or (self.switch is not None and timestamp >= self.switch):
+        if self.duplicate(timestamp):
             return Verdict.DUPLICATE
         self.last = timestamp
         return Verdict.DELIVER
@@ -358,6 +377,9 @@ class Stream(Generic[T]):
             if timestamp > self.last:
                 self.last = timestamp
                 return item
+        if self.lost:
+            self.lost = False
+            self.state, self.switch, self.fence = StreamState.MAIN, None, 0
         return None
 
     @property
@@ -372,8 +394,13 @@ class Stream(Generic[T]):
         return None
 
     def channel_lost(self) -> None:
-        """The publisher's channel went away: its next messages come on the main topic."""
-        self.state, self.switch, self.fence = StreamState.MAIN, None, 0
+        """The publisher's channel went away: its next messages come on the main topic. Channel
+        messages queued here are delivered first, after their fenced message as before; the
+        stream returns to the main topic once they are out (see :meth:`release`)."""
+        if self.waiting:
+            self.lost = True
+        else:
+            self.state, self.switch, self.fence = StreamState.MAIN, None, 0
 
     def _enter_waiting_or_channel(self, now: float) -> None:
         if self.reliable and self.fence > self.last:

@@ -9,32 +9,28 @@ discovers it opens the channel ``rt/<topic>/_buf/<pub gid>_<sub gid>`` below rcl
 triggers a guard condition in the same callback group.
 
 One delivery path, :meth:`Subscription._next`, whichever of the two woke the executor. Per
-publisher, messages are delivered once and in publish order:
+publisher, messages are delivered once and in publish order by that publisher's
+:class:`~rosidl_buffer_py.routes.Stream` (the route protocol's subscription side, in
+:mod:`rosidl_buffer_py.routes`): this class takes samples, feeds them to the stream, and
+delivers, queues or drops them as it decides.
 
-- every copy of a message carries the publisher's source timestamp, increasing per publisher; a
-  copy not newer than the last delivered message of its publisher is dropped;
 - channels are taken first: a publisher writes a message's channel copy before its main-topic
   copy (kept for legacy subscribers), so the channel's route fence and copy are normally seen
-  first, and the main-topic copy is dropped as their duplicate;
-- a publisher that starts serving us on its channel first sends a *route fence* naming the last
-  message the main topic carried for us; channel messages wait until that one was delivered
-  (main-topic messages are never held), and main-topic copies from the fence's message on are
-  duplicates of channel messages;
-- before that, a publisher may write *probes* on the channel (to learn that our channel reader
-  matched it): they are dropped.
+  first, and the main-topic copy is dropped as their duplicate (uncopied: its key is read from
+  the DDS sample info);
+- control messages on a channel (:mod:`rosidl_buffer_py.control`: probes, route fences) are
+  told apart from messages by two header bytes;
+- a publisher that goes away leaves what its channel had delivered to our reader: it is taken
+  before the channel is destroyed and delivered in order, as a stock reader keeps the samples
+  of a writer that left.
 
-No copy waits for its twin on a clock. Channel messages that wait for their fence are taken
-from the channel meanwhile and queued here, in order, so a slow main topic (DDS repairing the
-first large frames) delays them but cannot make the channel's DDS history overflow. The only
-timer, :data:`FENCE_TIMEOUT_SECONDS`, bounds the wait for a fenced message that was lost (a
-reader history that overflowed), as DDS's own KEEP_LAST loses it. Messages of legacy publishers
-arrive on the main topic only, as with stock.
+Messages of legacy publishers arrive on the main topic only, as with stock.
 """
 import collections
 import copy
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import rclpy.subscription
@@ -42,10 +38,12 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
-from rosidl_buffer_py import _dds, advertisement, codec, discovery
+from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
-from rosidl_buffer_py.channel import FENCE_BACKEND, PROBE_BACKEND, channel_topic, dds_topic
+from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.routes import Verdict
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
@@ -56,20 +54,12 @@ from rosidl_buffer_py.transport import (
 
 _logger = get_logger('rosidl_buffer_py.subscription')
 
-#: How long channel messages wait for a fenced main-topic message before it counts as lost.
-FENCE_TIMEOUT_SECONDS = 1.0
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
 MAX_BATCH = 64
 #: CPU messages up to this many CDR bytes are deserialized in C (rclpy's own conversion: no
 #: Python-level work); longer ones are decoded by the codec, which splices the payload with one
 #: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
 C_DESERIALIZE_MAX_BYTES = 64 * 1024
-#: A route fence is a small descriptor-encoded message: longer samples are not searched for one.
-_FENCE_MAX_BYTES = 64 * 1024
-_FENCE_NAME = FENCE_BACKEND.encode()
-_PROBE_NAME = PROBE_BACKEND.encode()
-#: What :meth:`Subscription._fence_of` returns for a probe (see ``channel.PROBE_BACKEND``).
-_PROBE = -1
 #: A GID is the DDS GUID: a 12-byte participant prefix, then the 4-byte entity id.
 _GUID_PREFIX = 12
 
@@ -100,29 +90,19 @@ class _PublisherPeer:
     backend_in_use: Optional[str] = None
     #: The publisher advertises a backend we accept besides CPU: descriptors may come.
     descriptors_possible: bool = False
-    #: A route fence arrived: later channel samples of a CPU-only peer are CPU messages.
-    fence_seen: bool = False
+    #: What its channel had delivered to our reader when the publisher went away.
+    departed: Optional[Deque[_Taken]] = None
 
+    def take(self) -> Optional[_Taken]:
+        """The next sample of its channel (raw CDR bytes), or None."""
+        if self.departed is not None:
+            return self.departed.popleft() if self.departed else None
+        taken = self.channel.take()
+        return None if taken is None else _Taken(*taken)
 
-@dataclass
-class _Stream:
-    """One publisher's messages as this subscription delivers them (every publisher has one)."""
-
-    #: Source timestamp of the last delivered message: older copies are late or duplicates.
-    last: int = 0
-    #: From the route fence: main-topic messages up to ``fence`` come before channel messages,
-    #: and main-topic copies from ``switch`` on duplicate channel messages.
-    fence: int = 0
-    switch: Optional[int] = None
-    #: Channel messages waiting for the fenced main-topic message (taken from the channel
-    #: meanwhile, so its DDS history cannot overflow while the main topic is slow), and since
-    #: when the first one waits.
-    waiting: Deque[_Taken] = field(default_factory=collections.deque)
-    waiting_since: float = 0.0
-
-    def duplicate(self, timestamp: int) -> bool:
-        """Whether a main-topic copy with this source timestamp is not to be delivered."""
-        return timestamp <= self.last or (self.switch is not None and timestamp >= self.switch)
+    @property
+    def pending(self) -> bool:
+        return bool(self.departed) if self.departed is not None else self.channel.pending
 
 
 class _MainTopicReader(_rclpy.Subscription):
@@ -152,14 +132,14 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._node = node
         self._lock = threading.RLock()
         self._peers: Dict[bytes, _PublisherPeer] = {}
-        self._streams: Dict[bytes, _Stream] = collections.defaultdict(_Stream)
+        #: one stream per publisher: the route protocol's subscription side
+        self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
+            reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
         self._counts = collections.Counter()
         self._next_channel = 0
-        self._channels: List[_PublisherPeer] = []  # the peers with a channel, polled in turn
-        self._waiting = 0  # streams with a channel message waiting for its fence
-        self._switched: Set[bytes] = set()  # publishers serving us on their channel
+        #: the peers with a channel (and departed ones with samples left), polled in turn
+        self._channels: List[_PublisherPeer] = []
         self._suspects: Set[bytes] = set()  # publishers whose data C could not deserialize
-        self._reliable = qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT
         self._destroyed = False
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
         self._discovery = discovery.for_node(node)
@@ -275,7 +255,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                     return None
                 msg = self._accept_main(taken)
                 if msg is not None:
-                    if self._waiting:
+                    if self._streams.waiting():
                         self._wake()  # it may open a fence: the channel guard delivers the rest
                     return self._delivered(msg, taken)
             return None
@@ -291,8 +271,9 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
         While some publisher serves us on its channel, its main-topic copies (written for
         legacy subscribers; its DataWriter keeps most from us, see
-        ``_dds.exclude_from_next_write``) are duplicates: their key (publisher GID, source timestamp) is read
-        from the DDS sample info and they are discarded without copying their payload.
+        ``_dds.exclude_from_next_write``) are duplicates: their key (publisher GID, source
+        timestamp) is read from the DDS sample info and they are discarded without copying
+        their payload.
 
         Publishers write only CPU data on the main topic: it is deserialized in C, as rclpy
         does. A sample that does not deserialize makes Jazzy's C type support print a line to
@@ -301,11 +282,12 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         hostile writer gets one such line, not one per message.
         """
         key = None
-        while self._switched or self._suspects:
+        streams = self._streams.streams
+        while self._suspects or any(s.switch is not None for s in streams.values()):
             key = _dds.peek_untaken(self.handle)
             if key is None:
                 return None
-            stream = self._streams.get(key[0])
+            stream = streams.get(key[0])
             if stream is None or not stream.duplicate(key[1]):
                 break
             if _dds.discard_untaken(self.handle) is not None:
@@ -327,124 +309,86 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
     def _accept_main(self, taken: _Taken):
         """The message of a main-topic sample, or None when it is not to be delivered."""
-        stream = self._streams[taken.publisher_gid]
-        ts = taken.timestamp
-        if stream.duplicate(ts):
+        if self._streams[taken.publisher_gid].main(taken.timestamp) is Verdict.DUPLICATE:
             self._counts['duplicates_dropped'] += 1  # delivered, or to be, from the channel
             return None
-        peer = self._peers.get(taken.publisher_gid)
-        stream.last = ts
-        return self._decode(taken, peer)
+        return self._decode(taken, self._peers.get(taken.publisher_gid))
 
     def _next_from_channels(self):
         """``(message or None, taken)`` from the channels (rotating), or None when all are
         empty (a stream waiting for its fence queues what its channel gives meanwhile)."""
         channels = self._channels
         count = len(channels)
+        now = time.monotonic()
+        main_drained = None
         for i in range(count):
             peer = channels[(self._next_channel + i) % count]
             stream = self._streams[peer.info.gid]
-            if stream.waiting and self._fence_passed(stream):
-                taken = stream.waiting.popleft()
-                if not stream.waiting:
-                    self._waiting -= 1
-                msg = None
-                if taken.timestamp > stream.last:
-                    stream.last = taken.timestamp
-                    msg = self._decode(taken, peer)
-            else:  # (while the stream waits for its fence, this queues what it takes)
-                taken = self._take_channel(peer)
+            taken = None
+            if stream.holding:
+                if main_drained is None:  # a fence may time out only if nothing can come
+                    main_drained = _dds.peek_untaken(self.handle) is None
+                taken = stream.release(now, main_drained)
+                msg = None if taken is None else self._decode(taken, peer)
+            if taken is None:
+                taken = peer.take()
                 if taken is None:
                     continue
-                msg = self._accept_channel(taken, peer, stream)
+                msg = self._accept_channel(taken, peer, stream, now)
             self._next_channel = (self._next_channel + i + 1) % count
             return msg, taken
+        self._retire_departed()
         return None
 
-    def _take_channel(self, peer: _PublisherPeer) -> Optional[_Taken]:
-        # peers that cannot send us descriptors: deserialized in C, as rclpy's take does (once
-        # their route fence, a descriptor-encoded sample, has come)
-        if peer.descriptors_possible or not peer.fence_seen:
-            taken = peer.channel.take()
-        else:
-            taken = peer.channel.take_message(self.msg_type, C_DESERIALIZE_MAX_BYTES)
-        return None if taken is None else _Taken(*taken)
-
-    def _accept_channel(self, taken: _Taken, peer: _PublisherPeer, stream: _Stream):
-        """The message of a channel sample, or None (a fence, a duplicate, a sample of a writer
-        that is not the peer's, or it must wait)."""
+    def _accept_channel(self, taken: _Taken, peer: _PublisherPeer, stream: routes.Stream,
+                        now: float):
+        """The message of a channel sample, or None (a control message, a duplicate, a sample
+        of a writer that is not the peer's, or it must wait)."""
         if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
             # the channel's writer is created by the publisher's participant: anyone else on
             # its topic is an impostor (any process can create a writer on any topic)
-            self._counts['rejected'] += 1
-            _logger.warning(
-                f'rejected a message on the channel {peer.channel_topic} from writer '
-                f'{taken.publisher_gid.hex()}, which is not of publisher {peer.info.gid_hex}\'s '
-                f'participant ({self._counts["rejected"]} rejected so far)',
-                throttle_duration_sec=5.0)
+            self._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
+                                f'{peer.info.gid_hex}\'s participant')
             return None
         ts = taken.timestamp
-        if type(taken.raw) is not self.msg_type:
-            fence = self._fence_of(taken.raw)
-            if fence == _PROBE:
-                return None  # the publisher learning that this channel reader matched
-            if fence is not None:
+        try:
+            message = None if type(taken.raw) is self.msg_type else control.parse(taken.raw)
+        except control.ControlError as exc:
+            self._reject(taken, f'{exc} (on the channel {peer.channel_topic})')
+            return None
+        if message is not None:
+            if isinstance(message, routes.Fence):
                 self._counts['fences'] += 1
                 _logger.debug(f'route fence from {peer.info.gid_hex}: main-topic messages up '
-                              f'to {fence} first')
-                peer.fence_seen = True
-                stream.switch, stream.fence = ts, fence
-                self._switched.add(peer.info.gid)
-                return None
+                              f'to {message.last_main} first')
+                stream.fenced(ts, message, now)
+                self._arm_fence_timer()
+            return None  # a probe: the publisher learning that this channel reader matched
         self._counts['from_channels'] += 1
-        if ts <= stream.last:
+        verdict = stream.channel(ts, taken, now)
+        if verdict is Verdict.DUPLICATE:
             self._counts['duplicates_dropped'] += 1
             return None
-        if stream.switch is None:  # no fence yet: channel messages are newer than main's
-            stream.switch = ts
-            self._switched.add(peer.info.gid)
-        if stream.waiting or (self._reliable and stream.fence > stream.last):
-            if not stream.waiting:
-                stream.waiting_since = time.monotonic()
-                self._waiting += 1
-                self._arm_fence_timer()
-            stream.waiting.append(taken)
+        if verdict is Verdict.QUEUED:
+            self._arm_fence_timer()
             return None
-        stream.last = ts
         return self._decode(taken, peer)
 
-    def _fence_passed(self, stream: _Stream) -> bool:
-        if stream.last >= stream.fence:
-            return True
-        if time.monotonic() - stream.waiting_since >= FENCE_TIMEOUT_SECONDS:
-            self._counts['fence_timeouts'] += 1  # the fenced message was lost on the way
-            stream.fence = 0
-            return True
-        return False
-
-    def _fence_of(self, raw) -> Optional[int]:
-        """The timestamp a route fence carries, ``_PROBE`` for a probe, or None when ``raw`` is
-        neither."""
-        if len(raw) > _FENCE_MAX_BYTES or (_FENCE_NAME not in raw and _PROBE_NAME not in raw):
-            return None
-        try:
-            decoded = codec.decode(raw, self.msg_type)
-        except codec.CodecError:
-            return None
-        if decoded.backend_type == PROBE_BACKEND and not decoded.descriptor:
-            return _PROBE
-        if decoded.backend_type != FENCE_BACKEND or len(decoded.descriptor) != 8:
-            return None
-        return int.from_bytes(decoded.descriptor, 'little')
-
     def _deliver_available(self) -> None:
-        """Channel data woke us: deliver what is deliverable (at most ``MAX_BATCH``)."""
+        """Channel data woke us: deliver what is deliverable (at most ``MAX_BATCH``).
+
+        A callback that raises leaves through the executor's spin, as with rclpy; the guard is
+        triggered first, so the next spin delivers the next message."""
         for _ in range(MAX_BATCH):
             item = self._next()
             if item is None:
                 return
-            self._call(*item)
-            if not self._waiting and not any(peer.channel.pending for peer in self._channels):
+            try:
+                self._call(*item)
+            except BaseException:
+                self._wake()
+                raise
+            if not self._streams.waiting() and not any(p.pending for p in self._channels):
                 # drained (each take counts what its reader holds): no empty take to prove it.
                 # A sample arriving from now on triggers the guard again; main-topic samples
                 # wake the executor through the main reader itself.
@@ -453,14 +397,18 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
     def _on_fence_timer(self) -> None:
         with self._lock:
-            if not self._waiting and self._fence_timer is not None:
+            if self._streams.next_deadline() is None and self._fence_timer is not None:
                 self._fence_timer.cancel()
         self._deliver_available()
 
     def _arm_fence_timer(self) -> None:
+        """Waiting streams give up on a lost fenced message after FENCE_TIMEOUT_SECONDS: a
+        timer runs while some stream waits."""
+        if self._streams.next_deadline() is None:
+            return
         if self._fence_timer is None:
             self._fence_timer = self._node.create_timer(
-                FENCE_TIMEOUT_SECONDS / 4, self._on_fence_timer, self.callback_group)
+                routes.FENCE_TIMEOUT_SECONDS / 4, self._on_fence_timer, self.callback_group)
         elif self._fence_timer.is_canceled():
             self._fence_timer.reset()
 
@@ -475,6 +423,13 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             if not self._destroyed:
                 self._channel_guard.trigger()
 
+    def _reject(self, taken: _Taken, why: str) -> None:
+        """Data from the network that is not to be delivered: counted and logged (throttled)."""
+        self._counts['rejected'] += 1
+        _logger.warning(f'rejected a message on {self._topic_name} from '
+                        f'{taken.publisher_gid.hex()}: {why} ({self._counts["rejected"]} '
+                        'rejected so far)', throttle_duration_sec=5.0)
+
     def _decode(self, taken: _Taken, peer: Optional[_PublisherPeer]):
         """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes."""
         raw = taken.raw
@@ -484,6 +439,13 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 peer.backend_in_use = CPU_BACKEND
             return raw
         try:
+            if (peer is not None and not peer.descriptors_possible and
+                    len(raw) <= C_DESERIALIZE_MAX_BYTES):
+                # a peer that cannot send us descriptors: deserialized in C, as rclpy's take
+                msg = deserialize_message(raw, self.msg_type)
+                peer.received_cpu += 1
+                peer.backend_in_use = CPU_BACKEND
+                return msg
             decoded = codec.decode(raw, self.msg_type, known_backends=self._backends)
             if decoded.backend_type is None:
                 if peer is not None:
@@ -502,11 +464,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             peer.backend_in_use = decoded.backend_type
             return decoded.msg
         except Exception as exc:  # bytes from the network: reject, count, log, go on
-            self._counts['rejected'] += 1
-            _logger.warning(
-                f'rejected a message on {self._topic_name} from {taken.publisher_gid.hex()}: '
-                f'{type(exc).__name__}: {exc} ({self._counts["rejected"]} rejected so far)',
-                throttle_duration_sec=5.0)
+            self._reject(taken, f'{type(exc).__name__}: {exc}')
             return None
 
     # peers ----------------------------------------------------------------------------------
@@ -524,27 +482,59 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         return record
 
     def _update_peer(self, record: _PublisherPeer, compatible) -> None:
-        # Channels of a peer that cannot send us descriptors are taken as messages (C
-        # deserialization); the others as bytes for the codec. Either way a message of the other
-        # kind is still decoded correctly: this only picks the cheaper take.
+        # Small CPU messages of a peer that cannot send us descriptors are deserialized in C;
+        # the others go to the codec. Either way a message of the other kind is still decoded
+        # correctly: this only picks the cheaper conversion.
         record.descriptors_possible = any(
             name != CPU_BACKEND and name in self._backends for name in record.backends)
-        self._channels = [p for p in self._peers.values() if p.channel is not None]
+        self._poll_channels()
+
+    def _poll_channels(self) -> None:
+        """The channels ``_next`` takes from, in turn: the peers' and the departed peers' with
+        samples left."""
+        self._channels = [p for p in self._peers.values() if p.channel is not None] + [
+            p for p in self._channels if p.departed is not None]
+
+    def _retire_departed(self) -> None:
+        """Departed peers whose samples were all delivered are forgotten, with their stream."""
+        done = [p for p in self._channels if p.departed is not None and not p.departed and
+                not self._streams[p.info.gid].holding]
+        if done:
+            for peer in done:
+                self._streams.pop(peer.info.gid)
+            self._channels = [p for p in self._channels if all(p is not d for d in done)]
 
     def _on_peer_gone(self, gid: bytes) -> None:
+        """A publisher went away: what its channel had delivered to our reader stays
+        deliverable, in order (as a stock reader keeps the samples of a writer that left).
+        Descriptors are resolved now, before the backend forgets the publisher."""
         with self._lock:
             self._suspects.discard(gid)
-            stream = self._streams.pop(gid, None)
-            if stream is not None and stream.waiting:
-                self._waiting -= 1
-        super()._on_peer_gone(gid)
+            peer = self._peers.get(gid)
+            left = collections.deque()
+            while peer is not None and peer.channel is not None:
+                taken = peer.take()
+                if taken is None:
+                    break
+                if type(taken.raw) is not self.msg_type and not control.is_control(taken.raw):
+                    msg = self._decode(taken, peer)
+                    if msg is None:
+                        continue
+                    taken = taken._replace(raw=msg)
+                left.append(taken)
+            super()._on_peer_gone(gid)
+            if peer is not None and (left or self._streams[gid].holding):
+                peer.departed = left
+                self._channels.append(peer)
+                self._wake()
+            elif not self._streams[gid].holding:
+                self._streams.pop(gid)
 
     def _forget_peer(self, gid: bytes) -> None:
         # its channel goes: its next messages (if any) come on the main topic again
-        stream = self._streams.get(gid)
+        stream = self._streams.streams.get(gid)
         if stream is not None:
-            stream.switch, stream.fence = None, 0
-        self._switched.discard(gid)
+            stream.channel_lost()
         self._channels = [p for p in self._channels if p.info.gid != gid]
 
     def _node_entities(self) -> list:

@@ -3,7 +3,7 @@ both state machines from a table, then a model-based test of the invariants over
 interleavings of publishes, matches, acknowledgments, losses, slow and dead subscribers."""
 import collections
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -19,10 +19,10 @@ S = RouteState
 
 
 def _route(state: RouteState, *, handshake=True, last_main=None, acknowledged_after=0,
-           probed_at=None, matched_since=0.0) -> Route:
+           probed_at=None, matched_since=0.0, acknowledged_probes=False) -> Route:
     return Route(handshake=handshake, first_probes=6, state=state, last_main=last_main,
                  acknowledged_after=acknowledged_after, probed_at=probed_at,
-                 matched_since=matched_since)
+                 matched_since=matched_since, acknowledged_probes=acknowledged_probes)
 
 
 # (start state, route arguments, event, event arguments) -> end state
@@ -49,7 +49,8 @@ ROUTE_TRANSITIONS = [
     (S.SETTLING, {}, 'tick', (CHANNEL_SETTLE_SECONDS,), S.FENCING),
     (S.ACKNOWLEDGED, {}, 'tick', (CHANNEL_SETTLE_SECONDS,), S.FENCING),
     (S.SERVING, {}, 'tick', (10.0,), S.SERVING),
-    (S.FENCING, {}, 'take_fence', (), S.SERVING),
+    (S.FENCING, {}, 'take_fence', (), S.SERVING),  # settled by time alone
+    (S.FENCING, {'acknowledged_probes': True}, 'take_fence', (), S.CONFIRMED),
     (S.SERVING, {}, 'take_fence', (), S.SERVING),
     *[(state, {}, 'gone', (), S.GONE) for state in RouteState],
     (S.GONE, {}, 'channel_matched', (True, 1.0), S.GONE),
@@ -92,7 +93,7 @@ def test_the_fence_names_the_last_main_topic_message_then_the_route_serves():
     route.acknowledged(7)
     assert route.state is S.ACKNOWLEDGED  # message 7 may be gone from the history: one more
     route.main_written(8)
-    assert route.take_fence() == Fence(8) and route.state is S.SERVING
+    assert route.take_fence() == Fence(8) and route.state is S.CONFIRMED  # probes acknowledged
     route.main_written(9)  # on the channel now: the main topic no longer serves it
     assert route.last_main == 8 and route.take_fence() is None
 
@@ -126,9 +127,13 @@ def test_table_plans_main_topic_for_legacy_and_unserved_subscriptions():
     plan = table.plan(0.0, ['a', 'legacy'])
     assert plan.channel == ('a',) and plan.withheld == ('a',) and plan.main_served == ('legacy',)
     assert not table.plan(0.0, ['a']).main
-    assert RouteTable(main_always=True).plan(0.0, []).main  # TRANSIENT_LOCAL keeps history
+    durable = RouteTable(main_always=True)  # TRANSIENT_LOCAL: the main topic keeps history
+    durable.add('a', handshake=True, depth=5).state = S.CONFIRMED
+    plan = durable.plan(0.0, ['a'])
+    assert plan.main and plan.channel == ('a',) and plan.withheld == ()  # see RouteTable.plan
     table.routes['a'].gone()
-    assert table.plan(0.0, ['a']).channel == ()
+    plan = table.plan(0.0, ['a'])  # DDS still matches it: nothing is written to it anyway
+    assert plan.channel == () and not plan.main and plan.withheld == ('a',)
 
 
 def test_deep_or_unbounded_histories_settle_instead_of_probing():
@@ -182,6 +187,17 @@ def test_stream_fence_never_times_out_while_the_main_topic_has_samples_to_take()
     stream.channel(3, 'm3', now=0.0)
     assert stream.release(5.0, main_drained=False) is None and stream.timeouts == 0
     assert stream.main(2) is Verdict.DELIVER and stream.release(5.0) == 'm3'
+
+
+def test_a_channel_lost_with_queued_messages_delivers_them_after_the_fenced_one_first():
+    stream = Stream()
+    stream.fenced(2, Fence(1), now=0.0)
+    stream.channel(2, 'm2', now=0.0)
+    stream.channel_lost()
+    assert stream.release(0.1) is None  # message 1 is still to come on the main topic
+    assert stream.main(1) is Verdict.DELIVER and stream.release(0.1) == 'm2'
+    assert stream.release(0.1) is None and stream.state is StreamState.MAIN
+    assert stream.main(3) is Verdict.DELIVER
 
 
 def test_best_effort_stream_never_waits():
@@ -275,10 +291,9 @@ class RouteProtocol(RuleBasedStateMachine):
         self.seen_up = self.channel_up
         for _ in range(self.route.probes_due(self.now)):
             self.channel.write(('control', control.encode(control.PROBE), ts - 1))
-        plan = self.table.plan(self.now, [] if self.dead else ['s'])
         if self.dead and self.route.state is not RouteState.GONE:
-            self.route.gone()
-            plan = self.table.plan(self.now, [])
+            self.route.gone()  # the backend said so; DDS still matches it
+        plan = self.table.plan(self.now, ['s'])
         for key in plan.channel:
             if self.dead:
                 self.written_after_gone += 1

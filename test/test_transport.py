@@ -19,7 +19,7 @@ from in_process import frame, spin_until
 from launch_free_demos.runner import Run
 from launch_free_demos.scenarios import SCENARIOS, SMALL
 from rosidl_buffer_py import _dds, advertisement, codec
-from rosidl_buffer_py import publisher as publisher_module
+from rosidl_buffer_py import routes
 from rosidl_buffer_py.nodes.frames import check_frame
 
 #: What a publisher node reports when not one subscriber matched its main topic in time.
@@ -76,6 +76,28 @@ def test_publisher_restarted():
 
 
 
+
+
+@pytest.mark.parametrize('kind', ['stock', 'ours'])
+def test_a_slow_subscriber_gets_every_frame_its_publisher_sent_before_exiting(kind):
+    """A publisher that exits right after its last frame, a subscriber spending 0.15 s per
+    frame: stock's gets all 20 from its reader's history after the writer left, and so does a
+    zero-copy one (its channel is drained when the publisher goes, and the frames' memory
+    outlives the publisher)."""
+    topic, count = f'/exit_{kind}_image', 20
+    ours = kind == 'ours'
+    with Run() as run:
+        run.start('sub', 'image_subscriber', **_sub_params(
+            topic, count, depth=50, work_sec=0.15, legacy=not ours,
+            **({'acceptable_buffer_backends': 'demo', 'expected_backend': 'demo'}
+               if ours else {})))
+        run.start('pub', 'image_publisher', **_pub_params(
+            topic, count, depth=50, rate_hz=30.0, linger_sec=0.0, legacy=not ours,
+            **({'backend': 'demo', 'wait_for_buffer_peers': 1} if ours else {})))
+        assert run.wait(['pub', 'sub'], 60), run.diagnostics()
+        report = run.nodes['sub'].report
+    assert report['distinct'] == report['received'] == count, (report, run.diagnostics())
+    assert report['checksum_failures'] == report['gaps'] == 0, report
 
 
 def test_beside_a_legacy_listener_served_subscriptions_take_no_main_topic_copies():
@@ -211,8 +233,8 @@ def test_publishing_from_the_first_matched_instant_switches_each_route_once(cont
     messages of the second switch (CI's equivalence scenario reliable_pub_first_matched_ours).
     Here channels serve by their acknowledged probes only (no settle time) and routes are
     re-checked on every publish: the conditions of that race, every time."""
-    monkeypatch.setattr(publisher_module, 'CHANNEL_SETTLE_SECONDS', 60.0)
-    monkeypatch.setattr(publisher_module, 'ROUTES_RECHECK_SECONDS', 0.0)
+    monkeypatch.setattr(routes, 'CHANNEL_SETTLE_SECONDS', 60.0)
+    monkeypatch.setattr(routes, 'RECHECK_SECONDS', 0.0)
     frames, topic = 30, '/first_matched_image'
     node = rclpy.create_node('first_matched', context=context)
     accepts = ('cpu', 'demo', 'any')
@@ -438,4 +460,70 @@ def test_a_rogue_writer_on_a_channel_is_rejected(context):
         rogue_node.destroy_node()
     finally:
         rclpy.try_shutdown(context=rogue_context)
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('kind', ['stock', 'ours'])
+def test_serialized_publishing_while_routes_come_up_reaches_every_subscription(context, kind):
+    """publish(serialized bytes) from the first matched instant, while buffer-aware
+    subscriptions' routes come up (probes, fences): every subscription gets every message, as
+    from a stock publisher (a fence used to need a message object and raised for bytes)."""
+    from rclpy.serialization import serialize_message
+    node = rclpy.create_node(f'serialized_{kind}', context=context)
+    topic = f'/serialized_{kind}'
+    got = {accept: [] for accept in ('cpu', 'demo', 'plain')}
+    for accept in ('cpu', 'demo'):
+        rosidl_buffer_py.create_subscription(
+            node, Image, topic, lambda m, a=accept: got[a].append(check_frame(m).counter),
+            RELIABLE, acceptable_buffer_backends=accept)
+    node.create_subscription(Image, topic, lambda m: got['plain'].append(check_frame(m).counter),
+                             RELIABLE)
+    pub = (node.create_publisher(Image, topic, RELIABLE) if kind == 'stock' else
+           rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE))
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 3)
+    for counter in range(40):
+        pub.publish(serialize_message(frame(counter)))
+        executor.spin_once(timeout_sec=0.01)
+    assert spin_until(executor, lambda: all(len(g) >= 40 for g in got.values())), got
+    assert all(g == list(range(40)) for g in got.values()), got
+    node.destroy_node()
+
+
+@pytest.mark.parametrize('kind', ['stock', 'ours'])
+def test_a_raising_callback_leaves_spin_once_and_the_next_spin_delivers_the_next_message(
+        context, kind):
+    """As with rclpy: the exception of a subscription callback comes out of spin_once, and the
+    subscription goes on with the next message at the next spin (it used to stall)."""
+    node = rclpy.create_node(f'raising_{kind}', context=context)
+    topic = f'/raising_{kind}'
+    got = []
+
+    def callback(msg):
+        got.append(check_frame(msg).counter)
+        if len(got) == 2:
+            raise RuntimeError('user callback failed')
+
+    if kind == 'stock':
+        node.create_subscription(Image, topic, callback, RELIABLE)
+    else:
+        rosidl_buffer_py.create_subscription(node, Image, topic, callback, RELIABLE,
+                                             acceptable_buffer_backends='demo')
+    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: kind == 'stock' or any(
+        p['channel_serving'] for p in pub.buffer_peers()))
+    for counter in range(5):
+        pub.publish(frame(counter, 'demo'))
+    raised = 0
+    deadline = time.monotonic() + 10.0
+    while len(got) < 5 and time.monotonic() < deadline:
+        try:
+            executor.spin_once(timeout_sec=0.05)
+        except RuntimeError as exc:
+            assert 'user callback failed' in str(exc)
+            raised += 1
+    assert raised == 1 and got == [0, 1, 2, 3, 4], (raised, got)
     node.destroy_node()
