@@ -422,15 +422,14 @@ def _walk(ops: Tuple[tuple, ...], buf: memoryview, pos: int, end: int, unpack,
                                      f'only {end - pos} are left')
                 if buf[pos + length - 1] != 0:
                     raise CodecError(f'string {label} at offset {at} is not NUL-terminated')
-                characters, nbytes = length - 1, length
+                nbytes = length
             else:
-                characters, nbytes = length, 4 * length
+                nbytes = 4 * length
                 if nbytes > end - pos:
                     raise CodecError(f'wstring {label} at offset {at} claims {length} characters '
                                      f'({nbytes} bytes) but only {end - pos} bytes are left')
-            if op[1] is not None and characters > op[1]:
-                raise CodecError(f'string {label} at offset {at} has {characters} characters, '
-                                 f'more than its bound {op[1]}')
+            # No check of a bounded string's bound: it counts characters, the wire bytes (or
+            # UTF-16 units), and rclpy's serializer does not check it either.
             if out is not None:
                 out.pad(4)
                 out.cur += buf[pos - 4:pos + nbytes]
