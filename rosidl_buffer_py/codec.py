@@ -1015,18 +1015,18 @@ def encode(msg: Any,
             head += suffix
             return head
         return _encode_walk(msg, compiled, {}).joined()
-    if isinstance(descriptors, Mapping):
+    if type(descriptors) is tuple or not isinstance(descriptors, Mapping):  # one pair
+        backend, data = _check_descriptor(descriptors)
+        if plan is None:
+            return _encode_walk(msg, compiled,
+                                {FieldPath((payload_field(type(msg)),)): (backend, data)}).joined()
+    else:
         checked = _check_descriptors(descriptors)
         if plan is None or (checked and set(checked) != {plan.path}):
             return _encode_walk(msg, compiled, checked).joined()
         if not checked:
             return encode(msg)
         backend, data = checked[plan.path]
-    else:
-        backend, data = _check_descriptor(descriptors)
-        if plan is None:
-            return _encode_walk(msg, compiled,
-                                {FieldPath((payload_field(type(msg)),)): (backend, data)}).joined()
     # the same bytes from C (None when it cannot: the code below then says why)
     out = _native.encode_descriptor(msg, plan.slots, plan.slot, _EMPTY_PAYLOAD, backend,
                                     data, plan.suffix_size)
