@@ -878,6 +878,7 @@ def _encode_walk(msg: Any, compiled: _TypeCodec, descriptors: Dict[FieldPath, Tu
     body = memoryview(small)[_HEADER_SIZE:]
     end = len(body)
     out = _Out(small[:_HEADER_SIZE])
+    lengths: List[int] = []  # of the CPU payloads, in wire order (for _estimate)
 
     def blob(path: Tuple, label: str, pos: int) -> int:
         _, pos = _read_u32(body, pos, end, unpack, label)  # the clone's empty field
@@ -887,16 +888,17 @@ def _encode_walk(msg: Any, compiled: _TypeCodec, descriptors: Dict[FieldPath, Tu
             view = _payload_view(values[path], str(FieldPath(path)))
             out.cur += u32.pack(view.nbytes)
             out.payload(view, path == apart)
+            lengths.append(view.nbytes)
         else:
             _write_descriptor(out, u32, *described)
+            lengths.append(0)
         return pos
 
     _walk(compiled.ops, body, 0, end, unpack, out, (), blob)
     if compiled.plain:
         out.pad(4)  # as rmw_fastrtps sizes a fixed-size message: a multiple of 4
     elif compiled.slack:
-        lengths = iter([len(v) if k not in descriptors else 0 for k, v in values.items()])
-        _, estimate = _estimate(compiled.ops, body, 0, end, unpack, 0, lengths)
+        _, estimate = _estimate(compiled.ops, body, 0, end, unpack, 0, iter(lengths))
         written = out.base + len(out.cur)
         if estimate > written:
             out.cur += bytes(estimate - written)

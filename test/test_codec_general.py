@@ -531,3 +531,19 @@ def test_short_path_types_keep_it(msg_type):
     decoded = decode(encode(msg_type(), {'data': ('demo', b'd')}), msg_type)
     assert decoded.descriptors == {('data',): ('demo', b'd')}
     assert (decoded.backend_type, decoded.descriptor) == ('demo', b'd')
+
+
+def test_payload_forms_in_a_general_type():
+    import numpy
+    expected = encode(UnboundedSequences(uint8_values=bytes(range(12)), float64_values=[]))
+    for form in (bytes(range(12)), bytearray(range(12)), list(range(12)),
+                 numpy.arange(12, dtype=numpy.uint8).reshape(3, 4),
+                 numpy.repeat(numpy.arange(12, dtype=numpy.uint8), 2)[::2],
+                 Buffer('demo', bytearray(range(12)))):
+        msg = UnboundedSequences(float64_values=[])
+        msg._uint8_values = form  # any payload form, as the setter would not keep it
+        assert encode(msg) == expected, type(form)
+    msg = UnboundedSequences()
+    msg._uint8_values = numpy.zeros(3, numpy.float32)
+    with pytest.raises(CodecError, match=r"uint8_values: payload items must be uint8"):
+        encode(msg)
