@@ -993,21 +993,30 @@ def encode_parts(msg: Any) -> EncodedParts:
 
 
 def encode(msg: Any,
-           descriptors: Union[None, Tuple[str, bytes], Mapping[Any, Tuple[str, bytes]]] = None
-           ) -> bytearray:
+           descriptor: Union[None, Tuple[str, bytes], Mapping[Any, Tuple[str, bytes]]] = None,
+           *, descriptors: Optional[Mapping[Any, Tuple[str, bytes]]] = None) -> bytearray:
     """Serialize ``msg`` (CDR with its 4-byte encapsulation header) for the wire.
 
     :param msg: A message of any type. A ``uint8[]`` field (at any depth) may hold
         ``array.array('B')``, bytes, bytearray, memoryview, a list of ints, a numpy uint8 array
         or a :class:`~rosidl_buffer_py.Buffer` (sent as its CPU bytes unless described).
-    :param descriptors: ``None`` for CPU bytes: exactly the legacy wire format (as
+    :param descriptor: ``None`` for CPU bytes: exactly the legacy wire format (as
         ``serialize_message``, with zero padding). Or a mapping ``{path: (backend_type,
         descriptor_bytes)}`` (path: a :class:`FieldPath`, a tuple such as ``('image', 'data')``
         or its text ``'images[3].data'``): those fields are sent as the marker, the backend name
         and the descriptor, every other ``uint8[]`` as CPU bytes. A bare ``(backend_type,
         descriptor_bytes)`` pair is the descriptor of the :func:`payload_field`.
+    :param descriptors: The mapping, by keyword (instead of ``descriptor``).
     :raises CodecError: on a payload, descriptor, path or field value that cannot be encoded.
     """
+    if descriptors is not None:
+        if descriptor is not None:
+            raise TypeError('encode() takes descriptor or descriptors, not both')
+        if not isinstance(descriptors, Mapping):
+            raise CodecError('descriptors must be a mapping {field path: (backend_type, '
+                             f'descriptor_bytes)}}, got {descriptors!r:.200}')
+        descriptor = descriptors
+    descriptors = descriptor
     compiled = _codec(type(msg))
     plan = compiled.plan
     if descriptors is None:

@@ -547,3 +547,14 @@ def test_payload_forms_in_a_general_type():
     msg._uint8_values = numpy.zeros(3, numpy.float32)
     with pytest.raises(CodecError, match=r"uint8_values: payload items must be uint8"):
         encode(msg)
+
+
+def test_encode_takes_the_mapping_by_keyword_too():
+    msg = disparity(bytes(8))
+    by_position = encode(msg, {'image.data': ('demo', b'd')})
+    assert encode(msg, descriptors={'image.data': ('demo', b'd')}) == by_position
+    assert encode(Image(), descriptor=('demo', b'd')) == encode(Image(), {'data': ('demo', b'd')})
+    with pytest.raises(TypeError, match='not both'):
+        encode(msg, ('demo', b'd'), descriptors={'image.data': ('demo', b'd')})
+    with pytest.raises(CodecError, match='must be a mapping'):
+        encode(msg, descriptors=('demo', b'd'))
