@@ -33,6 +33,22 @@ The general API:
   ``Decoded.descriptors: Dict[FieldPath, FieldDescriptor]``; a receiver turns each into a Buffer
   with its backend and puts it in place with :func:`set_at`.
 
+An endpoint uses it so::
+
+    # publisher, per peer: describe what the peer's backends can take, the rest goes as bytes
+    described = {}
+    for path, buffer in codec.buffers_of(msg):
+        descriptor = backends[buffer.backend_type].create_descriptor_with_endpoint(buffer, peer)
+        if descriptor is not None:
+            described[path] = (buffer.backend_type, descriptor)
+    raw = codec.encode(msg, described)
+
+    # subscription
+    decoded = codec.decode(raw, msg_type, known_backends=backends)
+    for path, (backend_type, descriptor) in decoded.descriptors.items():
+        codec.set_at(decoded.msg, path,
+                     backends[backend_type].from_descriptor_with_endpoint(descriptor, peer))
+
 The single-payload API that the endpoints use stays: :func:`payload_field` (the last top-level
 ``uint8[]``), ``encode(msg, (backend, descriptor))`` for that field, ``Decoded.backend_type`` /
 ``Decoded.descriptor`` of that field, :func:`encode_parts`, :func:`split_payload`.

@@ -558,3 +558,43 @@ def test_encode_takes_the_mapping_by_keyword_too():
         encode(msg, ('demo', b'd'), descriptors={'image.data': ('demo', b'd')})
     with pytest.raises(CodecError, match='must be a mapping'):
         encode(msg, descriptors=('demo', b'd'))
+
+
+def test_the_docstring_endpoint_recipe_with_the_demo_backend():
+    """The publisher/subscription recipe of the codec's docstring, through real shared memory:
+    two payloads of a message, one described, one (a peer without the backend) as bytes."""
+    import gc
+    import numpy
+    import demo_buffer_backend
+    from demo_buffer_backend import DemoBuffer
+    from rosidl_buffer_py import EndpointInfo, EndpointKind, registry
+    demo_buffer_backend.shutdown()
+    demo = registry.get_backend('demo')
+    backends = {'demo': demo}
+    peer = EndpointInfo(b'\x22' * 16, '/pair', EndpointKind.SUBSCRIPTION)
+    assert demo.on_discovering_endpoint(peer, [], {'demo': demo.get_backend_metadata()})[0]
+    msg = multi_nested(2)
+    left = DemoBuffer.from_cpu(numpy.arange(16, dtype=numpy.uint8))
+    msg.unbounded_sequence_of_unbounded_sequences[0].uint8_values = left
+    msg.unbounded_sequence_of_unbounded_sequences[1].uint8_values = Buffer(
+        'elsewhere', bytearray(b'right'))
+    described = {}
+    for path, buffer in buffers_of(msg):
+        backend = backends.get(buffer.backend_type)
+        descriptor = backend and backend.create_descriptor_with_endpoint(buffer, peer)
+        if descriptor is not None:
+            described[path] = (buffer.backend_type, descriptor)
+    assert list(described) == [('unbounded_sequence_of_unbounded_sequences', 0, 'uint8_values')]
+    raw = encode(msg, described)
+    decoded = decode(raw, MultiNested, known_backends=backends)
+    for path, (backend_type, descriptor) in decoded.descriptors.items():
+        set_at(decoded.msg, path,
+               backends[backend_type].from_descriptor_with_endpoint(descriptor, peer))
+    received = decoded.msg.unbounded_sequence_of_unbounded_sequences
+    assert isinstance(received[0].uint8_values, DemoBuffer)
+    assert bytes(received[0].uint8_values.to_bytes()) == bytes(range(16))
+    assert received[1].uint8_values == array.array('B', b'right')
+    assert encode(decoded.msg) == encode(msg)  # the same message, as CPU bytes
+    del msg, decoded, received, left, buffer
+    gc.collect()
+    demo_buffer_backend.shutdown()
