@@ -598,3 +598,28 @@ def test_the_docstring_endpoint_recipe_with_the_demo_backend():
     del msg, decoded, received, left, buffer
     gc.collect()
     demo_buffer_backend.shutdown()
+
+
+def test_two_nested_payloads_of_a_marker():
+    """visualization_msgs/Marker holds two payloads (texture.data, a CompressedImage's, and
+    mesh_file.data), with strings and sequences between and a bool after them."""
+    from visualization_msgs.msg import Marker
+    assert buffer_paths(Marker) == (('texture', 'data'), ('mesh_file', 'data'))
+    msg = Marker(ns='n', text='label', texture_resource='t', mesh_use_embedded_materials=True)
+    msg.texture.format = 'png'
+    msg.texture.data = b'\x89PNG' * 3
+    msg.mesh_file.filename = 'mesh.dae'
+    msg.mesh_file.data = b'<collada/>'
+    check_cpu(msg)
+    for described in ({'texture.data': ('demo', b'tex')}, {'mesh_file.data': ('gpu', b'')},
+                      {'texture.data': ('demo', b'tex'), 'mesh_file.data': ('gpu', b'm' * 7)}):
+        enc = encode(msg, described)
+        paths = {FieldPath(k): v for k, v in described.items()}
+        ref = reference(msg, paths)
+        assert bytes(enc[:len(ref.out)]) == bytes(ref.out)
+        decoded = decode(enc, Marker)
+        assert decoded.descriptors == paths
+        assert decoded.msg.mesh_use_embedded_materials is True
+        for path in field_paths(msg):
+            assert get_at(decoded.msg, path) == (
+                array.array('B') if path in paths else get_at(msg, path))
