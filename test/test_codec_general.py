@@ -7,7 +7,8 @@ padding uninitialized and returns as many bytes as the type support's size *esti
 comparisons mask its padding, and check that the bytes past the data are what the codec writes
 there (zeros), so the lengths agree.
 
-The sweep imports every rosidl message package installed next to rclpy.
+The sweep imports every rosidl message package installed next to rclpy: every message type, and
+the message types of every service and action.
 """
 import array
 import glob
@@ -50,14 +51,42 @@ def installed_message_types():
     return found
 
 
+def installed_interface_types():
+    """The message classes of installed services and actions (``Request``, ``Response``,
+    ``Event``, ``Goal``, ``Feedback``, ``SendGoal_Request``...)."""
+    found = {}
+    for directory in sys.path:
+        for kind in ('srv', 'action'):
+            for init in sorted(glob.glob(os.path.join(directory, '*', kind, '__init__.py'))):
+                package = init.split(os.sep)[-3]
+                try:
+                    module = importlib.import_module(f'{package}.{kind}')
+                except ImportError:
+                    continue
+                for name in dir(module):
+                    outer = getattr(module, name)
+                    if not isinstance(outer, type) or hasattr(outer, 'SLOT_TYPES'):
+                        continue
+                    for attr in dir(outer):
+                        inner = getattr(outer, attr)
+                        if (attr[:1].isupper() and isinstance(inner, type)
+                                and hasattr(inner, 'SLOT_TYPES')):
+                            found[f'{package}/{kind}/{inner.__name__}'] = inner
+    return found
+
+
 ALL_TYPES = installed_message_types()
 TYPE_NAMES = sorted(ALL_TYPES)
+INTERFACE_TYPES = installed_interface_types()
+ALL_TYPES.update(INTERFACE_TYPES)
+SWEEP = TYPE_NAMES + sorted(INTERFACE_TYPES)
 
 
 def test_the_sweep_sees_the_installed_packages():
     packages = {name.split('/')[0] for name in TYPE_NAMES}
     assert {'sensor_msgs', 'std_msgs', 'stereo_msgs', 'test_msgs', 'geometry_msgs'} <= packages
     assert len(TYPE_NAMES) >= 150
+    assert len(INTERFACE_TYPES) >= 50  # rcl_interfaces, test_msgs, action_msgs...
 
 
 # --- a textbook reference writer ---------------------------------------------------------------
@@ -224,7 +253,7 @@ _SETTINGS = settings(max_examples=6, deadline=None, database=None,
 
 # --- the sweep ---------------------------------------------------------------------------------
 
-@pytest.mark.parametrize('name', TYPE_NAMES)
+@pytest.mark.parametrize('name', SWEEP)
 def test_every_installed_type_default_message(name):
     msg_type = ALL_TYPES[name]
     msg = msg_type()
@@ -243,7 +272,7 @@ def matches(path, template):
         t is EACH and isinstance(p, int) or p == t for p, t in zip(path, template))
 
 
-@pytest.mark.parametrize('name', TYPE_NAMES)
+@pytest.mark.parametrize('name', SWEEP)
 def test_every_installed_type_random_contents(name):
     msg_type = ALL_TYPES[name]
 
