@@ -652,3 +652,43 @@ def test_two_nested_payloads_of_a_marker():
         for path in field_paths(msg):
             assert get_at(decoded.msg, path) == (
                 array.array('B') if path in paths else get_at(msg, path))
+
+
+def test_enable_buffer_fields_reaches_nested_types(monkeypatch):
+    """enable_buffer_fields(Outer) also patches the setter of Inner.data, Inner being the type
+    of a field of Outer and of the elements of another (classes made here, never enabled)."""
+    import types
+    from rosidl_buffer_py import enable_buffer_fields
+
+    def message_class(name, fields):
+        namespace = {'__slots__': ['_' + f for f in fields],
+                     'SLOT_TYPES': tuple(t for _, t in fields.values()),
+                     'get_fields_and_field_types': classmethod(
+                         lambda cls: {f: s for f, (s, _) in fields.items()})}
+        for field in fields:
+            def getter(self, slot='_' + field):
+                return getattr(self, slot)
+
+            def setter(self, value, slot='_' + field):
+                setattr(self, slot, array.array('B', bytes(memoryview(value))))  # converts
+            getter.__name__ = setter.__name__ = field  # as generated properties are named
+            namespace[field] = property(getter, setter)
+        return type(name, (), namespace)
+
+    inner = message_class('Inner', {'data': ('sequence<uint8>', definition.UnboundedSequence(
+        definition.BasicType('uint8')))})
+    module = types.ModuleType('fake_nested_pkg.msg')
+    module.Inner = inner
+    monkeypatch.setitem(sys.modules, 'fake_nested_pkg', types.ModuleType('fake_nested_pkg'))
+    monkeypatch.setitem(sys.modules, 'fake_nested_pkg.msg', module)
+    ns = definition.NamespacedType(['fake_nested_pkg', 'msg'], 'Inner')
+    outer = message_class('Outer', {'one': ('fake_nested_pkg/Inner', ns),
+                                    'many': ('sequence<fake_nested_pkg/Inner>',
+                                             definition.UnboundedSequence(ns))})
+    buffer = Buffer('demo', bytearray(b'abc'))
+    probe = inner()
+    probe.data = buffer
+    assert probe.data is not buffer  # not enabled yet: the stock setter copies
+    assert enable_buffer_fields(outer) == ()  # no top-level uint8[] of its own
+    probe.data = buffer
+    assert probe.data is buffer
