@@ -724,7 +724,7 @@ def buffers_of(msg: Any) -> List[BufferAt]:
 
 # --- encode --------------------------------------------------------------------------------------
 
-def _payload_view(value: Any, field: str) -> memoryview:
+def _payload_view(value: Any, field: Any) -> memoryview:
     """The payload as a flat, C-contiguous memoryview of bytes (no copy when possible)."""
     if isinstance(value, Buffer):
         if value.host_addressable:
@@ -901,7 +901,7 @@ def _encode_walk(msg: Any, compiled: _TypeCodec, descriptors: Dict[FieldPath, Tu
         out.pad(4)
         described = descriptors.get(path)
         if described is None:
-            view = _payload_view(values[path], str(FieldPath(path)))
+            view = _payload_view(values[path], FieldPath(path))  # printed on errors only
             out.cur += u32.pack(view.nbytes)
             out.payload(view, path == apart)
             lengths.append(view.nbytes)
@@ -941,7 +941,7 @@ def _estimate(ops: Tuple[tuple, ...], buf: memoryview, pos: int, end: int, unpac
             for _ in range(op[2]):
                 pos, est = _estimate(op[1], buf, pos, end, unpack, est, lengths)
         else:
-            count, pos = _read_u32(buf, pos, end, unpack, op[-1])
+            count, pos = _read_u32(buf, pos, end, unpack, 'a length')  # checked before
             est = ((est + 3) & -4) + 4
             if kind == _STRING:
                 pos += count
