@@ -246,18 +246,24 @@ def allocate_image_msg(height: int, width: int, encoding: str, backend: str = CP
     width = _check_uint32('width', width)
     step = _resolve_step(info, width, step)
     nbytes = height * step
-    if not isinstance(backend, str):
-        raise TypeError(f'backend must be a str such as "cpu" or "demo", got '
-                        f'{type(backend).__name__} {backend!r}')
     msg = Image()
     msg.height = height
     msg.width = width
     msg.encoding = encoding
     msg.is_bigendian = _default_is_bigendian(info)
     msg.step = step
+    msg.data = _allocate_storage(nbytes, backend)
+    return msg
+
+
+def _allocate_storage(nbytes: int, backend: str):
+    """``nbytes`` of payload storage: a zeroed ``array.array('B')`` for ``"cpu"``, else a
+    writable Buffer from the installed backend's ``allocate()``."""
+    if not isinstance(backend, str):
+        raise TypeError(f'backend must be a str such as "cpu" or "demo", got '
+                        f'{type(backend).__name__} {backend!r}')
     if backend == CPU_BACKEND:
-        msg.data = _cpu_zeros(nbytes)
-        return msg
+        return _cpu_zeros(nbytes)
     try:
         plugin = get_backend(backend)
     except KeyError:
@@ -274,8 +280,7 @@ def allocate_image_msg(height: int, width: int, encoding: str, backend: str = CP
     if len(buffer) != nbytes or buffer.readonly:
         raise ValueError(f'buffer backend {backend!r}: allocate({nbytes}) returned {buffer!r}; '
                          f'expected a writable Buffer of {nbytes} bytes')
-    msg.data = buffer
-    return msg
+    return buffer
 
 
 def from_output_msg(msg: Image) -> numpy.ndarray:

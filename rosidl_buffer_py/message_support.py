@@ -5,15 +5,21 @@ copy a Buffer's bytes (or fail). :func:`enable_buffer_fields` wraps the setter o
 ``uint8[]`` field of a message class so that a Buffer is stored as-is; every other value goes to
 the original setter untouched.
 
+Enabling a class also enables the message classes of its fields, at any depth, so that
+``disparity.image.data = buffer`` and ``pair.left.data = buffer`` keep the Buffer too.
+
 ``import rosidl_buffer_py`` enables every generated message class: those already imported, and,
 through a meta path hook on generated message modules (``<pkg>.msg._<name>``, also ``srv`` and
 ``action``), every one imported later.
 """
+import importlib
 import importlib.abc
 import re
 import sys
 import threading
-from typing import Tuple, Type
+from typing import List, Tuple, Type
+
+from rosidl_parser import definition
 
 from rosidl_buffer_py.buffer import Buffer
 
@@ -47,10 +53,26 @@ def _buffer_aware_property(original: property) -> property:
     return property(original.fget, setter, original.fdel, original.__doc__)
 
 
-def enable_buffer_fields(msg_type: Type) -> Tuple[str, ...]:
-    """Make ``msg.<field> = buffer`` store the Buffer for every ``uint8[]`` field of ``msg_type``.
+def _nested_types(msg_type: Type) -> List[Type]:
+    """The message classes of ``msg_type``'s fields (alone, or as elements of an array or
+    sequence); those that cannot be imported are left out."""
+    nested = []
+    for slot_type in getattr(msg_type, 'SLOT_TYPES', ()):
+        value_type = getattr(slot_type, 'value_type', slot_type)
+        if isinstance(value_type, definition.NamespacedType):
+            try:
+                module = importlib.import_module('.'.join(value_type.namespaces))
+                nested.append(getattr(module, value_type.name))
+            except (ImportError, AttributeError):
+                continue
+    return nested
 
-    Idempotent and thread-safe. Returns the names of the fields it covers.
+
+def enable_buffer_fields(msg_type: Type) -> Tuple[str, ...]:
+    """Make ``msg.<field> = buffer`` store the Buffer for every ``uint8[]`` field of ``msg_type``
+    and of every message type it holds, at any depth (``disparity.image.data = buffer``).
+
+    Idempotent and thread-safe. Returns the names of the top-level fields it covers.
     """
     with _lock:
         done = msg_type.__dict__.get(_ATTR)
@@ -63,7 +85,9 @@ def enable_buffer_fields(msg_type: Type) -> Tuple[str, ...]:
                 raise TypeError(f'{msg_type.__name__}.{name} is not a generated field property')
             setattr(msg_type, name, _buffer_aware_property(prop))
         setattr(msg_type, _ATTR, names)
-        return names
+    for nested in _nested_types(msg_type):  # after the lock: it is not reentrant
+        enable_buffer_fields(nested)
+    return names
 
 
 #: Generated Python message modules, e.g. ``sensor_msgs.msg._image``.

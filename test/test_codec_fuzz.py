@@ -145,3 +145,45 @@ def test_mutated_encodings(msg, descriptor, edits, as_memoryview):
         elif kind == 'delete':
             del raw[at:at + 1]
     decode_or_codec_error(memoryview(raw) if as_memoryview else bytes(raw), type(msg))
+
+
+# --- the general path: nested payloads, payloads in sequences of messages ----------------------
+
+def _general_messages():
+    from stereo_msgs.msg import DisparityImage
+    from test_msgs.msg import MultiNested, UnboundedSequences
+    from test_codec_general import messages_of
+    return st.one_of(messages_of(DisparityImage), messages_of(UnboundedSequences),
+                     messages_of(MultiNested))
+
+
+@FUZZ
+@given(_general_messages(), st.randoms(use_true_random=False), mutations)
+def test_mutated_general_encodings(msg, rnd, edits):
+    from rosidl_buffer_py.codec import FieldDescriptor, field_paths
+    described = {path: (rnd.choice(['demo', 'gpu', 'x' * 9]), rnd.randbytes(rnd.randrange(9)))
+                 for path in field_paths(msg) if rnd.random() < 0.5}
+    raw = bytearray(encode(msg, described))
+    decoded = decode(raw, type(msg))
+    assert decoded.descriptors == {p: FieldDescriptor(*d) for p, d in described.items()}
+    for kind, where, value in edits:
+        at = where % (len(raw) + 1)
+        if kind == 'byte' and at < len(raw):
+            raw[at] = value & 0xFF
+        elif kind == 'word':
+            at &= ~3
+            raw[at:at + 4] = struct.pack('<I', value)
+        elif kind == 'truncate':
+            del raw[at:]
+        elif kind == 'insert':
+            raw[at:at] = bytes([value & 0xFF])
+        elif kind == 'delete':
+            del raw[at:at + 1]
+    try:
+        decoded = decode(bytes(raw), type(msg))
+    except CodecError:
+        return
+    for described in decoded.descriptors.values():
+        assert len(described.descriptor) <= MAX_DESCRIPTOR_SIZE
+    if not decoded.descriptors:
+        assert decoded.msg == deserialize_message(bytes(raw), type(msg))

@@ -18,6 +18,7 @@ MODULE_KEYS = {
     'rclpy': 'rclpy', 'rcl_interfaces': 'rcl_interfaces', 'rosidl_parser': 'rosidl_parser',
     'sensor_msgs': 'sensor_msgs', 'std_msgs': 'std_msgs', 'geometry_msgs': 'geometry_msgs',
     'visualization_msgs': 'visualization_msgs', 'ament_index_python': 'ament_index_python',
+    'stereo_msgs': 'stereo_msgs', 'test_msgs': 'test_msgs',
     'numpy': 'python3-numpy', 'pytest': 'python3-pytest', 'hypothesis': 'python3-hypothesis',
     'matplotlib': 'python3-matplotlib', 'setuptools': 'python3-setuptools',
     'mcap': 'python3-mcap', 'yaml': 'python3-yaml', 'mcap_ros2': 'python3-mcap-ros2-support',
@@ -25,7 +26,7 @@ MODULE_KEYS = {
 #: Modules of this repository (or made by the tests) that need no dependency.
 OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'installed',
                'in_process', 'demo_backend_peer',
-               'rbpy_example_backend', 'test_codec', 'my_backend'}
+               'rbpy_example_backend', 'test_codec', 'test_codec_general', 'my_backend'}
 
 
 def requirement_lines(name):
