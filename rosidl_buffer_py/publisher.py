@@ -42,10 +42,10 @@ from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.channel import channel_topic, dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
-from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
+from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, reliable_subscription,
+    BufferEndpoint, incompatible_qos_once_per_peer, reliable_subscription,
     track_endpoint, warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.publisher')
@@ -84,61 +84,72 @@ class _Planned(NamedTuple):
 class _Encoder:
     """The wire forms of one message, each made at most once per ``publish()``.
 
-    A message whose payload is CPU memory is written as the message itself (rmw serializes it);
-    serialized bytes and Buffer payloads go through the codec: the CPU bytes once, and the
-    descriptor form once per distinct descriptor.
+    A message without Buffers is written as the message itself (rmw converts and serializes
+    it, as rclpy does); serialized bytes and messages holding Buffers (in any ``uint8[]`` field,
+    see :func:`rosidl_buffer_py.codec.buffers_of`) go through the codec: the CPU bytes once,
+    and the descriptor form once per distinct set of descriptors.
     """
 
-    __slots__ = ('msg', 'payload', 'cpu_message', 'vendor', '_fields', '_cpu', '_described')
+    __slots__ = ('msg', 'buffers', 'cpu_message', '_single', '_cpu', '_described')
 
-    def __init__(self, msg, serialized, payload, fields: Tuple[str, ...]) -> None:
+    def __init__(self, msg, serialized, buffers: List[codec.BufferAt],
+                 single: Optional[str]) -> None:
         self.msg = msg
-        self.payload = payload
-        buffer = isinstance(payload, Buffer)
-        self.cpu_message = serialized is None and not buffer
-        self.vendor = payload.backend_type if buffer and not payload.is_cpu else None
-        self._fields = fields
+        #: the Buffers not in CPU memory: what descriptors can describe
+        self.buffers = [at for at in buffers if not at.buffer.is_cpu]
+        self.cpu_message = serialized is None and not buffers
+        self._single = single if len(buffers) == 1 else None
         self._cpu = serialized
         self._described = None
 
     @property
     def host_buffer(self) -> bool:
-        """A message whose payload is a Buffer in host memory: its CPU form is the message
-        itself, converted through the buffer protocol (other payload fields: plain data). Only
-        asked when some target gets CPU data (a descriptor-only publish skips it)."""
-        payload = self.payload
-        return (isinstance(payload, Buffer) and payload.host_addressable
-                and sum(isinstance(getattr(self.msg, f), Buffer) for f in self._fields) == 1)
+        """A message whose one payload (its top-level ``uint8[]``) is a Buffer in host memory:
+        its CPU form is the message itself, converted through the buffer protocol. Only asked
+        when some target gets CPU data (a descriptor-only publish skips it)."""
+        if self._single is None:
+            return False
+        payload = getattr(self.msg, self._single)
+        return isinstance(payload, Buffer) and payload.host_addressable
 
     def cpu_bytes(self):
         if self._cpu is None:
             self._cpu = codec.encode(self.msg)
         return self._cpu
 
-    def with_descriptor(self, vendor: str, descriptor: bytes) -> bytearray:
-        described = self._described
-        if described is None:
-            described = self._described = {}
-        data = described.get(descriptor)
+    def with_descriptors(self, described: Tuple[Tuple[codec.FieldPath, str, bytes], ...]
+                         ) -> bytearray:
+        """The descriptor form with these ``(path, backend, descriptor)``, the other fields as
+        CPU bytes."""
+        cache = self._described
+        if cache is None:
+            cache = self._described = {}
+        data = cache.get(described)
         if data is None:
-            data = described[descriptor] = codec.encode(self.msg, (vendor, descriptor))
+            data = cache[described] = codec.encode(
+                self.msg, {path: (backend, descriptor) for path, backend, descriptor in described})
         return data
 
 
 class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
-    """Publish messages whose ``uint8[]`` payload may be a :class:`Buffer`.
+    """Publish messages of any type whose ``uint8[]`` fields may hold :class:`Buffer` objects.
 
     Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
-    whose payload is CPU data (``array.array``, ``bytes``, ...) or a Buffer (for example a
-    ``DemoBuffer``), or already serialized CDR ``bytes``.
+    whose ``uint8[]`` fields (at any depth) hold CPU data (``array.array``, ``bytes``, ...) or
+    Buffers (for example ``DemoBuffer``), or already serialized CDR ``bytes``. A type without
+    ``uint8[]`` fields makes a stock publisher (no channels, no advertisement).
     """
 
     def __init__(self, publisher_impl, msg_type, topic: str, qos_profile: QoSProfile, *,
                  event_callbacks: PublisherEventCallbacks, callback_group, node) -> None:
-        self._field = codec.payload_field(msg_type)
+        #: every uint8[] field, at any depth: a type without one is a stock publisher
+        self._paths = codec.buffer_paths(msg_type)
         enable_buffer_fields(msg_type)
-        self._buffer_fields = buffer_fields(msg_type)
-        self._transport = _dds.is_supported()
+        #: the one top-level uint8[] field when that is all the type has (Image: 'data'),
+        #: read directly on the hot path
+        self._single = (self._paths[0][0] if len(self._paths) == 1 and len(self._paths[0]) == 1
+                        else None)
+        self._transport = _dds.is_supported() and bool(self._paths)
         deadline_callback = None
         if self._transport and event_callbacks.deadline and finite(qos_profile.deadline):
             # counted over every route by a DeadlineMonitor (see rosidl_buffer_py.events)
@@ -170,7 +181,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._destroyed = False
         self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
         if not self._transport:
-            warn_unsupported_rmw('publisher', self._topic_name)
+            if self._paths:
+                warn_unsupported_rmw('publisher', self._topic_name)
             return
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
         #: joiners receive (as CPU bytes; their channels serve them from then on).
@@ -259,7 +271,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             raise TypeError(f'Expected {self.msg_type.__name__} or serialized bytes, '
                             f'got {type(msg).__name__}')
         if not self._transport:
-            if serialized is None and isinstance(getattr(msg, self._field), Buffer):
+            if serialized is None and self._paths and self._buffers_of(msg):
                 serialized = bytes(codec.encode(msg))  # stock rclpy cannot convert a Buffer
             super().publish(bytes(serialized) if serialized is not None else msg)
             return
@@ -268,8 +280,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             self._polled_at = now
             self._discovery.process()
             self._reannounce_if_unmatched()
-        payload = None if serialized is not None else getattr(msg, self._field)
-        encoder = _Encoder(msg, serialized, payload, self._buffer_fields)
+        encoder = _Encoder(msg, serialized, [] if serialized is not None else
+                           self._buffers_of(msg), self._single)
         with self._lock:
             if self._destroyed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
@@ -311,12 +323,11 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
             return changed
-        vendor = encoder.vendor
         cpu_targets = []
         for peer in peers:
-            if vendor is not None and vendor in peer.compatible:
+            if encoder.buffers and peer.compatible:
                 try:
-                    descriptor = self._describe(vendor, encoder.payload, peer)
+                    described = self._describe(encoder, peer)
                 except EndpointGone:
                     # its process is gone (the backend knows before DDS does): nothing more
                     # is written to it, neither this message nor a CPU copy
@@ -324,10 +335,10 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                     peer.route.gone()
                     changed = True
                     continue
-                if descriptor is not None:
-                    peer.channel.publish(encoder.with_descriptor(vendor, descriptor), timestamp)
+                if described:
+                    peer.channel.publish(encoder.with_descriptors(described), timestamp)
                     peer.sent_descriptor += 1
-                    peer.backend_in_use = vendor
+                    peer.backend_in_use = described[0][1]
                     continue
             cpu_targets.append(peer.channel)
             peer.sent_cpu += 1
@@ -461,16 +472,36 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._last_timestamp = now if now > self._last_timestamp else self._last_timestamp + 1
         return self._last_timestamp
 
-    def _describe(self, vendor: str, payload: Buffer, peer: _SubscriptionPeer) -> Optional[bytes]:
-        try:
-            return self._backends[vendor].create_descriptor_with_endpoint(payload, peer.info)
-        except EndpointGone:
-            raise
-        except Exception as exc:  # a failing backend degrades to CPU bytes for this message
-            _logger.error(f'backend {vendor!r} failed to describe a buffer for '
-                          f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU bytes',
-                          throttle_duration_sec=5.0)
-            return None
+    def _buffers_of(self, msg) -> List[codec.BufferAt]:
+        """The fields of ``msg`` that hold a Buffer (the one top-level field read directly)."""
+        if self._single is not None:
+            payload = getattr(msg, self._single)
+            return [codec.BufferAt(self._paths[0], payload)] if isinstance(payload, Buffer) \
+                else []
+        return codec.buffers_of(msg)
+
+    def _describe(self, encoder: _Encoder, peer: _SubscriptionPeer
+                  ) -> Tuple[Tuple[codec.FieldPath, str, bytes], ...]:
+        """``(path, backend, descriptor)`` of each Buffer of the message that a backend the
+        peer accepts describes for it (the others travel as CPU bytes in the same message)."""
+        described = []
+        for path, buffer in encoder.buffers:
+            vendor = buffer.backend_type
+            if vendor not in peer.compatible:
+                continue
+            try:
+                descriptor = self._backends[vendor].create_descriptor_with_endpoint(
+                    buffer, peer.info)
+            except EndpointGone:
+                raise
+            except Exception as exc:  # a failing backend degrades to CPU bytes for this field
+                _logger.error(f'backend {vendor!r} failed to describe a buffer for '
+                              f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU '
+                              'bytes', throttle_duration_sec=5.0)
+                continue
+            if descriptor is not None:
+                described.append((path, vendor, descriptor))
+        return tuple(described)
 
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
@@ -535,9 +566,9 @@ def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, 
     The node owns it like any publisher: ``node.destroy_publisher(pub)`` and
     ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do.
     """
-    if _dds.is_supported():
+    if _dds.is_supported() and codec.buffer_paths(msg_type):
         discovery.for_node(node)  # the tap goes first: peers re-announce when they see us
     return node.create_publisher(
-        msg_type, topic, qos_of(qos_profile), callback_group=callback_group,
+        msg_type, topic, qos_profile, callback_group=callback_group,
         event_callbacks=event_callbacks, qos_overriding_options=qos_overriding_options,
         publisher_class=functools.partial(Publisher, node=node))

@@ -37,7 +37,9 @@ import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import get_logger
+from rclpy.exceptions import InvalidTopicNameException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
 
 from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
@@ -49,7 +51,7 @@ from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.transport import (
-    BufferEndpoint, incompatible_qos_once_per_peer, qos_of, track_endpoint,
+    BufferEndpoint, incompatible_qos_once_per_peer, track_endpoint,
     warn_unsupported_rmw)
 
 _logger = get_logger('rosidl_buffer_py.subscription')
@@ -125,7 +127,6 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
     def __init__(self, node, msg_type, topic: str, callback: Callable, qos_profile: QoSProfile,
                  callback_group, event_callbacks: SubscriptionEventCallbacks,
                  acceptable_buffer_backends: Optional[str]) -> None:
-        self._field = codec.payload_field(msg_type)
         enable_buffer_fields(msg_type)
         self._peer_kind = EndpointKind.PUBLISHER
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
@@ -447,21 +448,20 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 peer.backend_in_use = CPU_BACKEND
                 return msg
             decoded = codec.decode(raw, self.msg_type, known_backends=self._backends)
-            if decoded.backend_type is None:
+            if not decoded.descriptors:
                 if peer is not None:
                     peer.received_cpu += 1
                     peer.backend_in_use = CPU_BACKEND
                 return decoded.msg
             if peer is None:
                 raise codec.CodecError(
-                    f'descriptor of backend {decoded.backend_type!r} from publisher '
-                    f'{taken.publisher_gid.hex()}, which is not a discovered buffer-aware '
-                    'publisher')
-            buffer = self._backends[decoded.backend_type].from_descriptor_with_endpoint(
-                decoded.descriptor, peer.info)
-            setattr(decoded.msg, self._field, buffer)
+                    f'descriptors from publisher {taken.publisher_gid.hex()}, which is not a '
+                    'discovered buffer-aware publisher')
+            for path, (backend, descriptor) in decoded.descriptors.items():
+                codec.set_at(decoded.msg, path, self._backends[backend]
+                             .from_descriptor_with_endpoint(descriptor, peer.info))
             peer.received_descriptor += 1
-            peer.backend_in_use = decoded.backend_type
+            peer.backend_in_use = backend
             return decoded.msg
         except Exception as exc:  # bytes from the network: reject, count, log, go on
             self._reject(taken, f'{type(exc).__name__}: {exc}')
@@ -566,23 +566,34 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
                          'messages are always CPU bytes, which a plain '
                          'node.create_subscription(..., raw=True) receives from every publisher, '
                          'buffer-aware ones included')
-    qos = qos_of(qos_profile)
-    if qos_overriding_options is not None:
-        # what Node.create_subscription does with them (rclpy has no public entry point)
-        from rclpy.qos_overriding_options import _declare_qos_parameters
-        qos = copy.copy(qos)
-        _declare_qos_parameters(rclpy.subscription.Subscription, node,
-                                node.resolve_topic_name(topic), qos, qos_overriding_options)
+    # what Node.create_subscription does, with rclpy's own checks (its errors, its exception
+    # types: rclpy has no hook for a subscription class)
+    qos = node._validate_qos_or_depth_parameter(qos_profile)
     callback_group = callback_group or node.default_callback_group
+    try:
+        final_topic = node.resolve_topic_name(topic)
+    except RuntimeError:
+        try:
+            node._validate_topic_or_service_name(topic)
+        except InvalidTopicNameException as ex:
+            raise ex from None
+        raise
+    from rclpy.qos_overriding_options import _declare_qos_parameters, QoSOverridingOptions
+    _declare_qos_parameters(rclpy.subscription.Subscription, node, final_topic, qos,
+                            qos_overriding_options or QoSOverridingOptions([]))
+    check_is_valid_msg_type(msg_type)
     event_callbacks = event_callbacks or SubscriptionEventCallbacks()
-    if _dds.is_supported():
-        sub = Subscription(node, msg_type, topic, callback, qos, callback_group, event_callbacks,
-                           acceptable_buffer_backends)
-    else:
-        sub = _PlainSubscription(node, msg_type, topic, callback, qos, callback_group,
-                                 event_callbacks, acceptable_buffer_backends)
+    cls = Subscription if _dds.is_supported() and codec.buffer_paths(msg_type) else \
+        _PlainSubscription
+    try:
+        sub = cls(node, msg_type, topic, callback, qos, callback_group, event_callbacks,
+                  acceptable_buffer_backends)
+    except ValueError:
+        node._validate_topic_or_service_name(topic)  # rclpy's error for a bad name
+        raise
+    if cls is _PlainSubscription and codec.buffer_paths(msg_type):
         warn_unsupported_rmw('subscription', sub.topic_name)
-    # registered as Node.create_subscription registers its own (rclpy has no public hook)
+    # registered as Node.create_subscription registers its own
     callback_group.add_entity(sub)
     node._subscriptions.append(sub)
     node._wake_executor()

@@ -4,7 +4,7 @@ import copy
 import threading
 import time
 import weakref
-from typing import Dict, Mapping, Set, Union
+from typing import Dict, Mapping, Set
 
 from rclpy.logging import get_logger
 from rclpy.qos import (
@@ -27,18 +27,6 @@ _warned_lock = threading.Lock()
 
 #: How recently the re-announce timer must have run for the node to count as spinning.
 SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
-
-
-def qos_of(qos_profile: Union[QoSProfile, int]) -> QoSProfile:
-    """A QoSProfile from a profile or a history depth, as rclpy's create_* accept."""
-    if isinstance(qos_profile, QoSProfile):
-        return qos_profile
-    if isinstance(qos_profile, int) and not isinstance(qos_profile, bool):
-        if qos_profile < 0:
-            raise ValueError(f'history depth must be >= 0, got {qos_profile}')
-        return QoSProfile(depth=qos_profile)
-    raise TypeError('qos_profile must be a QoSProfile or a history depth (int), got '
-                    f'{type(qos_profile).__name__} {qos_profile!r}')
 
 
 def warn_unsupported_rmw(what: str, topic: str) -> None:
