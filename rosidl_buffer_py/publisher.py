@@ -170,6 +170,9 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
         self._withheld = 0
+        #: CPU copies written on channels to peers that share a backend with the message's
+        #: Buffers (the backend declined: pool exhausted, or the peer cannot be reached)
+        self._cpu_to_capable = 0
         #: None: writer-side exclusion not tried yet; False: this DataWriter cannot do it
         self._exclusions: Optional[bool] = None
         #: the last exclusion registered was not empty (the next main write must re-register)
@@ -340,6 +343,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                     peer.sent_descriptor += 1
                     peer.backend_in_use = described[0][1]
                     continue
+            if encoder.buffers and peer.compatible:
+                self._cpu_to_capable += 1  # it shares a backend, yet gets CPU bytes
             cpu_targets.append(peer.channel)
             peer.sent_cpu += 1
             peer.backend_in_use = CPU_BACKEND
@@ -462,6 +467,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                     'advertised_backends': dict(getattr(self, '_advertised', {})),
                     'sent_on_main_topic': self._sent_main,
                     'main_topic_withheld': self._withheld,
+                    'cpu_copies_to_buffer_capable_peers': self._cpu_to_capable,
                     'peers_added': self._peers_added, 'peers_removed': self._peers_removed,
                     'peers': self.buffer_peers()}
 

@@ -1,14 +1,11 @@
-"""Test-wide isolation: a DDS domain of our own, localhost discovery, nothing left in /dev/shm;
-and the split of the suite between this run and the `colcon test` run inside it.
+"""Test-wide isolation: a DDS domain of our own, localhost discovery, nothing left in /dev/shm.
 
 Each pytest run takes a ROS_DOMAIN_ID nobody else on the machine holds (an flock'ed file per
 domain id), so parallel runs never see each other's traffic. Child processes inherit it.
 
-The split: ``./dev test`` (the whole suite, as CI runs it) collects only
-:data:`DIRECT_FILES`; test_colcon.py builds the package with colcon and runs every test file
-inside ``colcon test``, against the install space, as a ROS user runs it. So every test runs
-under colcon once per CI run, without running the suite twice. Naming test files (``./dev test
-test/test_codec.py``), ``RBPY_COLCON_SPLIT=0`` or a venv without colcon run them directly.
+Every test runs directly in the ``./dev`` venv (``./dev test``, or ``pytest test/x.py`` with
+that venv's interpreter); test_colcon.py builds the package with colcon and runs a few test
+files inside ``colcon test`` against the install space, as a ROS user runs them.
 """
 import os
 import signal
@@ -32,34 +29,6 @@ from launch_free_demos.domains import claim_domain_ids  # noqa: E402 (after the 
 # by exec, so the processes tests start get Ctrl-C as a terminal would give it.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
-
-#: Test files the direct run keeps when the suite is split (the rest run inside colcon test):
-#: README's ./dev commands need the ./dev checkout, and test_colcon.py is the colcon run.
-DIRECT_FILES = ('test_readme.py', 'test_colcon.py')
-#: Set (to the install prefix) in the inner `colcon test` run by test_colcon.py.
-INSIDE_COLCON = 'RBPY_INSIDE_COLCON_TEST'
-
-
-def colcon_split_active(config) -> bool:
-    """True when this run collects only DIRECT_FILES: a whole-suite run (no test paths named)
-    outside colcon, with colcon installed and RBPY_COLCON_SPLIT not 0."""
-    import shutil
-    if os.environ.get(INSIDE_COLCON) or os.environ.get('RBPY_COLCON_SPLIT') == '0':
-        return False
-    if shutil.which('colcon', path=str(Path(sys.executable).parent)) is None:
-        return False
-    named = [a for a in config.invocation_params.args
-             if not str(a).startswith('-') and ('/' in str(a) or str(a).endswith('.py')
-                                                or str(a) == 'test')]
-    return not named
-
-
-def pytest_ignore_collect(collection_path, config):
-    if collection_path.name.startswith('test_') and collection_path.suffix == '.py' and \
-            collection_path.name not in DIRECT_FILES and colcon_split_active(config):
-        return True
-    return None
-
 
 os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids()[0])
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'

@@ -2,10 +2,9 @@
 
 A copy of the working tree (tracked and untracked-but-not-ignored files: no .venv, build or
 egg-info) goes to ``<tmp>/src/rosidl_buffer_py``; ``colcon build`` compiles the native extension
-into ``install/``, ``colcon test`` runs the whole suite against that install space (every test
-file: in a whole-suite run, conftest.py leaves all but README's ./dev commands and this file to
-this inner run, so each test runs once per CI run) and ``colcon test-result`` must report no
-failure or error. Everything happens under the test's tmp_path, which is removed at the end.
+into ``install/``, ``colcon test`` runs a few test files against that install space (the rest
+of the suite runs directly in ``./dev test``) and ``colcon test-result`` must report no failure
+or error. Everything happens under the test's tmp_path, which is removed at the end.
 
 The environment is a fresh virtual environment that installs exactly ``requirements.txt``,
 ``requirements-build.txt`` and ``requirements-test.txt`` (what package.xml declares, as
@@ -33,11 +32,11 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 INSIDE = 'RBPY_INSIDE_COLCON_TEST'
 PACKAGE = 'rosidl_buffer_py'
-#: What the inner `colcon test` runs: every test file (this one only checks the install space
-#: there; test_readme.py skips its ./dev commands).
-INNER_TESTS = sorted(f'test/{p.name}' for p in (ROOT / 'test').glob('test_*.py'))
-#: The whole suite takes about 5 minutes on 2 cores; a loaded machine gets ample margin.
-INNER_TIMEOUT = 1800
+#: What the inner `colcon test` runs: the install-space check in this file, and test files that
+#: exercise the built extension and the package's entry points without DDS traffic.
+INNER_TESTS = ('test/test_colcon.py', 'test/test_codec.py', 'test/test_registry.py',
+               'test/test_packaging.py')
+INNER_TIMEOUT = 600
 #: What the fresh environment installs: the PyPI form of package.xml's dependencies.
 REQUIREMENTS = ('requirements.txt', 'requirements-build.txt', 'requirements-test.txt')
 
@@ -147,7 +146,7 @@ def test_colcon_build_install_space_and_colcon_test(tmp_path):
         assert summary, result.stdout
         words = summary[-1].replace(',', '').split()  # Summary: N tests, E errors, F failures,
         counts = {words[i + 1]: int(words[i]) for i in range(1, len(words) - 1, 2)}
-        assert counts['tests'] > 500 and counts['errors'] == counts['failures'] == 0, \
+        assert counts['tests'] > 100 and counts['errors'] == counts['failures'] == 0, \
             result.stdout
         cases = {case.get('name') for case in ET.parse(
             workspace / 'build' / PACKAGE / 'pytest.xml').iter('testcase')}

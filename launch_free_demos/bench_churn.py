@@ -1,0 +1,127 @@
+"""Subscriber churn: what it costs the steady subscribers, ours against the same graph of stock
+endpoints, and what the publisher writes to peers that cannot use it.
+
+The graph: a publisher of ``--payload`` at ``--rate`` Hz (RELIABLE KEEP_LAST 50) with three
+steady subscribers (one accepting ``demo``, one CPU only, one plain rclpy), while one subscriber
+process after another comes for ``--come-go`` seconds and leaves (Ctrl-C), and another is started
+and SIGKILLed every ``--kill-every`` seconds. ``ours``: a demo publisher and buffer-aware
+subscribers (the plain one stays plain); ``stock``: the same processes with stock endpoints.
+``--load N`` adds N busy processes (a loaded machine). Both graphs run one after the other, in
+``--rounds`` rounds.
+
+Printed per graph: frames each steady subscriber received of those published (for ``ours``'
+demo subscriber, how many as zero-copy Buffers), and the ``ours`` publisher's CPU copies on
+channels to peers that share the frame's backend (``cpu_copies_to_buffer_capable_peers``: the
+backend declined to describe the frame for them). It asserts
+nothing about time.
+
+``python -m launch_free_demos.bench_churn [--seconds 20] [--payload 1920x1080] [--load 2]``
+"""
+import argparse
+import multiprocessing
+import sys
+import time
+from typing import Dict, List
+
+from launch_free_demos.runner import Run
+
+STEADY = {'demo': {'acceptable_buffer_backends': 'demo'}, 'cpu': {}, 'plain': {'legacy': True}}
+
+
+def _busy(stop) -> None:
+    while not stop.is_set():
+        sum(range(10000))
+
+
+def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
+              come_go: float, kill_every: float) -> Dict[str, object]:
+    topic = f'/churn_{"ours" if ours else "stock"}_{time.monotonic_ns()}'
+    count = int(seconds * rate)
+    common = {'topic': topic, 'depth': 50, 'timeout_sec': seconds + 60.0}
+    with Run() as run:
+        for label, params in STEADY.items():
+            run.start(label, 'image_subscriber', expected_count=count, **common,
+                      **(params if ours else {'legacy': True}))
+        run.start('pub', 'image_publisher', topic=topic, depth=50, count=count, rate_hz=rate,
+                  width=width, height=height, wait_for_subscribers=3, wait_timeout_sec=60.0,
+                  linger_sec=5.0, **({'backend': 'demo', 'wait_for_buffer_peers': 2}
+                                     if ours else {'legacy': True}))
+        churn = {'acceptable_buffer_backends': 'demo'} if ours else {'legacy': True}
+        started = time.monotonic()
+        next_come, next_kill, round_ = started, started + kill_every / 2, 0
+        while run.nodes['pub'].process.poll() is None:
+            now = time.monotonic()
+            if now >= next_come:
+                old = run.nodes.get('come_go')
+                if old is not None:
+                    old.stop()
+                run.start('come_go', 'image_subscriber', topic=topic, depth=50,
+                          timeout_sec=come_go + 30.0, **churn)
+                next_come = now + come_go
+            if now >= next_kill:
+                old = run.nodes.get('killed')
+                if old is not None:
+                    old.kill()
+                run.start('killed', 'image_subscriber', topic=topic, depth=50,
+                          timeout_sec=kill_every + 30.0, **churn)
+                next_kill, round_ = now + kill_every, round_ + 1
+            time.sleep(0.05)
+        for label in ('come_go', 'killed'):
+            if label in run.nodes:
+                run.nodes[label].kill()
+        run.wait(list(STEADY), 10.0)  # what they still take; then Ctrl-C (they report)
+        run.stop_all()
+        reports = run.reports()
+    result: Dict[str, object] = {label: (reports.get(label) or {}).get('distinct', 0)
+                                 for label in STEADY}
+    pub = reports.get('pub') or {}
+    result['published'] = pub.get('published', 0)
+    stats = pub.get('statistics') or {}
+    result['cpu_to_capable'] = stats.get('cpu_copies_to_buffer_capable_peers', '-')
+    result['zero_copy'] = ((reports.get('demo') or {}).get('backends') or {}).get('demo', 0)
+    return result
+
+
+def main(argv: List[str] = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m launch_free_demos.bench_churn',
+                                     description=__doc__.split('\n\n')[0])
+    parser.add_argument('--seconds', type=float, default=20.0)
+    parser.add_argument('--payload', default='1920x1080', help='WIDTHxHEIGHT rgb8')
+    parser.add_argument('--rate', type=float, default=30.0)
+    parser.add_argument('--come-go', type=float, default=2.0)
+    parser.add_argument('--kill-every', type=float, default=3.0)
+    parser.add_argument('--load', type=int, default=0, help='busy processes beside the graph')
+    parser.add_argument('--rounds', type=int, default=1)
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.payload.lower().split('x'))
+    stop = multiprocessing.Event()
+    busy = [multiprocessing.Process(target=_busy, args=(stop,), daemon=True)
+            for _ in range(args.load)]
+    for process in busy:
+        process.start()
+    rows = []
+    try:
+        for _ in range(args.rounds):
+            for ours in (False, True):
+                rows.append(('ours' if ours else 'stock', run_graph(
+                    ours, args.seconds, width, height, args.rate, args.come_go,
+                    args.kill_every)))
+    finally:
+        stop.set()
+        for process in busy:
+            process.join(5)
+    print(f'churn: {args.payload} rgb8 at {args.rate:g} Hz for {args.seconds:g} s, a subscriber '
+          f'coming and going every {args.come_go:g} s, one SIGKILLed every {args.kill_every:g} s, '
+          f'{args.load} busy processes')
+    print('| graph | published | steady demo (of them zero-copy) | steady cpu | steady plain '
+          '| CPU copies to backend-capable peers |')
+    print('|---|---|---|---|---|---|---|')
+    for graph, r in rows:
+        zero_copy = f' ({r["zero_copy"]})' if graph == 'ours' else ''
+        print(f'| {graph} | {r["published"]} | {r["demo"]}{zero_copy} | {r["cpu"]} | '
+              f'{r["plain"]} | {r["cpu_to_capable"] if graph == "ours" else "-"} |')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
