@@ -62,8 +62,9 @@ ENV_RECLAIM_TIMEOUT = 'RBPY_DEMO_RECLAIM_TIMEOUT'
 #: Per-peer share of in-flight descriptors; 0 (the default) means ``max(1, max_slots // 3)``.
 ENV_MAX_INFLIGHT_PER_PEER = 'RBPY_DEMO_MAX_INFLIGHT_PER_PEER'
 
-#: Received segments kept at most (beyond it, new handovers are refused).
-MAX_MAPPINGS = 1024
+#: Received segments kept at most (beyond it, new handovers are refused; each costs two
+#: descriptors, ours and the one CPython's mmap keeps).
+MAX_MAPPINGS = 256
 #: Seconds between drains of the listener when every descriptor names a known segment.
 SWEEP_INTERVAL = 1.0
 #: Seconds an unused segment of a publisher that hung up stays mapped: descriptors it sent
