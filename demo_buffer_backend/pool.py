@@ -42,6 +42,7 @@ import atexit
 import collections
 import errno
 import os
+import re
 import socket
 import threading
 import time
@@ -306,6 +307,8 @@ class State:
         self.last_sweep = 0.0
 
     def _warn_once(self, cause: str, message: str) -> None:
+        """Log ``message`` the first time its cause (numbers left out) is seen."""
+        cause = re.sub(r'[0-9]+', '#', cause)[:48]
         if cause not in self.warned:
             self.warned.add(cause)
             _logger.warning(f'{message} (logged once; see demo_buffer_backend.stats())')
@@ -710,7 +713,7 @@ class State:
 
     def _refuse_handover(self, pid: int, problem: str) -> None:
         self.counters['handovers_rejected'] += 1
-        self._warn_once(f'handover_{problem[:24]}', f'refused a demo segment from pid {pid}: '
+        self._warn_once(f'handover_{problem}', f'refused a demo segment from pid {pid}: '
                         f'{problem}')
 
     def _take_handover(self, conn: socket.socket, pid: int, record: handover.Handover) -> None:
@@ -765,7 +768,7 @@ class State:
                 return self._open(d)
             except ValueError as exc:
                 self.counters['rejected'] += 1
-                self._warn_once(f'reject_{str(exc)[:20]}', f'rejected a demo descriptor: {exc}')
+                self._warn_once(f'reject_{exc}', f'rejected a demo descriptor: {exc}')
                 raise
 
     def _open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:

@@ -46,9 +46,12 @@ PEER_GID = bytes(range(16))
 class Peer:
     """This script running in another process, driven over JSON lines: ``peer('take', ...)``."""
 
-    def __init__(self):
+    def __init__(self, capture_stderr=False):
+        """With ``capture_stderr``, its log is read by :meth:`exit` into ``self.log``."""
         self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, bufsize=1)
+                                     stdout=subprocess.PIPE, text=True, bufsize=1,
+                                     stderr=subprocess.PIPE if capture_stderr else None)
+        self.log = None
         hello = self._read()
         assert hello['ready'], hello
         self.pid = hello['pid']
@@ -71,13 +74,16 @@ class Peer:
     def exit(self):
         assert self('exit')['ok']
         assert self.proc.wait(timeout=30) == 0
+        if self.proc.stderr is not None:
+            self.log = self.proc.stderr.read()
 
     def reap(self):
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(timeout=30)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            stream.close()
+        for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
 
 
 def _sha(buf) -> str:
@@ -98,35 +104,33 @@ def memfd_usage() -> dict:
 
 
 def _attack(buf) -> dict:
-    """Try to change the size or bytes of ``buf``'s segment behind its readers' backs."""
-    fd = buf._keepalive.mapping.received.fd
-    size = os.fstat(fd).st_size
+    """Try to change the size or bytes of ``buf``'s segment behind its readers' backs, through
+    the descriptor this process received (read-only) and through a read-write reopening of it
+    (``<name>_rw``)."""
+    received = buf._keepalive.mapping.received.fd
+    size = os.fstat(received).st_size
     libc = ctypes.CDLL(None, use_errno=True)
     results = {}
 
-    def attempt(name, action):
-        try:
-            action()
-            results[name] = 'accepted'
-        except OSError as exc:
-            results[name] = errno.errorcode.get(exc.errno, str(exc.errno))
-
-    def punch():
+    def punch(fd):
         if libc.fallocate(fd, 3, ctypes.c_long(0), ctypes.c_long(size)) != 0:  # PUNCH|KEEP
             raise OSError(ctypes.get_errno(), 'fallocate')
-
-    def reopen_and_truncate():
-        rw = os.open(f'/proc/self/fd/{fd}', os.O_RDWR)
-        try:
-            os.ftruncate(rw, 4096)
-        finally:
-            os.close(rw)
-    attempt('shrink', lambda: os.ftruncate(fd, 4096))
-    attempt('shrink_reopened', reopen_and_truncate)
-    attempt('grow', lambda: os.ftruncate(fd, size * 2))
-    attempt('write', lambda: os.pwrite(fd, b'x', 4096))
-    attempt('punch_hole', punch)
-    results['size_after'] = os.fstat(fd).st_size
+    actions = {'shrink': lambda fd: os.ftruncate(fd, 4096),
+               'grow': lambda fd: os.ftruncate(fd, size * 2),
+               'write': lambda fd: os.pwrite(fd, b'x', 4096),
+               'punch_hole': punch}
+    rw = os.open(f'/proc/self/fd/{received}', os.O_RDWR)
+    try:
+        for suffix, fd in (('', received), ('_rw', rw)):
+            for name, action in actions.items():
+                try:
+                    action(fd)
+                    results[name + suffix] = 'accepted'
+                except OSError as exc:
+                    results[name + suffix] = errno.errorcode.get(exc.errno, str(exc.errno))
+    finally:
+        os.close(rw)
+    results['size_after'] = os.fstat(received).st_size
     results['sha'] = _sha(buf)
     return results
 
