@@ -180,19 +180,20 @@ class Link:
     __slots__ = ('token', 'sock', 'segments')
 
     def __init__(self, token: str) -> None:
-        """Connect to ``token``'s listener. ``PeerGone`` when nobody listens there;
-        ``PermissionError`` when who listens is not that process of our user."""
+        """Connect to ``token``'s listener without waiting. ``PeerGone`` when nobody listens
+        there; ``PermissionError`` when who listens is not that process of our user;
+        ``BlockingIOError`` when its backlog is full (a stopped process: try again later)."""
         self.token = token
         self.segments: set = set()  #: ids of the segments handed over on this link
         self.sock = _new_socket()
         try:
+            self.sock.setblocking(False)
             self.sock.connect(_address(token))
             cred = credentials(self.sock)
             if cred.uid != os.geteuid() or cred.pid != token_pid(token):
                 raise PermissionError(
                     f'the listener of demo token {token} is pid {cred.pid} uid {cred.uid}, '
                     f'expected pid {token_pid(token)} uid {os.geteuid()}')
-            self.sock.setblocking(False)
         except OSError as exc:
             self.sock.close()
             if exc.errno in _GONE:

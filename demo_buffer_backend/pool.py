@@ -66,6 +66,8 @@ ENV_MAX_INFLIGHT_PER_PEER = 'RBPY_DEMO_MAX_INFLIGHT_PER_PEER'
 #: Received segments kept at most (beyond it, new handovers are refused; each costs two
 #: descriptors, ours and the one CPython's mmap keeps).
 MAX_MAPPINGS = 256
+#: Connections from publisher processes kept at most (beyond it, new ones are refused).
+MAX_INBOUND = 256
 #: Seconds between drains of the listener when every descriptor names a known segment.
 SWEEP_INTERVAL = 1.0
 #: Seconds an unused segment of a publisher that hung up stays mapped: descriptors it sent
@@ -563,6 +565,9 @@ class State:
                 link = self.links[token] = handover.Link(token)
             except handover.PeerGone:
                 self._hung_up(token)
+            except BlockingIOError:  # its backlog is full: CPU bytes for now, retry later
+                self.counters['handovers_busy'] += 1
+                return None
             except OSError as exc:
                 self.counters['cpu_foreign_peer'] += 1
                 self._warn_once(f'link_{token}', f'demo peer {token}: {exc}; it gets CPU bytes')
@@ -689,10 +694,11 @@ class State:
         self.last_sweep = time.monotonic()
         if self.listener is not None:
             for conn, cred in self.listener.accept():
-                if cred.uid != os.geteuid():
+                if cred.uid != os.geteuid() or len(self.inbound) >= MAX_INBOUND:
                     self.counters['connections_refused'] += 1
-                    self._warn_once('uid', f'refused a demo connection from pid {cred.pid} uid '
-                                    f'{cred.uid} (only uid {os.geteuid()} may hand us memory)')
+                    self._warn_once(f'uid {cred.uid}', f'refused a demo connection from pid '
+                                    f'{cred.pid} uid {cred.uid} (only uid {os.geteuid()} may '
+                                    f'hand us memory, on at most {MAX_INBOUND} connections)')
                     conn.close()
                 else:
                     self.inbound[conn] = cred.pid

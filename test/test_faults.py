@@ -507,5 +507,49 @@ def test_full_memory_falls_back_to_cpu_and_says_so():
     assert len([m for m in result['messages'] if 'ENOSPC' in m]) == 1  # once per cause
 
 
+_STUFFED = textwrap.dedent('''
+    # A listener of our user under its own token that never accepts, its backlog full (what a
+    # stopped subscriber process looks like once many publishers connected).
+    import os, socket, sys, time
+    token = f'{os.getpid()}_00000000000000dd'
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    s.bind('\\0rbpy_demo/' + token)
+    s.listen(0)
+    filled = []
+    while True:
+        c = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        c.setblocking(False)
+        try:
+            c.connect('\\0rbpy_demo/' + token)
+        except BlockingIOError:
+            break
+        filled.append(c)
+    print(token, flush=True)
+    sys.stdin.read()
+''')
+
+
+def test_publisher_never_blocks_on_a_subscriber_that_does_not_accept(backend):
+    """Connecting to a listener whose backlog is full fails at once (CPU bytes for that frame,
+    tried again later): the publisher never waits for a subscriber."""
+    from rosidl_buffer_py import EndpointInfo, EndpointKind
+    from demo_buffer_backend import DemoBuffer, stats
+    be, started = backend
+    proc = subprocess.Popen([sys.executable, '-c', _STUFFED], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        token = proc.stdout.readline().strip()
+        domain = be.get_backend_metadata().rpartition('.')[0]
+        ep = EndpointInfo(b'\x88' * 16, '/faults', EndpointKind.SUBSCRIPTION)
+        assert be.on_discovering_endpoint(ep, [], {'demo': f'{domain}.{token}'})[0]
+        buf = DemoBuffer.allocate(1000)
+        started_at = time.monotonic()
+        assert [be.create_descriptor_with_endpoint(buf, ep) for _ in range(5)] == [None] * 5
+        assert time.monotonic() - started_at < 1.0
+        assert stats()['handovers_busy'] == 5, stats()
+    finally:
+        proc.communicate('', timeout=30)
+
+
 if __name__ == '__main__' and sys.argv[1:] == ['graph']:
     print(json.dumps(run_graph()))
