@@ -86,10 +86,14 @@ class DemoBackend(BufferBackend):
             del self._ledgers[key]
 
     def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
-        """Forget the peer and its ledgers (what it was sent settles through its link)."""
+        """Forget the peer and its ledgers (what it was sent settles through its link), and
+        close the segments nobody can use any more: a publisher gone from DDS (its lease
+        expired) is the moment an idle subscriber learns that it will send nothing more, with
+        no thread of ours to wait for it."""
         with self._lock:
             self._peers.pop(endpoint_info.gid, None)
             self._forget_ledgers(endpoint_info.gid)
+        pool.get_state().sweep()
 
     def is_compatible(self, endpoint_info: EndpointInfo) -> bool:
         """Whether the endpoint was discovered and shares our domain."""

@@ -106,6 +106,11 @@ def run_graph() -> dict:
         result['subscriber_maps_after_kill'] = {
             label: _memfd_maps(run.nodes[label].process.pid)
             for label in ('healthy', 'stalled', 'slow')}
+        # idle subscribers close its segments when DDS says it is gone (its lease expires)
+        result['subscribers_freed_after'] = _wait_for(
+            lambda: not any(_memfd_maps(run.nodes[label].process.pid)
+                            for label in ('healthy', 'stalled', 'slow')),
+            40, 'subscribers freeing the dead publisher\'s memory', run.diagnostics)
         never.process.send_signal(signal.SIGCONT)
         for node in (healthy, stalled, never, slow):
             node.stop()
@@ -142,7 +147,8 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
           f"stalled: {reports['stalled'] and reports['stalled']['backends']}, "
           f"gaps {reports['stalled'] and reports['stalled']['gaps']}; "
           f"publisher memfd mappings {result['publisher_maps']}, subscribers' after its "
-          f"SIGKILL {result['subscriber_maps_after_kill']}")
+          f"SIGKILL {result['subscriber_maps_after_kill']}, none "
+          f"{result['subscribers_freed_after']:.1f} s after it")
     assert result['publisher_maps'] > 0, 'the publisher had no memfd segments'
     assert result['publisher_files'] == [] and result['left'] == [], result
     assert good['gaps'] == 0 and good['duplicates'] == 0, good
