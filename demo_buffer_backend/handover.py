@@ -30,6 +30,8 @@ RETIRE_MAGIC = b'RBPYRET1'
 #: segment id, reserved (0), generation: "one descriptor of this generation was taken".
 ACK = struct.Struct('<IIQ')
 _FD_SPACE = socket.CMSG_SPACE(4 * 4)  # room for a few descriptors: extra ones are counted
+#: Records taken from one connection per drain (a sender cannot keep a drain going for ever).
+MAX_RECORDS_PER_DRAIN = 256
 _GONE = (errno.EPIPE, errno.ECONNRESET, errno.ECONNREFUSED, errno.ENOENT, errno.ENOTCONN)
 
 
@@ -132,7 +134,7 @@ def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
     Every descriptor received but not returned in a handover is closed here."""
     handovers: List[Handover] = []
     rejected: List[str] = []
-    while True:
+    for _ in range(MAX_RECORDS_PER_DRAIN):
         try:
             data, ancdata, flags, _ = conn.recvmsg(HANDOVER.size + 1, _FD_SPACE)
         except (BlockingIOError, InterruptedError):
@@ -163,6 +165,7 @@ def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
             rejected.append(problem)
             for fd in fds:
                 os.close(fd)
+    return handovers, rejected, False  # the rest waits for the next drain
 
 
 def send_ack(conn: socket.socket, segment_id: int, generation: int) -> bool:

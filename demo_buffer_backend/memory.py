@@ -83,14 +83,18 @@ class Segment:
             raise ValueError(f'capacity must be a positive multiple of {PAGE_SIZE}, got '
                              f'{capacity}')
         fd = os.memfd_create('rbpy_demo', os.MFD_ALLOW_SEALING | os.MFD_CLOEXEC)
+        mapped = None
         try:
             os.posix_fallocate(fd, 0, HEADER_SIZE + capacity)
-            self.map = mmap.mmap(fd, HEADER_SIZE + capacity,
-                                 flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
-            fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)
+            mapped = mmap.mmap(fd, HEADER_SIZE + capacity,
+                               flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
+            fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)  # after the writable mapping, see above
         except BaseException:
+            if mapped is not None:
+                mapped.close()
             os.close(fd)
             raise
+        self.map = mapped
         self.fd = fd
         self.capacity = capacity
         HEADER.pack_into(self.map, 0, MAGIC, capacity, 0, 0, 0)
