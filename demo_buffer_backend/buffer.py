@@ -1,5 +1,6 @@
-"""DemoBuffer: a Buffer whose bytes live in a demo shared-memory slot (a sealed memfd segment) (or, as a fallback when the
-pool is exhausted, in private memory, in which case it is sent as CPU bytes)."""
+"""DemoBuffer: a Buffer whose bytes live in a demo shared-memory slot, a sealed memfd segment
+(or, as a fallback when the pool is exhausted, in private memory: then it is sent as CPU
+bytes)."""
 import array
 from typing import Any, Optional, Tuple
 
