@@ -149,7 +149,8 @@ def open_received(fd: int, capacity: int) -> Received:
         raise ValueError(f'only {st.st_blocks * 512} of its {st.st_size} bytes are backed '
                          '(a sparse segment could fault)')
     try:
-        mapped = mmap.mmap(fd, st.st_size, flags=mmap.MAP_SHARED, prot=mmap.PROT_READ)
+        mapped = mmap.mmap(fd, st.st_size, prot=mmap.PROT_READ,  # page tables filled now
+                           flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
     except OSError as exc:
         raise ValueError(f'cannot map it: {exc}') from None
     magic, recorded, _, _, _ = HEADER.unpack_from(mapped, 0)
