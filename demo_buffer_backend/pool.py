@@ -402,12 +402,10 @@ class State:
         with self.locked:
             if self.closed:
                 return None
+            self._drain_links()  # acks and hang-ups free slots
             capacity = memory.round_capacity(nbytes)
             self.grow_failure = None
-            slot = self._reuse(nbytes, stale_ok=False)
-            if slot is None:  # acks and hang-ups not seen yet may free one
-                self._drain_links()
-            slot = (slot or self._reuse(nbytes, stale_ok=False)
+            slot = (self._reuse(nbytes, stale_ok=False)
                     or self._grow(nbytes, capacity, stale_ok=False)
                     or self._reuse(nbytes, stale_ok=True)
                     or self._grow(nbytes, capacity, stale_ok=True))
