@@ -1,32 +1,37 @@
-"""demo_buffer_backend: the ``demo`` buffer backend, payloads in POSIX shared memory.
+"""demo_buffer_backend: the ``demo`` buffer backend, payloads in sealed anonymous memory.
 
-Image bytes live in /dev/shm segments (``rbpy_demo_<pid>_<hex>``, mode 0600); only a small
-descriptor crosses DDS and the subscriber gets a zero-copy read-only view.
+Image bytes live in memfd segments: no name in any filesystem (nothing in /dev/shm to plant,
+truncate or leak), pages backed when a segment is created and sealed against shrinking, growing
+and writing by anyone but its creator before another process sees it (a reader can never hit
+SIGBUS). A publisher hands each segment once to each subscriber process that may use it, as a
+file descriptor over an abstract-namespace Unix socket (SCM_RIGHTS, peer credentials checked);
+then only a 52-byte descriptor crosses DDS per frame and the subscriber gets a zero-copy
+read-only view. The kernel frees a segment with its last descriptor or mapping: when its
+publisher and every subscriber that held it are done, or dead (SIGKILL included). A descriptor
+in flight in a socket outlives its sender, so frames a publisher sent before it died stay
+readable until the subscriber drops them.
 
 - :mod:`.buffer`: :class:`DemoBuffer` (``from_cpu``, ``allocate``, ``to_array``);
 - :mod:`.backend`: :class:`DemoBackend`, the plugin;
-- :mod:`.pool`: the process-wide slot pool and mapping cache, per-peer ledgers (fairness: what
-  one subscriber does costs only that subscriber), limits, counters, lifecycle and the
-  housekeeping thread (dead owners' files leave /dev/shm within seconds);
-- :mod:`.shm`: segment files, header layout (with the per-process takers table), liveness and
-  scavenging;
-- :mod:`.presence`: per-process presence files, so that a publisher stops keeping slots for a
-  subscriber process that died (SIGKILL included) within ``pool.LIVENESS_TTL`` (0.1 s) instead of
-  the DDS lease;
-- :mod:`.locks`: Linux OFD byte-range locks;
+- :mod:`.pool`: the process-wide slots, per-peer ledgers (fairness), received segments, limits,
+  counters and lifecycle;
+- :mod:`.memory`: sealed segments, their header, their OFD hold lock, and the checks of a
+  received one;
+- :mod:`.handover`: listeners, links, handover and acknowledgement records, credentials;
 - :mod:`.descriptor`: the descriptor wire format and its validation.
 
-Backend metadata: ``shm1.<boot id>.<st_dev>.<st_ino of /dev/shm>.<euid>.<pid>_<16 hex>``, the shm
-domain (peers are compatible when it is equal) then the process's presence token.
+Backend metadata: ``mfd1.<boot id>.<net ns>.<mnt ns>.<pid ns>.<euid>.<pid>_<16 hex>``, the
+domain (peers are compatible when it is equal) then the token that names the process's listener.
 
 Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=,
 max_inflight_per_peer=)``, the environment variables ``RBPY_DEMO_MAX_POOL_BYTES``,
 ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, ``RBPY_DEMO_MAX_INFLIGHT_PER_PEER``, or
 ``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 64 slots, 5 s, a third of the slots.
 
-Trust: a segment is mapped only if it looks exactly as the backend creates them (regular file,
-no symlink, our uid, mode 0600, our header naming the owner of its name); no lock is waited for
-without bound (the take's mutex byte: 20 ms at most).
+Trust: a received descriptor is mapped only if it is a memfd carrying every seal, of the size
+its record announces, all backed, with our header, handed over by a process of our uid; a frame
+descriptor names a segment by the pid that handed it over (SO_PEERCRED), so no process can
+answer for another. Everything refused is counted (:func:`stats`) and logged once per cause.
 """
 from demo_buffer_backend.backend import DemoBackend
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
@@ -34,16 +39,11 @@ from demo_buffer_backend.pool import configure, shutdown, stats
 
 
 def sweep() -> None:
-    """Close unreferenced mappings of removed segments and remove segments of dead owners."""
+    """Take segments handed over meanwhile; close those nobody can use any more (retired by
+    their publisher, or unused for ``pool.ORPHAN_SECONDS`` since their publisher hung up)."""
     from demo_buffer_backend import pool
     pool.get_state().sweep()
 
 
-def scavenge() -> int:
-    """Remove every demo segment in /dev/shm whose owner process is gone; return how many."""
-    from demo_buffer_backend import pool
-    return pool.get_state().scavenge()
-
-
-__all__ = ['BACKEND_TYPE', 'DemoBackend', 'DemoBuffer', 'configure', 'scavenge', 'shutdown',
-           'stats', 'sweep']
+__all__ = ['BACKEND_TYPE', 'DemoBackend', 'DemoBuffer', 'configure', 'shutdown', 'stats',
+           'sweep']

@@ -6,9 +6,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo
 from rosidl_buffer_py.buffer import Buffer
 
-from demo_buffer_backend import pool, presence, shm
-
-_UNKNOWN = object()
+from demo_buffer_backend import handover, pool
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
 
 
@@ -16,31 +14,22 @@ def _depth_of(endpoint_info: EndpointInfo) -> int:
     """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL,
     unknown, or when the local publisher is not named (its window would count other channels'
     messages)."""
-    if getattr(endpoint_info, 'local_gid', None) is None:
+    if endpoint_info.local_gid is None:
         return 0
-    return getattr(endpoint_info, 'history_depth', None) or 0
-
-
-def _ledger_key(endpoint_info: EndpointInfo) -> Tuple[bytes, Optional[bytes]]:
-    """One ledger per (peer, local publisher) when the publisher is named."""
-    return endpoint_info.gid, getattr(endpoint_info, 'local_gid', None)
+    return endpoint_info.history_depth or 0
 
 
 class DemoBackend(BufferBackend):
-    """Payloads in POSIX shared memory; a ~70-byte descriptor crosses the middleware.
+    """Payloads in sealed anonymous memory; a 52-byte descriptor crosses the middleware.
 
-    Every instance shares the process-wide pool and mapping cache (:mod:`.pool`). The keyword
-    arguments, when given, set the process-wide limits (see :func:`demo_buffer_backend.configure`).
-    Creating the first instance of a process removes segments left by dead processes and starts
-    the housekeeping thread that keeps doing so.
+    Every instance shares the process-wide pool (:mod:`.pool`). The keyword arguments, when
+    given, set the process-wide limits (see :func:`demo_buffer_backend.configure`).
 
-    Fairness: every compatible peer has a ledger of its descriptors in flight (see
-    :mod:`.pool`, "Fairness"). ``create_descriptor_with_endpoint`` returns None, so that this
-    peer alone gets CPU bytes, when the peer is dead or not of our user, or has not taken
-    anything for ``pool.IDLE_SECONDS``; descriptors past its share of the pool are reclaimed
-    first when the pool is full. Its KEEP_LAST depth (``EndpointInfo.history_depth``, applied
-    when the publisher also names itself in ``EndpointInfo.local_gid``) lets descriptors it can
-    no longer take stop pinning their slots.
+    Peers are compatible when they advertise our domain (same boot, network, mount and pid
+    namespaces, same uid) and a token (the address of their listener). Each peer endpoint has a
+    ledger of its descriptors in flight (see :mod:`.pool`, "Fairness").
+    ``create_descriptor_with_endpoint`` returns None (CPU bytes for that peer) for peers that
+    cannot use this memory, and raises ``EndpointGone`` for one whose process hung up.
     """
 
     def __init__(self, *, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] = None,
@@ -51,34 +40,29 @@ class DemoBackend(BufferBackend):
             pool.configure(max_pool_bytes=max_pool_bytes, max_slots=max_slots,
                            reclaim_timeout=reclaim_timeout,
                            max_inflight_per_peer=max_inflight_per_peer)
-        self._domain = shm.domain_metadata()
+        self._domain = handover.domain()
         self._lock = threading.Lock()
-        #: Compatible peers: gid -> presence token of their process (None: none advertised).
-        self._peers: Dict[bytes, Optional[str]] = {}
-        #: Compatible peers: (gid, local publisher gid or None) -> ledger of their descriptors
-        #: in flight (created on first use: discovery does not say which publisher asks).
+        #: Compatible peers: gid -> token of their process.
+        self._peers: Dict[bytes, str] = {}
+        #: (peer gid, local publisher gid or None) -> ledger of its descriptors in flight.
         self._ledgers: Dict[Tuple[bytes, Optional[bytes]], pool.PeerLedger] = {}
-        pool.get_state().start()
 
     def get_backend_type(self) -> str:
         return BACKEND_TYPE
 
     def get_backend_metadata(self) -> str:
-        """``<domain>.<token>``: the shm domain ``shm1.<boot id>.<st_dev>.<st_ino of
-        /dev/shm>.<euid>`` (hex; equal domains open the same segments), then this process's
-        presence token ``<pid>_<16 hex>`` (see :mod:`.presence`; its presence file is created
-        here). Just the domain when the presence file cannot be created."""
-        token = pool.get_state().presence_token()
+        """``<domain>.<token>``: the domain ``mfd1.<boot id>.<net ns>.<mnt ns>.<pid ns>.<euid>``
+        (hex), then this process's token ``<pid>_<16 hex>``, which names its listener. Just the
+        domain (no peer will hand us memory) when the listener cannot be created."""
+        token = pool.get_state().advertise()
         return f'{self._domain}.{token}' if token else self._domain
 
     def parse_metadata(self, metadata: Optional[str]) -> Tuple[bool, Optional[str]]:
-        """``(same shm domain, presence token or None)`` of a peer's metadata."""
+        """``(compatible, token)`` of a peer's metadata."""
         if not isinstance(metadata, str):
             return False, None
-        if metadata == self._domain:
-            return True, None  # a peer that advertises no token (it is never taken for dead)
         domain, _, token = metadata.rpartition('.')
-        token = presence.parse_token(token)
+        token = handover.parse_token(token)
         if domain != self._domain or token is None:
             return False, None
         return True, token
@@ -86,17 +70,15 @@ class DemoBackend(BufferBackend):
     def on_discovering_endpoint(
             self, endpoint_info: EndpointInfo, existing_endpoints: Sequence[EndpointInfo],
             endpoint_supported_backends: Mapping[str, str]) -> Tuple[bool, List[Set[int]]]:
-        """Compatible iff the peer's shm domain is ours (its token may differ: it names its
-        process); its token is remembered to address its descriptors."""
+        """Compatible iff the peer advertises our domain and a token."""
         compatible, token = self.parse_metadata(endpoint_supported_backends.get(BACKEND_TYPE))
         with self._lock:
+            if self._peers.get(endpoint_info.gid, token) != token or not compatible:
+                self._forget_ledgers(endpoint_info.gid)  # another process now, or none
             if compatible:
-                if self._peers.get(endpoint_info.gid, token) != token:
-                    self._forget_ledgers(endpoint_info.gid)  # another process now
                 self._peers[endpoint_info.gid] = token
             else:
                 self._peers.pop(endpoint_info.gid, None)
-                self._forget_ledgers(endpoint_info.gid)
         return compatible, []
 
     def _forget_ledgers(self, gid: bytes) -> None:
@@ -104,37 +86,36 @@ class DemoBackend(BufferBackend):
             del self._ledgers[key]
 
     def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
-        """Forget the peer; its process's liveness is tested afresh the next time a slot with
-        descriptors for it is considered. Descriptors still in flight to a live process keep
-        their protection (this hook also runs when *our* endpoint goes away)."""
+        """Forget the peer and its ledgers (what it was sent settles through its link), and
+        close the segments nobody can use any more: a publisher gone from DDS (its lease
+        expired) is the moment an idle subscriber learns that it will send nothing more, with
+        no thread of ours to wait for it."""
         with self._lock:
-            token = self._peers.pop(endpoint_info.gid, None)
+            self._peers.pop(endpoint_info.gid, None)
             self._forget_ledgers(endpoint_info.gid)
-        if token is not None:
-            pool.get_state().forget_liveness(token)
+        pool.get_state().sweep()
 
     def is_compatible(self, endpoint_info: EndpointInfo) -> bool:
-        """Whether the endpoint was discovered and shares our shm domain."""
+        """Whether the endpoint was discovered and shares our domain."""
         return endpoint_info.gid in self._peers
 
     def peer_token(self, endpoint_info: EndpointInfo) -> Optional[str]:
-        """The presence token a compatible peer advertised (None: unknown peer or no token)."""
+        """The token a compatible peer advertised (None: unknown peer)."""
         return self._peers.get(endpoint_info.gid)
 
     def create_descriptor_with_endpoint(self, buffer: Buffer,
                                         endpoint_info: EndpointInfo) -> Optional[bytes]:
         """A descriptor for this peer, or None (CPU bytes for it): unknown or incompatible peer,
         private (fallback) memory, a received buffer (republishing one would let the original
-        publisher reuse it under the new peer), or what the peer's ledger says (dead, share in
-        flight, not taking)."""
+        publisher reuse it under the new peer), a listener not of our user, or a full queue to
+        it. ``EndpointGone`` when the peer's process hung up its link."""
         state = pool.get_state()
-        token = self._peers.get(endpoint_info.gid, _UNKNOWN)
-        if (token is _UNKNOWN
-                or not isinstance(buffer, DemoBuffer) or not isinstance(buffer._keepalive,
-                                                                         pool.Pin)):
+        token = self._peers.get(endpoint_info.gid)
+        if token is None or not isinstance(buffer, DemoBuffer) or \
+                not isinstance(buffer._keepalive, pool.Pin):
             state.decline()
             return None
-        key = _ledger_key(endpoint_info)
+        key = (endpoint_info.gid, endpoint_info.local_gid)
         depth = _depth_of(endpoint_info)
         with self._lock:
             ledger = self._ledgers.get(key)
@@ -142,12 +123,11 @@ class DemoBackend(BufferBackend):
                 ledger = self._ledgers[key] = pool.PeerLedger(
                     token, depth, per_channel=key[1] is not None)
         ledger.depth = depth
-        return state.describe(buffer._keepalive, ledger=ledger)
+        return state.describe(buffer._keepalive, ledger)
 
     def peer_ledgers(self) -> Dict[str, dict]:
         """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):
-        its token, depth, messages, descriptors in flight (and past its share) and whether it
-        is taken for not taking."""
+        its token, depth, messages and descriptors in flight."""
         with self._lock:
             ledgers = dict(self._ledgers)
         return {gid.hex() + (f'/{local.hex()}' if local else ''): ledger.summary()
@@ -166,6 +146,6 @@ class DemoBackend(BufferBackend):
         return pool.stats()
 
     def close(self) -> None:
-        """Remove every segment this process created and close every mapping (process-wide:
-        shared by all instances; the backend stays usable and starts afresh on next use)."""
+        """Close every segment, link and listener of this process (process-wide: shared by all
+        instances; the backend stays usable and starts afresh on next use)."""
         pool.shutdown()

@@ -1,7 +1,8 @@
-"""DemoBuffer: a Buffer whose bytes live in a demo shared-memory slot (or, as a fallback when the
-pool is exhausted, in private memory, in which case it is sent as CPU bytes)."""
+"""DemoBuffer: a Buffer whose bytes live in a demo shared-memory slot, a sealed memfd segment
+(or, as a fallback when the pool is exhausted, in private memory: then it is sent as CPU
+bytes)."""
 import array
-from typing import Any, Optional
+from typing import Any, Optional, Tuple
 
 from rosidl_buffer_py.buffer import Buffer
 
@@ -104,9 +105,10 @@ class DemoBuffer(Buffer):
         return self._in_shm
 
     @property
-    def segment_name(self) -> Optional[str]:
-        """Name of the /dev/shm segment holding the bytes (``None`` for private memory)."""
-        return self._keepalive.name if self._in_shm else None
+    def segment(self) -> Optional[Tuple[int, int]]:
+        """``(publisher pid, segment id)`` of the shared segment holding the bytes (``None`` for
+        private memory)."""
+        return self._keepalive.segment if self._in_shm else None
 
     @property
     def generation(self) -> Optional[int]:

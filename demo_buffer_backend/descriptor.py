@@ -1,39 +1,38 @@
 """The demo descriptor: the few bytes that cross DDS instead of the payload.
 
-Layout (little endian), 36 bytes plus the segment name (about 70 bytes in all)::
+Layout (little endian, 52 bytes)::
 
-    magic 'RBDM' | version u8 | name_len u8 | reserved u16 (0) | owner pid u32 |
-    offset u64 | size u64 | generation u64 | name (ASCII, name_len bytes)
+    magic 'RBDM' | version u8 | reserved u8, u16 (0) | publisher pid u32 | publisher nonce u64 |
+    segment id u32 | reserved u32 (0) | generation u64 | offset u64 | size u64
 
-:func:`unpack` checks everything that can be checked without opening the segment; the pool checks
-the rest (the segment exists, offset and size fit in it, the generation is current and the size
-is the one its publisher recorded).
+The publisher (pid, nonce) and segment id name a segment that publisher handed over on the
+socket (see :mod:`.handover`); :func:`unpack` checks what can be checked without it, the pool
+the rest (the segment was handed over by that pid, the range fits, the generation is current and
+the size is the one its publisher recorded).
 """
 import struct
 from typing import NamedTuple
 
-from demo_buffer_backend.shm import NAME_PATTERN
-
 MAGIC = b'RBDM'
-VERSION = 1
-_HEAD = struct.Struct('<4sBBHIQQQ')
-MAX_NAME = 64
+VERSION = 2
+_LAYOUT = struct.Struct('<4sBBHIQIIQQQ')
+SIZE = _LAYOUT.size
 #: Largest payload a descriptor may name (1 TiB): anything bigger is garbage.
 MAX_SIZE = 1 << 40
 
 
 class Descriptor(NamedTuple):
-    name: str
-    owner: int
+    pid: int
+    nonce: int
+    segment_id: int
+    generation: int
     offset: int
     size: int
-    generation: int
 
 
 def pack(desc: Descriptor) -> bytes:
-    name = desc.name.encode('ascii')
-    return _HEAD.pack(MAGIC, VERSION, len(name), 0, desc.owner, desc.offset, desc.size,
-                      desc.generation) + name
+    return _LAYOUT.pack(MAGIC, VERSION, 0, 0, desc.pid, desc.nonce, desc.segment_id, 0,
+                        desc.generation, desc.offset, desc.size)
 
 
 def unpack(data) -> Descriptor:
@@ -42,35 +41,20 @@ def unpack(data) -> Descriptor:
         data = bytes(data)
     except TypeError:
         raise ValueError(f'demo descriptor must be bytes, got {type(data).__name__}') from None
-    if len(data) < _HEAD.size:
-        raise ValueError(f'demo descriptor is truncated: {len(data)} bytes, the fixed part alone '
-                         f'is {_HEAD.size}')
-    magic, version, name_len, reserved, owner, offset, size, generation = \
-        _HEAD.unpack_from(data, 0)
+    if len(data) != SIZE:
+        raise ValueError(f'demo descriptor has {len(data)} bytes, expected {SIZE}')
+    magic, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
+        offset, size = _LAYOUT.unpack(data)
     if magic != MAGIC:
         raise ValueError(f'not a demo descriptor (magic {magic!r}, expected {MAGIC!r})')
     if version != VERSION:
         raise ValueError(f'unsupported demo descriptor version {version} (expected {VERSION})')
-    if reserved != 0:
-        raise ValueError(f'demo descriptor has non-zero reserved bits {reserved:#x}')
-    if not 0 < name_len <= MAX_NAME:
-        raise ValueError(f'demo descriptor segment name length {name_len} is not in 1..{MAX_NAME}')
-    if len(data) != _HEAD.size + name_len:
-        raise ValueError(f'demo descriptor length {len(data)} does not match its name length '
-                         f'(expected {_HEAD.size + name_len})')
-    raw_name = data[_HEAD.size:]
-    try:
-        name = raw_name.decode('ascii')
-    except UnicodeDecodeError:
-        raise ValueError(f'demo descriptor segment name {raw_name!r} is not ASCII') from None
-    match = NAME_PATTERN.match(name)
-    if match is None:
-        raise ValueError(f'demo descriptor segment name {name!r} does not match '
-                         f'{NAME_PATTERN.pattern}')
-    if int(match.group(1)) != owner:
-        raise ValueError(f'demo descriptor owner {owner} does not match segment {name!r}')
+    if reserved1 or reserved2 or reserved3:
+        raise ValueError('demo descriptor has non-zero reserved bits')
+    if pid == 0:
+        raise ValueError('demo descriptor names publisher pid 0')
     if generation == 0:
         raise ValueError('demo descriptor generation 0 is never published')
     if size > MAX_SIZE or offset > MAX_SIZE:
         raise ValueError(f'demo descriptor offset {offset} / size {size} is implausibly large')
-    return Descriptor(name, owner, offset, size, generation)
+    return Descriptor(pid, nonce, segment_id, generation, offset, size)

@@ -4,16 +4,25 @@ the tests' handle on it.
 Speaks JSON lines: one command per line on stdin, one reply per line on stdout. On start it prints
 ``{"ready": true, "pid": ..., "metadata": ...}``. Commands:
 
+- ``{"cmd": "discover", "metadata": M}``: the peer endpoint is now the process advertising M.
 - ``{"cmd": "publish", "n": N, "fill": B, "keep": K}``: allocate N bytes, fill them with B,
   describe them for the peer endpoint; keep the buffer under key K (or drop it when K is null).
-  Reply ``{"desc": hex, "name": segment, "gen": generation, "in_shm": bool}``.
+  Reply ``{"desc": hex, "segment": [pid, id], "gen": generation, "in_shm": bool, "gone": bool}``.
 - ``{"cmd": "take", "desc": hex, "key": K}``: turn a descriptor into a buffer held under key K.
   Reply ``{"ok": true, "sha": ..., "readonly": ..., "write_rejected": ...}`` or
   ``{"ok": false, "error": message}``.
 - ``{"cmd": "take_drop", "descs": [hex...]}``: take and release each; reply their digests.
+- ``{"cmd": "attack", "key": K}``: try to shrink, grow, write and punch a hole in the segment
+  of the buffer held under K through this process's descriptor of it; reply each errno name
+  (or "accepted") and the buffer's digest afterwards.
+- ``{"cmd": "memory"}``: ``{"maps": memfd mappings in /proc/self/maps, "fds": memfd
+  descriptors in /proc/self/fd}``.
+- ``{"cmd": "orphan_seconds", "value": S}``: set ``pool.ORPHAN_SECONDS``.
 - ``{"cmd": "sha", "key": K}``, ``{"cmd": "drop", "key": K}``, ``{"cmd": "stats"}``,
   ``{"cmd": "sweep"}``, ``{"cmd": "exit"}`` (a normal exit, running atexit handlers).
 """
+import ctypes
+import errno
 import gc
 import hashlib
 import json
@@ -25,9 +34,10 @@ import sys
 import numpy
 
 from rosidl_buffer_py import EndpointInfo, EndpointKind
+from rosidl_buffer_py.backend import EndpointGone
 
 import demo_buffer_backend
-from demo_buffer_backend import DemoBackend, DemoBuffer
+from demo_buffer_backend import DemoBackend, DemoBuffer, pool
 
 #: The GID both sides use for "the other endpoint".
 PEER_GID = bytes(range(16))
@@ -36,9 +46,12 @@ PEER_GID = bytes(range(16))
 class Peer:
     """This script running in another process, driven over JSON lines: ``peer('take', ...)``."""
 
-    def __init__(self):
+    def __init__(self, capture_stderr=False):
+        """With ``capture_stderr``, its log is read by :meth:`exit` into ``self.log``."""
         self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, bufsize=1)
+                                     stdout=subprocess.PIPE, text=True, bufsize=1,
+                                     stderr=subprocess.PIPE if capture_stderr else None)
+        self.log = None
         hello = self._read()
         assert hello['ready'], hello
         self.pid = hello['pid']
@@ -61,17 +74,65 @@ class Peer:
     def exit(self):
         assert self('exit')['ok']
         assert self.proc.wait(timeout=30) == 0
+        if self.proc.stderr is not None:
+            self.log = self.proc.stderr.read()
 
     def reap(self):
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(timeout=30)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            stream.close()
+        for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
 
 
 def _sha(buf) -> str:
     return hashlib.sha256(memoryview(buf)).hexdigest()
+
+
+def memfd_usage() -> dict:
+    """This process's memfd mappings and descriptors (what must be gone once it drops all)."""
+    with open('/proc/self/maps') as f:
+        maps = sum(1 for line in f if '/memfd:' in line)
+    fds = 0
+    for name in os.listdir('/proc/self/fd'):
+        try:
+            fds += os.readlink(f'/proc/self/fd/{name}').startswith('/memfd:')
+        except OSError:
+            pass
+    return {'maps': maps, 'fds': fds}
+
+
+def _attack(buf) -> dict:
+    """Try to change the size or bytes of ``buf``'s segment behind its readers' backs, through
+    the descriptor this process received (read-only) and through a read-write reopening of it
+    (``<name>_rw``)."""
+    received = buf._keepalive.mapping.received.fd
+    size = os.fstat(received).st_size
+    libc = ctypes.CDLL(None, use_errno=True)
+    results = {}
+
+    def punch(fd):
+        if libc.fallocate(fd, 3, ctypes.c_long(0), ctypes.c_long(size)) != 0:  # PUNCH|KEEP
+            raise OSError(ctypes.get_errno(), 'fallocate')
+    actions = {'shrink': lambda fd: os.ftruncate(fd, 4096),
+               'grow': lambda fd: os.ftruncate(fd, size * 2),
+               'write': lambda fd: os.pwrite(fd, b'x', 4096),
+               'punch_hole': punch}
+    rw = os.open(f'/proc/self/fd/{received}', os.O_RDWR)
+    try:
+        for suffix, fd in (('', received), ('_rw', rw)):
+            for name, action in actions.items():
+                try:
+                    action(fd)
+                    results[name + suffix] = 'accepted'
+                except OSError as exc:
+                    results[name + suffix] = errno.errorcode.get(exc.errno, str(exc.errno))
+    finally:
+        os.close(rw)
+    results['size_after'] = os.fstat(received).st_size
+    results['sha'] = _sha(buf)
+    return results
 
 
 def main() -> int:
@@ -91,11 +152,24 @@ def main() -> int:
         if cmd == 'publish':
             buf = DemoBuffer.allocate(request['n'])
             numpy.asarray(buf)[:] = request['fill']
-            desc = backend.create_descriptor_with_endpoint(buf, peer)
+            try:
+                desc, gone = backend.create_descriptor_with_endpoint(buf, peer), False
+            except EndpointGone:
+                desc, gone = None, True
             if request.get('keep') is not None:
                 held[request['keep']] = buf
-            reply({'desc': desc.hex() if desc else None, 'name': buf.segment_name,
-                   'gen': buf.generation, 'in_shm': buf.in_shm})
+            reply({'desc': desc.hex() if desc else None, 'segment': buf.segment,
+                   'gen': buf.generation, 'in_shm': buf.in_shm, 'gone': gone})
+        elif cmd == 'discover':
+            reply({'compatible': backend.on_discovering_endpoint(
+                peer, [], {'demo': request['metadata']})[0]})
+        elif cmd == 'attack':
+            reply(_attack(held[request['key']]))
+        elif cmd == 'memory':
+            reply(memfd_usage())
+        elif cmd == 'orphan_seconds':
+            pool.ORPHAN_SECONDS = request['value']
+            reply({'ok': True})
         elif cmd == 'take':
             try:
                 buf = backend.from_descriptor_with_endpoint(bytes.fromhex(request['desc']), peer)
@@ -111,6 +185,7 @@ def main() -> int:
             held[request['key']] = buf
             reply({'ok': True, 'sha': _sha(buf), 'readonly': memoryview(buf).readonly,
                    'write_rejected': write_rejected, 'n': len(buf)})
+            del array, buf  # only `held` keeps it
         elif cmd == 'take_drop':
             digests = []
             for hex_desc in request['descs']:

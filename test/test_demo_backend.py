@@ -1,11 +1,13 @@
 """Tests of the ``demo`` shared-memory backend, in one process and across real processes.
 
-Other processes are test/demo_backend_peer.py, driven over JSON lines; every one is reaped. Only
-segments of the processes of this test are looked at in /dev/shm (other test runs may share it).
+Other processes are test/demo_backend_peer.py, driven over JSON lines; every one is reaped.
+Segments are memfds: what a process holds is read from its /proc/<pid>/maps and fd table, and
+nothing of ours may ever appear in /dev/shm.
 """
 import array
 import errno
 import gc
+import hashlib
 import os
 import random
 import resource
@@ -17,10 +19,11 @@ import pytest
 
 import rosidl_buffer_py
 from rosidl_buffer_py import Buffer, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE
+from rosidl_buffer_py.backend import EndpointGone
 
 import demo_buffer_backend
-from demo_backend_peer import Peer
-from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, pool, presence, shm
+from demo_backend_peer import Peer, memfd_usage
+from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, handover, memory, pool
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 
@@ -29,9 +32,23 @@ def _endpoint(gid=b'\x11' * 16, kind=EndpointKind.SUBSCRIPTION):
     return EndpointInfo(gid, '/demo_backend_test', kind)
 
 
-def _segments_of(pid):
-    prefix = f'{shm.PREFIX}{pid}_'
-    return {n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)}
+def _shm_files():
+    """Files of ours in /dev/shm: there must never be any (older versions of this backend, run
+    by other test runs on this machine, name their pid: only this test's processes count)."""
+    return {n for n in os.listdir('/dev/shm') if n.startswith('rbpy_')}
+
+
+def _memfd_usage_of(pid):
+    """Mappings and descriptors of memfds that process ``pid`` holds."""
+    with open(f'/proc/{pid}/maps') as f:
+        maps = sum(1 for line in f if '/memfd:' in line)
+    fds = 0
+    for name in os.listdir(f'/proc/{pid}/fd'):
+        try:
+            fds += os.readlink(f'/proc/{pid}/fd/{name}').startswith('/memfd:')
+        except OSError:
+            pass
+    return {'maps': maps, 'fds': fds}
 
 
 @pytest.fixture
@@ -43,12 +60,13 @@ def fresh():
     gc.collect()
     demo_buffer_backend.shutdown()
     demo_buffer_backend.configure(**saved)
-    assert not _segments_of(os.getpid())
+    assert not {n for n in _shm_files() if f'_{os.getpid()}_' in n}
 
 
 @pytest.fixture
 def backend(fresh):
-    """A DemoBackend that knows PEER_GID (and the in-process endpoint) as compatible peers."""
+    """A DemoBackend that knows PEER_GID (and the in-process endpoint) as compatible peers
+    (both in this process until a peer process is started with it)."""
     be = DemoBackend()
     for gid in (PEER_GID, b'\x11' * 16):
         assert be.on_discovering_endpoint(
@@ -62,7 +80,7 @@ def peers():
 
     def start(backend=None):
         """A new peer process; with ``backend``, PEER_GID is re-discovered with the peer's
-        metadata (its presence token: the process whose takes count for that endpoint)."""
+        metadata (its token: the process the segments are handed to)."""
         peer = Peer()
         started.append(peer)
         if backend is not None:
@@ -72,15 +90,7 @@ def peers():
     yield start
     for peer in started:
         peer.reap()
-    if started:  # presence files of peers killed above (a normal exit removes its own)
-        demo_buffer_backend.scavenge()
-        for peer in started:
-            assert not _presence_of(peer.pid)
-
-
-def _presence_of(pid):
-    prefix = f'{presence.PREFIX}{pid}_'
-    return {n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)}
+    assert not {n for n in _shm_files() if any(f'_{p.pid}_' in n for p in started)}
 
 
 def _token(metadata):
@@ -109,7 +119,7 @@ def test_from_cpu_round_trips(fresh, make):
         else bytes(data)
     buf = DemoBuffer.from_cpu(data)
     assert isinstance(buf, Buffer) and buf.backend_type == 'demo'
-    assert buf.in_shm and buf.segment_name.startswith('rbpy_demo_')
+    assert buf.in_shm and buf.segment[0] == os.getpid()
     assert len(buf) == len(raw)
     assert buf.readonly
     assert buf.to_array() == array.array('B', raw)
@@ -145,18 +155,27 @@ def test_allocate_is_writable_shared_memory_without_copies(fresh):
     b = numpy.from_dlpack(buf)
     b[0] = 9  # the same memory
     assert memoryview(buf)[0] == 9 and memoryview(buf)[1] == 7
-    # the bytes are the segment's: read them through the file itself
-    with open(os.path.join(shm.SHM_DIR, buf.segment_name), 'rb') as f:
-        f.seek(shm.HEADER_SIZE)
-        assert f.read(4) == bytes([9, 7, 7, 7])
+    # the bytes are the segment's: read them through its descriptor
+    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    assert os.pread(fd, 4, memory.HEADER_SIZE) == bytes([9, 7, 7, 7])
 
 
-def test_segments_are_mode_0600_and_small_descriptors(backend):
+def test_segments_are_sealed_backed_memfds_and_small_descriptors(backend):
+    import fcntl
     buf = DemoBuffer.from_cpu(b'x' * 5000)
-    st = os.stat(os.path.join(shm.SHM_DIR, buf.segment_name))
-    assert st.st_mode & 0o777 == 0o600
+    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    assert os.readlink(f'/proc/self/fd/{fd}').startswith('/memfd:rbpy_demo')
+    assert fcntl.fcntl(fd, fcntl.F_GET_SEALS) == memory.SEALS
+    st = os.fstat(fd)
+    assert st.st_size == memory.HEADER_SIZE + 8192 and st.st_blocks * 512 >= st.st_size
+    for attack in (lambda: os.ftruncate(fd, 4096), lambda: os.ftruncate(fd, 1 << 20),
+                   lambda: os.pwrite(fd, b'z', memory.HEADER_SIZE)):
+        with pytest.raises(PermissionError):
+            attack()
+    assert bytes(memoryview(buf)) == b'x' * 5000
+    assert not {n for n in _shm_files() if f'_{os.getpid()}_' in n}
     desc = backend.create_descriptor_with_endpoint(buf, _endpoint())
-    assert isinstance(desc, bytes) and len(desc) < 128 < MAX_DESCRIPTOR_SIZE
+    assert isinstance(desc, bytes) and len(desc) == descriptor.SIZE < 64 < MAX_DESCRIPTOR_SIZE
 
 
 # --- descriptors ---------------------------------------------------------------------------------
@@ -168,7 +187,7 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
     desc = backend.create_descriptor_with_endpoint(buf, ep)
     got = backend.from_descriptor_with_endpoint(desc, ep)
     assert isinstance(got, DemoBuffer) and got.readonly and got.in_shm
-    assert got.segment_name == buf.segment_name and got.generation == buf.generation
+    assert got.segment == buf.segment and got.generation == buf.generation
     assert bytes(memoryview(got)) == bytes(memoryview(buf))
     numpy.asarray(buf)[0] = 200  # the subscriber's view is the same memory
     assert numpy.asarray(got)[0] == 200
@@ -186,9 +205,10 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
 def test_descriptor_round_trip_in_other_process_is_zero_copy(backend, peers):
     peer = peers(backend)
     ours = backend.get_backend_metadata()
-    # the same shm domain, another process's presence token
+    # the same domain, another process's token
     assert peer.metadata.rpartition('.')[0] == ours.rpartition('.')[0]
     assert _token(peer.metadata) != _token(ours)
+    assert handover.token_pid(_token(peer.metadata)) == peer.pid
     assert backend.parse_metadata(peer.metadata) == (True, _token(peer.metadata))
     buf = DemoBuffer.allocate(1 << 20)
     a = numpy.asarray(buf)
@@ -200,7 +220,11 @@ def test_descriptor_round_trip_in_other_process_is_zero_copy(backend, peers):
     assert reply['readonly'] and reply['write_rejected']
     a[:] = 42  # still pinned by us: write through, the reader's view shows it (zero copy)
     assert peer('sha', key='v')['sha'] == _sha(buf)
-    assert peer('stats')['mappings_opened'] == 1
+    stats = peer('stats')
+    assert stats['mappings_opened'] == stats['handovers_received'] == 1
+    assert demo_buffer_backend.stats()['handovers_sent'] == 1
+    # one segment, mapped once (CPython's mmap keeps a dup of the descriptor: 2 fds)
+    assert peer('memory') == {'maps': 1, 'fds': 2}
     peer.exit()
 
 
@@ -214,7 +238,7 @@ def test_view_held_in_other_process_survives_100_more_frames(backend, peers):
     reply = peer('take', desc=backend.create_descriptor_with_endpoint(first, ep).hex(), key='h')
     assert reply['ok']
     held_sha = reply['sha']
-    held_segment = first.segment_name
+    held_segment = first.segment
     del first
     for batch in range(10):
         descs, shas = [], []
@@ -222,7 +246,7 @@ def test_view_held_in_other_process_survives_100_more_frames(backend, peers):
             frame = DemoBuffer.allocate(n)
             numpy.asarray(frame)[:] = (batch * 10 + i + 2) % 256
             assert frame.in_shm
-            assert frame.segment_name != held_segment  # never reused while held
+            assert frame.segment != held_segment  # never reused while held
             descs.append(backend.create_descriptor_with_endpoint(frame, ep).hex())
             shas.append(_sha(frame))
             del frame
@@ -245,7 +269,7 @@ def test_pool_grows_to_cap_then_falls_back_and_recovers(backend):
             backend.create_descriptor_with_endpoint(buf, ep), ep))
     assert demo_buffer_backend.stats()['slots'] == 3
     fallback = DemoBuffer.from_cpu(b'z' * 10000)  # every slot is held: private memory
-    assert not fallback.in_shm and fallback.segment_name is None
+    assert not fallback.in_shm and fallback.segment is None
     assert bytes(memoryview(fallback)) == b'z' * 10000
     assert backend.create_descriptor_with_endpoint(fallback, ep) is None
     writable = DemoBuffer.allocate(10)
@@ -300,68 +324,86 @@ def test_killed_holder_releases_its_slot(backend, peers):
     demo_buffer_backend.configure(max_slots=1)
     peer = peers(backend)
     buf = DemoBuffer.from_cpu(b'k' * 3000)
-    name = buf.segment_name
+    segment = buf.segment
     assert peer('take', desc=backend.create_descriptor_with_endpoint(
         buf, _endpoint(PEER_GID)).hex(), key='h')['ok']
     del buf
     assert not DemoBuffer.allocate(3000).in_shm  # held by the peer
     peer.kill9()
     reused = DemoBuffer.allocate(3000)
-    assert reused.in_shm and reused.segment_name == name and reused.generation == 2
+    assert reused.in_shm and reused.segment == segment and reused.generation == 2
+    with pytest.raises(EndpointGone):  # its process is gone: nothing more is sent to it
+        backend.create_descriptor_with_endpoint(reused, _endpoint(PEER_GID))
+    assert demo_buffer_backend.stats()['peers_gone'] == 1
 
 
-def test_killed_publisher_segments_are_removed_by_the_next_user(fresh, peers):
-    publisher = peers()
-    names = {publisher('publish', n=n, fill=3, keep=str(n))['name'] for n in (10, 5000, 70000)}
-    assert names == _segments_of(publisher.pid) and len(names) == 3
+def test_killed_publisher_frames_in_flight_stay_readable_then_nothing_is_left(fresh, peers):
+    """A publisher SIGKILLed with frames in flight: a slow subscriber that had not looked at
+    any of them yet still reads every one (their segments wait in its socket queue); once it
+    drops them, it holds no memory of that publisher (its maps and fds), and nothing was ever
+    in /dev/shm."""
+    reader, publisher = peers(), peers()
+    assert reader('orphan_seconds', value=0.5)['ok']
+    assert publisher('discover', metadata=reader.metadata)['compatible']
+    sent = []
+    for i, n in enumerate((10, 5000, 70000, 1 << 20, 5000)):  # the last one reuses no slot
+        reply = publisher('publish', n=n, fill=i + 1, keep=str(i))
+        assert reply['in_shm'] and reply['desc'] and not reply['gone'], reply
+        sent.append((reply['desc'], hashlib.sha256(bytes([i + 1]) * n).hexdigest()))
+    assert reader('memory') == {'maps': 0, 'fds': 0}  # nothing taken yet
     publisher.kill9()
-    # The next process that uses the backend scavenges on start (unless the housekeeping of
-    # another user of the backend on this machine was quicker).
-    peers().exit()
-    assert not _segments_of(publisher.pid)
+    for i, (desc, sha) in enumerate(sent):
+        reply = reader('take', desc=desc, key=str(i))
+        assert reply['ok'] and reply['sha'] == sha, reply
+    assert reader('memory') == {'maps': 5, 'fds': 10}  # (mmap keeps a dup of each fd)
+    for i in range(len(sent)):
+        assert reader('drop', key=str(i))['ok']
+    time.sleep(0.6)
+    assert reader('sweep')['ok']
+    assert reader('memory') == {'maps': 0, 'fds': 0}
+    assert _memfd_usage_of(reader.pid) == {'maps': 0, 'fds': 0}
+    stats = reader('stats')
+    assert stats['handovers_received'] == 5 and stats['mappings_closed'] == 5, stats
+    assert not {n for n in _shm_files() if f'_{publisher.pid}_' in n or f'_{reader.pid}_' in n}
+    reader.exit()
 
 
-def test_killed_publisher_segment_is_removed_while_mapped_views_stay_valid(backend, peers):
-    publisher, reader = peers(), peers()
+def test_held_views_outlive_their_publisher_until_dropped(fresh, peers):
+    """A view held across the publisher's normal exit stays valid; the segment goes when the
+    view does, not before (its publisher hung up: the grace period is for late descriptors)."""
+    reader, publisher = peers(), peers()
+    assert reader('orphan_seconds', value=0.0)['ok']
+    publisher('discover', metadata=reader.metadata)
     reply = publisher('publish', n=4096, fill=5, keep='p')
     assert reader('take', desc=reply['desc'], key='r')['ok']
     sha = reader('sha', key='r')['sha']
-    publisher.kill9()
+    publisher.exit()
+    assert reader('sweep')['ok']
     assert reader('sha', key='r')['sha'] == sha  # the view outlives its publisher
-    # The reader's housekeeping thread (or its exit, or any other user's) removes the file;
-    # unlinking does not unmap, so the reader's view stays valid.
-    deadline = time.monotonic() + 10.0
-    while _segments_of(publisher.pid):
-        assert time.monotonic() < deadline, 'dead publisher segment not reclaimed in 10 s'
-        time.sleep(0.05)
-    assert reader('sha', key='r')['sha'] == sha
+    assert reader('memory') == {'maps': 1, 'fds': 2}
+    assert reader('drop', key='r')['ok'] and reader('sweep')['ok']
+    assert reader('memory') == {'maps': 0, 'fds': 0}
     reader.exit()
-    assert not _segments_of(publisher.pid)
 
 
-def test_normal_exit_removes_everything_it_created(fresh, peers):
-    peer = peers()
-    for n in (10, 100_000):
-        peer('publish', n=n, fill=1, keep=str(n))
-    assert len(_segments_of(peer.pid)) == 2
-    peer.exit()
-    assert not _segments_of(peer.pid)
-
-
-def test_shutdown_removes_our_segments_and_fork_child_leaves_them(fresh):
+def test_shutdown_closes_our_segments_and_fork_child_leaves_them(fresh):
     buf = DemoBuffer.from_cpu(b'f' * 100)
-    name = buf.segment_name
+    segment = buf.segment
     pid = os.fork()
-    if pid == 0:  # the child inherits the pool but must never remove the parent's segments
+    if pid == 0:  # the child inherits the pool but must never touch the parent's segments
         try:
             demo_buffer_backend.shutdown()
         finally:
             os._exit(0)
     assert os.waitpid(pid, 0)[1] == 0
-    assert name in _segments_of(os.getpid())
+    assert segment[1] in pool.get_state().slots
+    assert DemoBuffer.from_cpu(b'g' * 100).in_shm
     demo_buffer_backend.shutdown()
-    assert not _segments_of(os.getpid())
+    assert demo_buffer_backend.stats()['slots'] == 0
     assert bytes(memoryview(buf)) == b'f' * 100  # a live Buffer keeps its mapping
+    del buf
+    gc.collect()
+    assert _memfd_usage_of(os.getpid()) == {'maps': 0, 'fds': 0}
 
 
 # --- malformed descriptors -----------------------------------------------------------------------
@@ -371,32 +413,22 @@ def _forge(good, **changes):
     return descriptor.pack(d)
 
 
-def _with_raw_name(good, raw_name):
-    head = 36  # the fixed part of a descriptor
-    return good[:5] + bytes([len(raw_name)]) + good[6:head] + raw_name
-
-
 def test_malformed_descriptors_raise_value_error(backend):
     ep = _endpoint()
     buf = DemoBuffer.from_cpu(b'm' * 6000)
     good = backend.create_descriptor_with_endpoint(buf, ep)
     d = descriptor.unpack(good)
-    pid = os.getpid()
     bad = {
         'not bytes': 12345,
         'empty': b'',
         'bad magic': b'XXXX' + good[4:],
         'bad version': good[:4] + b'\x09' + good[5:],
+        'reserved bits': good[:5] + b'\x01' + good[6:],
         'trailing byte': good + b'\x00',
-        'bad name chars': _forge(good, name=f'rbpy_demo_{pid}_abcdefgh-1234567'),
-        'slash': _forge(good, name=f'rbpy_demo_{pid}_/etc/passwd'),
-        'dot dot': _forge(good, name=f'rbpy_demo_{pid}_../../../etc/x'),
-        'absolute': _forge(good, name='/dev/shm/' + d.name),
-        'other prefix': _forge(good, name='lttng-ust-wait-6'),
-        'non ascii': _with_raw_name(good, 'rbpy_demo_é'.encode()),
-        'nul in name': _with_raw_name(good, good[36:-1] + b'\0'),
-        'owner mismatch': _forge(good, owner=d.owner + 1),
-        'missing segment': _forge(good, name=f'rbpy_demo_{pid}_0123456789abcdef'),
+        'other pid': _forge(good, pid=d.pid + 1),
+        'pid zero': _forge(good, pid=0),
+        'other nonce': _forge(good, nonce=d.nonce ^ 1),
+        'segment never handed over': _forge(good, segment_id=d.segment_id + 1000),
         'offset outside': _forge(good, offset=1 << 30),
         'size outside': _forge(good, size=d.size + 10 ** 9),
         'wrong size': _forge(good, size=d.size - 1),
@@ -407,25 +439,6 @@ def test_malformed_descriptors_raise_value_error(backend):
     }
     for length in range(len(good)):
         bad[f'truncated to {length}'] = good[:length]
-    # planted copies of the real segment (valid header): not created by the backend
-    with open(shm.path_of(d.name), 'rb') as f:
-        image = f.read()
-    planted = []
-    for label, mode in (('planted 0644', 0o644), ('planted 0666', 0o666), ('planted link', None),
-                        ('planted 0600 other owner', 0o600)):
-        name = f'rbpy_demo_{pid}_{os.urandom(8).hex()}'
-        planted.append(shm.path_of(name))
-        if mode is None:
-            os.symlink(shm.path_of(d.name), shm.path_of(name))
-        else:
-            content = bytearray(image)
-            if 'other owner' in label:
-                content[12:16] = (pid + 1).to_bytes(4, 'little')  # HEADER owner_pid
-            fd = os.open(shm.path_of(name), os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-            os.write(fd, bytes(content))
-            os.fchmod(fd, mode)
-            os.close(fd)
-        bad[label] = _forge(good, name=name)
     rng = random.Random(1234)
     for i in range(200):
         bad[f'random {i}'] = bytes(rng.randrange(256) for _ in range(rng.randrange(120)))
@@ -445,11 +458,8 @@ def test_malformed_descriptors_raise_value_error(backend):
             continue
         # A bit flip may only land in a field that still names exactly the same bytes.
         assert label.startswith('bit flip') and bytes(memoryview(got)) == b'm' * 6000, label
-    for path in planted:
-        os.unlink(path)
     stats = demo_buffer_backend.stats()
     assert stats['rejected'] == rejected > 300
-    assert stats['untrusted_segments'] == 3  # (the symlink is refused by O_NOFOLLOW)
     assert stats['views_held'] == 0  # no hold leaked by a rejection
     ok = backend.from_descriptor_with_endpoint(good, ep)  # still fine afterwards
     assert bytes(memoryview(ok)) == b'm' * 6000
@@ -469,26 +479,6 @@ def test_stale_generation_after_reuse_is_rejected(backend):
     assert demo_buffer_backend.stats()['stale'] == 1
 
 
-def test_foreign_files_with_our_name_pattern_are_rejected(backend):
-    ep = _endpoint()
-    name = f'rbpy_demo_{os.getpid()}_{"ab" * 8}'
-    path = os.path.join(shm.SHM_DIR, name)
-    good = descriptor.Descriptor(name, os.getpid(), 0, 10, 1)
-    try:
-        for content in (b'', b'\0' * (shm.HEADER_SIZE + 4096), b'junk' * 5000):
-            with open(path, 'wb') as f:
-                f.write(content)
-            with pytest.raises(ValueError):
-                backend.from_descriptor_with_endpoint(descriptor.pack(good), ep)
-        os.unlink(path)
-        os.symlink('/etc/hostname', path)
-        with pytest.raises(ValueError):
-            backend.from_descriptor_with_endpoint(descriptor.pack(good), ep)
-    finally:
-        if os.path.lexists(path):
-            os.unlink(path)
-
-
 # --- backend contract ----------------------------------------------------------------------------
 
 def test_metadata_and_compatibility(fresh):
@@ -503,8 +493,8 @@ def test_metadata_and_compatibility(fresh):
     assert be.on_discovering_endpoint(same, [], {'demo': meta}) == (True, [])
     assert be.on_discovering_endpoint(other, [], {'demo': meta + 'x'}) == (False, [])
     domain, _, token = meta.rpartition('.')
-    assert presence.parse_token(token) == token
-    assert meta.split('.')[:5] == domain.split('.') and domain.startswith('shm1.')
+    assert handover.parse_token(token) == token and handover.token_pid(token) == os.getpid()
+    assert meta.split('.')[:6] == domain.split('.') and domain.startswith('mfd1.')
     assert be.on_discovering_endpoint(legacy, [], {'cpu': ''}) == (False, [])
     assert be.create_descriptor_with_endpoint(buf, same) is not None
     assert be.create_descriptor_with_endpoint(buf, other) is None
@@ -544,7 +534,7 @@ def test_limits_from_environment(fresh, monkeypatch):
 def test_steady_state_creates_and_maps_nothing(backend, monkeypatch):
     ep = _endpoint()
     n = 1 << 20
-    calls = {'create': 0, 'open': 0, 'map': 0}
+    calls = {'create': 0, 'map': 0}
 
     def counting(key, func):
         def wrapper(*args, **kwargs):
@@ -562,16 +552,15 @@ def test_steady_state_creates_and_maps_nothing(backend, monkeypatch):
 
     for i in range(3):  # warm-up
         frame(i)
-    files = _segments_of(os.getpid())
-    for key, name in (('create', 'create'), ('open', 'open_existing'),
-                      ('map', 'map_data_readonly')):
-        monkeypatch.setattr(shm, name, counting(key, getattr(shm, name)))
+    usage = _memfd_usage_of(os.getpid())
+    for key, name in (('create', 'Segment'), ('map', 'open_received')):
+        monkeypatch.setattr(memory, name, counting(key, getattr(memory, name)))
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for i in range(200):
         frame(i)
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults
-    assert calls == {'create': 0, 'open': 0, 'map': 0}
-    assert _segments_of(os.getpid()) == files
+    assert calls == {'create': 0, 'map': 0}
+    assert _memfd_usage_of(os.getpid()) == usage
     # 200 MiB written and read: without pre-faulted, cached mappings that would be 51200 faults
     assert faults < 2000
     assert demo_buffer_backend.stats()['taken'] == 203
@@ -602,18 +591,23 @@ def test_threads_share_the_pool_safely(backend):
     assert demo_buffer_backend.stats()['views_held'] == 0
 
 
-def test_compatibility_ignores_the_token_but_not_the_domain(fresh):
+def test_compatibility_needs_the_domain_and_a_token(fresh):
     be = DemoBackend()
     meta = be.get_backend_metadata()
     domain, _, token = meta.rpartition('.')
     buf = DemoBuffer.from_cpu(b't' * 10)
     other = f'{os.getpid() + 1}_0123456789abcdef'  # another process of the same domain
+    boot, net, mnt, pid_ns, uid = domain.split('.')[1:]
     cases = {
-        f'{domain}.{other}': (True, other),  # compatible, but gone: CPU bytes (below)
+        f'{domain}.{other}': (True, other),  # compatible, but nobody listens: gone (below)
         meta: (True, token),
-        domain: (True, None),  # a peer without a token: compatible, never taken for dead
-        f'shm1.{"0" * 32}.1.2.3.{token}': (False, None),  # another boot
-        domain.rsplit('.', 1)[0] + f'.{os.geteuid() + 1:x}.{token}': (False, None),  # other user
+        domain: (False, None),  # no token: nowhere to hand segments to
+        f'mfd1.{"0" * 32}.{net}.{mnt}.{pid_ns}.{uid}.{token}': (False, None),  # another boot
+        f'mfd1.{boot}.1.{mnt}.{pid_ns}.{uid}.{token}': (False, None),  # another network ns
+        f'mfd1.{boot}.{net}.1.{pid_ns}.{uid}.{token}': (False, None),  # another mount ns
+        f'mfd1.{boot}.{net}.{mnt}.1.{uid}.{token}': (False, None),  # another pid ns
+        f'mfd1.{boot}.{net}.{mnt}.{pid_ns}.{os.geteuid() + 1:x}.{token}': (False, None),
+        f'shm1.{boot}.1.2.{uid}.{token}': (False, None),  # the /dev/shm design's metadata
         f'{domain}.{token}.extra': (False, None),
         f'{domain}.not_a_token': (False, None),
         f'{domain}.12_0123456789ABCDEF': (False, None),
@@ -628,45 +622,19 @@ def test_compatibility_ignores_the_token_but_not_the_domain(fresh):
         assert be.on_discovering_endpoint(ep, [], {'demo': metadata}) == (expected[0], [])
         assert be.is_compatible(ep) == expected[0]
         assert be.peer_token(ep) == expected[1]
-        alive = expected[1] is None or presence.alive(expected[1])  # `other` has no presence
-        assert (be.create_descriptor_with_endpoint(buf, ep) is not None) == \
-            (expected[0] and alive), metadata
+        if expected[1] == other:
+            with pytest.raises(EndpointGone):
+                be.create_descriptor_with_endpoint(buf, ep)
+        else:
+            assert (be.create_descriptor_with_endpoint(buf, ep) is not None) == expected[0]
     assert be.parse_metadata(None) == (False, None)
 
 
 # --- dead recipients -----------------------------------------------------------------------------
 
-def test_presence_file_is_private_removed_at_exit_and_scavenged_after_sigkill(fresh, peers):
-    be = DemoBackend()
-    token = _token(be.get_backend_metadata())
-    path = presence.path_of(token)
-    st = os.stat(path)
-    assert st.st_mode & 0o777 == 0o600 and st.st_uid == os.geteuid()
-    assert demo_buffer_backend.stats()['presence'] == token
-    demo_buffer_backend.shutdown()
-    assert not os.path.exists(path)
-    assert _token(be.get_backend_metadata()) == token  # the advertised token stays valid
-    assert os.path.exists(path)
-
-    clean, killed = peers(), peers()
-    for peer in (clean, killed):
-        peer_path = presence.path_of(_token(peer.metadata))
-        assert os.stat(peer_path).st_mode & 0o777 == 0o600
-        assert presence.alive(_token(peer.metadata))
-        assert _presence_of(peer.pid) == {os.path.basename(peer_path)}
-    clean.exit()
-    assert not _presence_of(clean.pid)
-    assert not presence.alive(_token(clean.metadata))
-    killed.kill9()
-    assert _presence_of(killed.pid)  # nobody cleaned up yet
-    assert demo_buffer_backend.scavenge() >= 1
-    assert not _presence_of(killed.pid)
-    assert os.path.exists(path)  # ours is alive: never scavenged
-
-
 def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, peers):
-    """Descriptors for a SIGKILLed subscriber stop pinning slots at once; a live subscriber's
-    untaken descriptors and held views stay protected."""
+    """Descriptors for a SIGKILLed subscriber stop pinning slots at once (its link hangs up);
+    a live subscriber's untaken descriptors and held views stay protected."""
     demo_buffer_backend.configure(max_slots=4, reclaim_timeout=3600,
                                   max_inflight_per_peer=4)  # each may pin every slot
     survivor, victim = peers(), peers()
@@ -679,7 +647,7 @@ def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, pee
         buf = DemoBuffer.allocate(n)
         numpy.asarray(buf)[:] = 10 + i
         assert buf.in_shm
-        frames.append(dict(name=buf.segment_name, sha=_sha(buf),
+        frames.append(dict(segment=buf.segment, sha=_sha(buf),
                            a=backend.create_descriptor_with_endpoint(buf, to_survivor).hex(),
                            b=backend.create_descriptor_with_endpoint(buf, to_victim).hex()))
         del buf
@@ -690,7 +658,7 @@ def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, pee
     # The victim took only frame 3 (then died): its take must not count as the survivor's.
     assert victim('take_drop', descs=[frames[3]['b']])['digests'] == [frames[3]['sha']]
     assert not DemoBuffer.allocate(n).in_shm  # all alive: the slow victim pins frames 0..2
-    assert not DemoBuffer.allocate(n).in_shm  # (and again, from the liveness cache)
+    assert not DemoBuffer.allocate(n).in_shm
 
     victim.kill9()
     killed_at = time.monotonic()
@@ -706,54 +674,23 @@ def test_killed_recipient_stops_pinning_slots_live_ones_keep_theirs(backend, pee
     reused.append(DemoBuffer.allocate(n))
     stats = demo_buffer_backend.stats()
     # exactly frames 1 and 2 came back: 0 is held by the survivor, 3 is in flight to it
-    assert {b.segment_name for b in reused} == {frames[1]['name'], frames[2]['name']}, stats
+    assert {b.segment for b in reused} == {frames[1]['segment'], frames[2]['segment']}, stats
     assert all(b.in_shm and b.generation == 2 for b in reused)
     assert not DemoBuffer.allocate(n).in_shm
-    assert stats['released_dead_recipients'] >= 2 and stats['reclaimed'] == 0, stats
-    assert _token(victim.metadata) in stats['recipients_dead']
+    assert stats['peers_gone'] == 1 and stats['reclaimed'] == 0, stats
     assert stats['slots'] == 4
+    with pytest.raises(EndpointGone):
+        backend.create_descriptor_with_endpoint(reused[0], to_victim)
     # the survivor's bytes are intact and its late take is not stale
     assert survivor('sha', key='held')['sha'] == frames[0]['sha']
     late = survivor('take', desc=frames[3]['a'], key='late')
     assert late['ok'] and late['sha'] == frames[3]['sha'], late
-    assert not _presence_of(victim.pid)  # found dead: its presence file is gone already
     survivor.exit()
     print(f'slots reusable {latency * 1000:.0f} ms after the SIGKILL')
 
 
-def _open_fds_on(path):
-    found = []
-    for fd in os.listdir('/proc/self/fd'):
-        try:
-            if os.readlink(f'/proc/self/fd/{fd}') == path:
-                found.append(int(fd))
-        except OSError:
-            pass
-    return found
-
-
-def test_presence_watch_keeps_a_live_peers_file_open_until_it_dies(backend, peers):
-    """A re-test of a live peer is one fcntl on its presence file, kept open; once the peer
-    dies (SIGKILL) the next test says so and the file is closed (and removed)."""
-    peer = peers()
-    token = _token(peer.metadata)
-    path = presence.path_of(token)
-    watch = presence.Watch()
-    try:
-        assert watch.alive(token) and watch.alive(token)
-        assert len(_open_fds_on(path)) == 1
-        watch.forget(token)
-        assert _open_fds_on(path) == []
-        assert watch.alive(token) and len(_open_fds_on(path)) == 1
-        peer.kill9()
-        assert not watch.alive(token)
-        assert _open_fds_on(path) == [] and not _presence_of(peer.pid)
-        assert not watch.alive(token)
-    finally:
-        watch.close()
-
-
-def test_liveness_is_cached_not_tested_per_allocation(backend, peers):
+def test_removed_endpoint_of_a_live_process_keeps_its_slot_until_the_process_exits(
+        backend, peers):
     demo_buffer_backend.configure(max_slots=1, reclaim_timeout=3600)
     slow = peers()
     ep = _endpoint(b'\xc3' * 16)
@@ -761,36 +698,13 @@ def test_liveness_is_cached_not_tested_per_allocation(backend, peers):
     buf = DemoBuffer.allocate(1000)
     backend.create_descriptor_with_endpoint(buf, ep)
     del buf
-    before = demo_buffer_backend.stats()['liveness_checks']
-    started = time.monotonic()
     for _ in range(300):
         assert not DemoBuffer.allocate(1000).in_shm  # a live, slow subscriber keeps its slot
-    elapsed = time.monotonic() - started
-    checks = demo_buffer_backend.stats()['liveness_checks'] - before
-    assert checks <= elapsed / pool.LIVENESS_TTL + 2, (checks, elapsed)
     backend.on_removing_endpoint(ep)  # its endpoint went away but its process lives: kept
     assert not DemoBuffer.allocate(1000).in_shm
-    slow.exit()  # now it is gone: the slot comes back within the cache's lifetime
-    deadline = time.monotonic() + 10.0
-    while not DemoBuffer.allocate(1000).in_shm:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
-
-
-def test_takers_table_counts_per_process_and_overflows_safely(fresh):
-    buf = DemoBuffer.allocate(10)
-    header = buf._keepalive.slot.header
-    for ident in (5, 7, 5, 5):
-        shm.record_taker(header, ident)
-    assert shm.taken_by(header, {5}) == 3 and shm.taken_by(header, {5, 7}) == 4
-    assert shm.taken_by(header, {9}) == 0
-    for ident in range(100, 100 + shm.MAX_TAKERS):
-        shm.record_taker(header, ident)
-    assert shm.taken_by(header, {5}) is None  # incomplete: the caller cannot tell
-    shm.reset_takers(header)
-    assert shm.taken_by(header, {5}) == 0
-    assert bytes(header[shm.OFF_TAKERS:shm.OFF_TAKERS + 16 * shm.MAX_TAKERS]) == \
-        bytes(16 * shm.MAX_TAKERS)
+    slow.exit()  # now it is gone: its link hangs up, the slot comes back
+    assert DemoBuffer.allocate(1000).in_shm
+    assert demo_buffer_backend.stats()['peers_gone'] == 1
 
 
 # --- fairness: per-peer ledgers ------------------------------------------------------------------
@@ -828,30 +742,36 @@ def test_keep_last_window_stops_pinning_what_the_peer_can_no_longer_take(backend
 
 
 def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers):
-    """A KEEP_ALL peer (another live process) that never takes keeps its share pinned and gets
-    CPU bytes past it (what it was sent stays valid: nothing a stock subscriber would get is
-    lost); a peer that takes gets every frame zero-copy and the pool never falls back."""
+    """A KEEP_ALL peer (another live process) that never takes keeps getting descriptors: past
+    its share its oldest are given up (as a KEEP_LAST history would drop them), so it pins no
+    more than its share; a peer that takes gets every frame zero-copy and the pool never falls
+    back."""
     demo_buffer_backend.configure(max_slots=4, max_inflight_per_peer=1, reclaim_timeout=3600)
-    stuck = _discovered(backend, b'\x31' * 16, depth=0, metadata=peers().metadata)
+    stuck_peer = peers()
+    stuck = _discovered(backend, b'\x31' * 16, depth=0, metadata=stuck_peer.metadata)
     healthy = _discovered(backend, b'\x32' * 16, depth=0)
     to_stuck = []
     for i in range(30):
         buf = DemoBuffer.from_cpu(bytes([i]) * 3000)
         assert buf.in_shm, demo_buffer_backend.stats()
-        to_stuck.append((buf.segment_name, buf.generation,
+        to_stuck.append((buf.segment, buf.generation,
                          backend.create_descriptor_with_endpoint(buf, stuck)))
         desc = backend.create_descriptor_with_endpoint(buf, healthy)
         assert desc is not None
         del buf
         assert bytes(memoryview(backend.from_descriptor_with_endpoint(desc, healthy))) == \
             bytes([i]) * 3000
+        assert backend.peer_ledgers()[f'{stuck.gid_hex}/{PUBLISHER_GID.hex()}'][
+            'in_flight'] == 1
     stats = demo_buffer_backend.stats()
-    assert stats['over_share'] == 29 and stats['fallbacks'] == 0, stats
-    assert stats['reclaimed'] == 0, stats
-    assert [d is not None for _, _, d in to_stuck] == [True] + [False] * 29
-    # its share (the first frame) is still protected: never reclaimed
-    name, generation, first = to_stuck[0]
-    assert pool.get_state().slots[name].generation == generation
+    assert stats['released_share'] == 29 and stats['fallbacks'] == 0, stats
+    assert stats['reclaimed'] == 0 and stats['descriptors_declined'] == 0, stats
+    assert all(d is not None for _, _, d in to_stuck)
+    # its share (the last frame) is protected: never reused, and it can still take it
+    segment, generation, last = to_stuck[-1]
+    assert pool.get_state().slots[segment[1]].generation == generation
+    assert stuck_peer('take', desc=last.hex(), key='last')['sha'] == \
+        hashlib.sha256(bytes([29]) * 3000).hexdigest()
 
 
 def test_in_order_takes_release_what_the_peer_skipped(backend):
@@ -878,68 +798,83 @@ def test_in_order_takes_release_what_the_peer_skipped(backend):
     del held
 
 
-def test_peer_that_stops_taking_gets_cpu_and_probes_until_it_takes(backend, monkeypatch):
-    monkeypatch.setattr(pool, 'IDLE_SECONDS', 0.2)
-    monkeypatch.setattr(pool, 'PROBE_SECONDS', 0.3)
+def test_slow_peer_keeps_getting_descriptors(backend):
+    """Being slow is no reason for CPU bytes: a peer that took nothing for a while still gets
+    descriptors (the "not taking for 2 s gets CPU bytes" rule is gone)."""
     demo_buffer_backend.configure(max_slots=16, max_inflight_per_peer=4, reclaim_timeout=3600)
     ep = _discovered(backend, b'\x51' * 16, depth=0)
-
-    def ledger():
-        return backend.peer_ledgers()[f'{ep.gid_hex}/{PUBLISHER_GID.hex()}']
-    first = backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep)
-    assert first is not None
-    time.sleep(0.25)
-    buf = DemoBuffer.allocate(100)
-    probe = backend.create_descriptor_with_endpoint(buf, ep)  # now idle: the first probe
-    assert probe is not None and ledger()['not_taking']
-    got = [backend.create_descriptor_with_endpoint(buf, ep) for _ in range(5)]
-    assert got == [None] * 5  # CPU bytes between probes
-    view = backend.from_descriptor_with_endpoint(probe, ep)  # it takes again
-    assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep) is not None
-    assert not ledger()['not_taking']
+    first = DemoBuffer.allocate(100)
+    assert backend.create_descriptor_with_endpoint(first, ep) is not None
+    time.sleep(0.3)
+    bufs = [DemoBuffer.allocate(100) for _ in range(6)]
+    descs = [backend.create_descriptor_with_endpoint(b, ep) for b in bufs]
+    assert all(d is not None for d in descs)
+    assert bytes(memoryview(backend.from_descriptor_with_endpoint(descs[-1], ep))) == \
+        bytes(memoryview(bufs[-1]))
     stats = demo_buffer_backend.stats()
-    assert stats['peers_idle'] == 1 and stats['probes'] == 1 and stats['cpu_not_taking'] == 5
-    del view
+    assert stats['descriptors_declined'] == 0 and stats['released_share'] == 3, stats
 
 
-def test_dead_or_foreign_peer_gets_cpu_and_pins_nothing(backend, tmp_path):
+def test_dead_or_foreign_peer_gets_nothing_or_cpu_and_pins_nothing(backend):
+    """A peer whose listener is gone: EndpointGone (nothing sent). One whose listener is not
+    the process its token names, or not of our uid: CPU bytes (None)."""
     domain = backend.get_backend_metadata().rpartition('.')[0]
     dead = _discovered(backend, b'\x61' * 16,
                        metadata=f'{domain}.{os.getpid() + 1}_00000000000000aa')
-    assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(10), dead) is None
-    # a "presence file" that is a symlink to a file of ours (what another user cannot fake
-    # better): not a live peer of our domain
-    token = f'{os.getpid() + 2}_00000000000000bb'
-    target = tmp_path / 'elsewhere'
-    target.write_bytes(shm.PRESENCE_MAGIC)
-    os.symlink(target, presence.path_of(token))
+    with pytest.raises(EndpointGone):
+        backend.create_descriptor_with_endpoint(DemoBuffer.allocate(10), dead)
+    # a listener under a token that names another pid (a squatter of our uid), and one of
+    # another uid under a token naming its own pid
+    script = ('import os, socket, sys, time\n'
+              'uid = int(sys.argv[2])\n'
+              'if uid: os.setuid(uid)\n'
+              'token = sys.argv[1] or f"{os.getpid()}_00000000000000cc"\n'
+              's = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)\n'
+              's.bind("\\0rbpy_demo/" + token); s.listen(8)\n'
+              'print(token, flush=True); time.sleep(60)\n')
+    import subprocess
+    import sys
+    squatter_token = f'{os.getpid() + 2}_00000000000000bb'
+    procs = [subprocess.Popen([sys.executable, '-c', script, squatter_token, '0'],
+                              stdout=subprocess.PIPE, text=True)]
+    if os.geteuid() == 0:
+        procs.append(subprocess.Popen([sys.executable, '-c', script, '', '65534'],
+                                      stdout=subprocess.PIPE, text=True))
     try:
-        liar = _discovered(backend, b'\x62' * 16, metadata=f'{domain}.{token}')
-        assert not presence.alive(token)
-        assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(10), liar) is None
+        for i, proc in enumerate(procs):
+            token = proc.stdout.readline().strip()
+            liar = _discovered(backend, bytes([0x62 + i]) * 16, metadata=f'{domain}.{token}')
+            assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(10), liar) \
+                is None
     finally:
-        os.unlink(presence.path_of(token))
-    assert demo_buffer_backend.stats()['cpu_dead_peer'] == 2
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+            proc.stdout.close()
+    stats = demo_buffer_backend.stats()
+    assert stats['cpu_foreign_peer'] == len(procs) and stats['handovers_sent'] == 0, stats
+    assert stats['peers_gone'] == 1
 
 
-def test_take_waits_a_bounded_time_for_a_held_mutex_byte(backend):
-    """A process of our user that keeps a segment's mutex byte locked (stopped inside its
-    take) delays a take by at most MUTEX_WAIT_SECONDS; the message is still delivered."""
+def test_take_waits_a_bounded_time_for_a_held_lock(backend):
+    """A process of our user that keeps a segment's hold byte locked exclusively (through its
+    own description of the memfd) delays a take by a bounded time; the take is refused."""
     ep = _endpoint()
     buf = DemoBuffer.from_cpu(b'q' * 4096)
     desc = backend.create_descriptor_with_endpoint(buf, ep)
-    fd = os.open(shm.path_of(buf.segment_name), os.O_RDWR)  # another open file description
+    own = pool.get_state().slots[buf.segment[1]].segment.fd
+    fd = os.open(f'/proc/self/fd/{own}', os.O_RDWR)  # another description
     try:
-        assert pool.locks.try_lock(fd, shm.MUTEX_BYTE, exclusive=True)
+        assert memory.try_lock(fd, exclusive=True)
         started = time.monotonic()
-        got = backend.from_descriptor_with_endpoint(desc, ep)
+        with pytest.raises(ValueError, match='stale'):
+            backend.from_descriptor_with_endpoint(desc, ep)
         waited = time.monotonic() - started
-        assert bytes(memoryview(got)) == b'q' * 4096
-        assert waited < 1.0, waited  # generous: a loaded machine; the bound is 20 ms
-        assert demo_buffer_backend.stats()['take_unrecorded'] == 1
+        assert waited < 1.0, waited  # generous: a loaded machine; the bound is about 0.1 s
+        memory.unlock(fd)
+        assert bytes(memoryview(backend.from_descriptor_with_endpoint(desc, ep))) == b'q' * 4096
     finally:
         os.close(fd)
-    del got
 
 
 def test_pool_exhausted_warning_names_the_cause(backend, monkeypatch):
@@ -954,7 +889,7 @@ def test_pool_exhausted_warning_names_the_cause(backend, monkeypatch):
 
     def enospc(capacity):
         raise OSError(errno.ENOSPC, 'No space left on device')
-    monkeypatch.setattr(shm, 'create', enospc)
+    monkeypatch.setattr(memory, 'Segment', enospc)
     demo_buffer_backend.configure(max_slots=4)
     assert not DemoBuffer.allocate(100).in_shm
     assert 'ENOSPC' in messages[-1]

@@ -490,14 +490,16 @@ def test_to_msg_resizes_cpu_storage():
 def demo():
     """The registry's demo backend over a fresh process-wide pool; nothing left afterwards."""
     import demo_buffer_backend
-    from demo_buffer_backend import shm
     demo_buffer_backend.shutdown()
     backend = registry.get_backend('demo')
     yield backend
     gc.collect()
     demo_buffer_backend.shutdown()
-    prefix = f'{shm.PREFIX}{os.getpid()}_'
-    assert not [n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)]
+    # its memory is memfds: none left open or mapped, nothing of ours in /dev/shm
+    with open('/proc/self/maps') as f:
+        assert not [line for line in f if '/memfd:rbpy_demo' in line]
+    assert not [n for n in os.listdir('/dev/shm')
+                if n.startswith('rbpy_') and f'_{os.getpid()}_' in n]
 
 
 @pytest.mark.parametrize('encoding', ['mono8', 'bgr8', 'mono16', 'rgba16', '32FC1', '64FC3'])

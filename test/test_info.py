@@ -74,7 +74,7 @@ def test_lists_endpoints_backends_and_channels():
         assert recorder['backends'] is None and recorder['channels'] == []
         for aware in (cam, viewer):
             assert aware['buffer_aware'] is True and aware['legacy'] is False, aware
-            assert aware['backends']['demo'].startswith('shm1.'), aware  # the demo metadata
+            assert aware['backends']['demo'].startswith('mfd1.'), aware  # the demo metadata
         assert set(cam['backends']) == {'cpu', 'demo'}  # publishers also list cpu
         assert found['publisher_count'] == 1 and found['subscription_count'] == 2
         # exactly one channel, from the demo publisher to the buffer-aware subscriber

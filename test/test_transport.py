@@ -168,7 +168,7 @@ def test_second_participant_reads_user_data_and_stock_typehash(context):
         assert spin_until(executor, advertised), seen
         user_data = next(u for u in seen.values() if advertisement.decode(u))
         assert user_data.startswith(b'typehash=RIHS01_')
-        assert b';\0BUFBE:cpu=;demo=shm1.' in user_data
+        assert b';\0BUFBE:cpu=;demo=mfd1.' in user_data
         assert set(advertisement.decode(user_data)) == {'cpu', 'demo'}
         infos = node.get_publishers_info_by_topic(topic)
         assert infos and infos[0].topic_type_hash.version == 1, infos  # parsed by stock rmw

@@ -1,0 +1,161 @@
+"""Sealed anonymous segments: the memory a demo slot lives in, and the checks that a segment
+received from another process is one of them.
+
+A segment is a memfd (no name in any filesystem: the kernel frees it with its last descriptor
+or mapping, SIGKILL included) laid out as a header page followed by the data::
+
+    offset 0                 HEADER_SIZE                          HEADER_SIZE + capacity
+    | header (HEADER struct) | data (the payload bytes)           |
+
+Its pages are allocated when it is created (``posix_fallocate``: a full memory fails then, with
+``OSError``, never later with SIGBUS), then it is sealed (``SEALS``) before any other process
+sees it: it can never shrink or grow, and nobody can write it except through the creator's
+mapping made before the seal (no ``write``, no writable ``mmap``, no hole punching). A reader
+therefore never touches a page that is not there.
+
+The creator writes the header; readers map everything read-only. Byte ``HOLD_BYTE`` of the file
+carries OFD locks (per open file description, dropped by the kernel when the description is
+closed, which includes the death of its process): each reader holds a shared lock on its own
+description while it holds views; the creator reuses the slot only under an exclusive lock.
+"""
+import errno
+import fcntl
+import mmap
+import os
+import struct
+from typing import NamedTuple
+
+HEADER_SIZE = max(4096, mmap.ALLOCATIONGRANULARITY)
+PAGE_SIZE = mmap.PAGESIZE
+MAGIC = b'RBPYMFD1'
+#: magic, capacity, generation, offset, size
+HEADER = struct.Struct('<8sQQQQ')
+_U64 = struct.Struct('<Q')
+OFF_GENERATION = 16
+OFF_OFFSET = 24
+OFF_SIZE = 32
+
+_F_SEAL_FUTURE_WRITE = getattr(fcntl, 'F_SEAL_FUTURE_WRITE', 0x0010)
+#: Seals every segment carries: no shrinking, no growing, no write but the creator's mapping,
+#: no more seals to add or remove.
+SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | _F_SEAL_FUTURE_WRITE | fcntl.F_SEAL_SEAL
+
+HOLD_BYTE = 0
+_FLOCK = struct.Struct('hhqqi4x')  # struct flock (l_pid must be 0 for OFD locks)
+_F_OFD_SETLK = getattr(fcntl, 'F_OFD_SETLK', 37)
+
+
+def round_capacity(nbytes: int) -> int:
+    """Data capacity for a payload of ``nbytes``: whole pages, at least one."""
+    return max(PAGE_SIZE, -(-nbytes // PAGE_SIZE) * PAGE_SIZE)
+
+
+def try_lock(fd: int, *, exclusive: bool) -> bool:
+    """Lock ``HOLD_BYTE`` on ``fd``'s open file description without waiting; False when another
+    description holds a conflicting lock."""
+    kind = fcntl.F_WRLCK if exclusive else fcntl.F_RDLCK
+    try:
+        fcntl.fcntl(fd, _F_OFD_SETLK, _FLOCK.pack(kind, os.SEEK_SET, HOLD_BYTE, 1, 0))
+    except OSError as exc:
+        if exc.errno in (errno.EAGAIN, errno.EACCES):
+            return False
+        raise
+    return True
+
+
+def unlock(fd: int) -> None:
+    fcntl.fcntl(fd, _F_OFD_SETLK, _FLOCK.pack(fcntl.F_UNLCK, os.SEEK_SET, HOLD_BYTE, 1, 0))
+
+
+def read_u64(header: mmap.mmap, offset: int) -> int:
+    return _U64.unpack_from(header, offset)[0]
+
+
+class Segment:
+    """A segment this process created: its descriptor and a writable mapping of all of it."""
+
+    __slots__ = ('fd', 'map', 'capacity', 'data')
+
+    def __init__(self, capacity: int) -> None:
+        """Create, back and seal a segment of ``capacity`` data bytes (a multiple of the page
+        size); ``OSError`` (ENOSPC, ENOMEM, EFBIG, ...) when the memory cannot be had."""
+        if capacity <= 0 or capacity % PAGE_SIZE:
+            raise ValueError(f'capacity must be a positive multiple of {PAGE_SIZE}, got '
+                             f'{capacity}')
+        fd = os.memfd_create('rbpy_demo', os.MFD_ALLOW_SEALING | os.MFD_CLOEXEC)
+        mapped = None
+        try:
+            os.posix_fallocate(fd, 0, HEADER_SIZE + capacity)
+            mapped = mmap.mmap(fd, HEADER_SIZE + capacity,
+                               flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
+            fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)  # after the writable mapping, see above
+        except BaseException:
+            if mapped is not None:
+                mapped.close()
+            os.close(fd)
+            raise
+        self.map = mapped
+        self.fd = fd
+        self.capacity = capacity
+        HEADER.pack_into(self.map, 0, MAGIC, capacity, 0, 0, 0)
+        self.data = memoryview(self.map)[HEADER_SIZE:]
+
+    def set_generation(self, generation: int, size: int) -> None:
+        """Record the bytes of a new generation (the caller holds the exclusive lock)."""
+        HEADER.pack_into(self.map, 0, MAGIC, self.capacity, generation, 0, size)
+
+    def reader_fd(self) -> int:
+        """A new read-only open file description of this segment, for one reader (its locks
+        are its own). The caller closes it (after handing it over)."""
+        return os.open(f'/proc/self/fd/{self.fd}', os.O_RDONLY | os.O_CLOEXEC)
+
+    def close(self) -> None:
+        try:
+            self.data.release()
+            self.map.close()
+        except BufferError:
+            pass  # a view is still exported: the mapping goes when it does
+        os.close(self.fd)
+
+
+class Received(NamedTuple):
+    """A segment of another process (or ours, through a reader description), mapped
+    read-only."""
+
+    fd: int
+    map: mmap.mmap
+    capacity: int
+
+
+def open_received(fd: int, capacity: int) -> Received:
+    """Map a received segment descriptor after checking that it is one as :class:`Segment`
+    creates them: a sealed memfd of ``HEADER_SIZE + capacity`` bytes, all backed, with our
+    header. ``ValueError`` naming what is wrong otherwise; ``fd`` stays the caller's to close
+    on error."""
+    try:
+        seals = fcntl.fcntl(fd, fcntl.F_GET_SEALS)
+    except OSError:
+        raise ValueError('not a sealable memfd (F_GET_SEALS failed)') from None
+    if seals & SEALS != SEALS:
+        raise ValueError(f'seals {seals:#x} lack some of {SEALS:#x} (shrink, grow, future '
+                         'write, seal)')
+    st = os.fstat(fd)
+    if not 0 < capacity <= 1 << 40 or capacity % PAGE_SIZE:
+        raise ValueError(f'capacity {capacity} is not a multiple of {PAGE_SIZE} in (0, 1 TiB]')
+    if st.st_size != HEADER_SIZE + capacity:
+        raise ValueError(f'size {st.st_size} is not {HEADER_SIZE + capacity} (header + '
+                         f'capacity {capacity})')
+    if st.st_blocks * 512 < st.st_size:
+        raise ValueError(f'only {st.st_blocks * 512} of its {st.st_size} bytes are backed '
+                         '(a sparse segment could fault)')
+    try:
+        mapped = mmap.mmap(fd, st.st_size, prot=mmap.PROT_READ,  # page tables filled now
+                           flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
+    except OSError as exc:
+        raise ValueError(f'cannot map it: {exc}') from None
+    magic, recorded, _, _, _ = HEADER.unpack_from(mapped, 0)
+    if (magic, recorded) != (MAGIC, capacity):
+        mapped.close()
+        raise ValueError(f'header ({magic!r}, capacity {recorded}) is not ({MAGIC!r}, '
+                         f'{capacity})')
+    return Received(fd, mapped, capacity)
