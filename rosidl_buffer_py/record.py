@@ -39,7 +39,7 @@ from typing import Dict, List, Optional
 import yaml
 
 from rosidl_buffer_py.bag import (
-    BagError, BagWriter, Topic, format_size, qos_from_dict)
+    FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
 from rosidl_buffer_py.message_definition import (
     full_definition, import_message_type, DefinitionNotFoundError)
 
@@ -96,13 +96,14 @@ class _WriteQueue:
             self.condition.notify()
             return True
 
-    def get(self):
-        """The next item, or None once closed and empty."""
+    def get(self, timeout: float):
+        """The next item; :data:`IDLE` when none came within ``timeout`` seconds; None once
+        closed and empty."""
         with self.condition:
-            while not self.items and not self.closed:
-                self.condition.wait()
+            if not self.items and not self.closed:
+                self.condition.wait(timeout)
             if not self.items:
-                return None
+                return None if self.closed else IDLE
             item, nbytes = self.items.popleft()
             self.nbytes -= nbytes
             return item
@@ -113,13 +114,22 @@ class _WriteQueue:
             self.condition.notify_all()
 
 
+#: What :meth:`_WriteQueue.get` returns when nothing came in time.
+IDLE = object()
+
+
 def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats],
                  errors: List[str], stop: threading.Event) -> None:
+    """Write queued messages; every FLUSH_PERIOD_SEC at most, let the bag write its waiting
+    chunk and fdatasync (crash safety), busy or idle."""
     try:
         while True:
-            item = queue.get()
+            item = queue.get(FLUSH_PERIOD_SEC / 4)
+            bag.tick()
             if item is None:
                 return
+            if item is IDLE:
+                continue
             topic, log_time, publish_time, parts, _keepalive = item
             size = bag.write(topic, log_time, publish_time, parts)
             entry = stats[topic]
@@ -128,6 +138,7 @@ def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats
             del item, parts, _keepalive  # release the shared-memory view now
     except Exception as exc:  # disk full, I/O error: stop the recording, report it
         errors.append(f'writing the bag failed: {type(exc).__name__}: {exc}')
+        bag.failed = True
         stop.set()
         with queue.condition:
             queue.items.clear()
@@ -362,6 +373,8 @@ def print_summary(bag: BagWriter, stats: Dict[str, TopicStats], seconds: float,
                   errors: List[str]) -> None:
     """The table a user reads, then one JSON line for scripts."""
     files = bag.file_paths
+    for name, entry in stats.items():  # what is in the finished files, not what was queued
+        entry.written = bag.topic_counts.get(name, 0)
     print(f'buffer_record: wrote {bag.directory} ({len(files)} file'
           f'{"s" if len(files) != 1 else ""}, {format_size(bag.size)}) in {seconds:.1f} s')
     rows = [('topic', 'type', 'messages', 'zero-copy', 'dropped', 'bytes')]
@@ -441,7 +454,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             errors.append(f'the writer thread did not finish within {DRAIN_TIMEOUT_SEC} s')
         else:
             try:
-                bag.close()
+                bag.close(failed=bag.failed)
             except (OSError, BagError) as exc:
                 errors.append(f'finishing the bag failed: {exc}')
         print_summary(bag, recorder.stats, time.monotonic() - started, errors)
