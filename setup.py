@@ -121,6 +121,7 @@ setup(
             'buffer_record = rosidl_buffer_py.record:main',
             'buffer_play = rosidl_buffer_py.play:main',
             'buffer_bag_info = rosidl_buffer_py.bag_info:main',
+            'buffer_bag_reindex = rosidl_buffer_py.reindex:main',
         ],
     },
 )

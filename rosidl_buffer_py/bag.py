@@ -325,7 +325,8 @@ class Topic:
     def metadata_entry(self, message_count: int) -> dict:
         return {'topic_metadata': {
             'name': self.name, 'type': self.type, 'serialization_format': SERIALIZATION_FORMAT,
-            'offered_qos_profiles': [qos_to_dict(p) for p in self.offered_qos],
+            'offered_qos_profiles': [p if isinstance(p, dict) else qos_to_dict(p)
+                                     for p in self.offered_qos],
             'type_description_hash': self.type_hash},
             'message_count': message_count}
 
@@ -785,7 +786,8 @@ def _open_file(path: Path) -> BagFile:
             stream.seek(max(0, size - len(MCAP0_MAGIC)))
             if size < 2 * len(MCAP0_MAGIC) or stream.read() != MCAP0_MAGIC:
                 raise BagError(f'{path}: truncated MCAP file ({size} bytes, no footer: its '
-                               'writer did not finish it)')
+                               'writer did not finish it); recover its messages with: '
+                               f'buffer_bag_reindex {path.parent}')
             stream.seek(0)
             reader = make_reader(stream)
             summary = reader.get_summary()

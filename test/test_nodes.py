@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGE = 'rosidl_buffer_py'
 EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
                'legacy_image_subscriber', 'buffer_topic_info', 'buffer_record', 'buffer_play',
-               'buffer_bag_info']
+               'buffer_bag_info', 'buffer_bag_reindex']
 
 
 def _report(stdout: str) -> dict:
