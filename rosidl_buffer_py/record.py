@@ -38,6 +38,7 @@ from typing import Dict, List, Optional
 
 import yaml
 
+from rosidl_buffer_py import _dds, discovery
 from rosidl_buffer_py.bag import (
     FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
 from rosidl_buffer_py.message_definition import (
@@ -45,8 +46,13 @@ from rosidl_buffer_py.message_definition import (
 
 __all__ = ['main']
 
-#: How often the ROS graph is polled for topics to record.
+#: Where the discovery tap is unavailable (an rmw_fastrtps the native extension was not built
+#: against), how often the ROS graph is polled for topics to record instead.
 DISCOVERY_PERIOD_SEC = 0.5
+#: A writer the tap reported but the ROS graph does not list yet is looked up again this soon.
+GRAPH_RETRY_SEC = 0.01
+#: ... at most this many times in a row (a DDS writer that never becomes a ROS topic).
+GRAPH_RETRIES = 200
 #: rosbag2's default --max-cache-size.
 DEFAULT_MAX_CACHE_SIZE = 100 * 1024 * 1024
 #: Stop waiting for the writer thread after this long once stopped (it then gets reported).
@@ -147,6 +153,12 @@ def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats
 
 # --- the recorder node ---------------------------------------------------------------------------
 
+def _ros_topic_name(dds_topic: str) -> Optional[str]:
+    """The ROS topic of a DDS topic name ('rt/camera/image' -> '/camera/image'); None for
+    services, actions' internals and other non-topic names."""
+    return '/' + dds_topic[3:] if dds_topic.startswith('rt/') else None
+
+
 class Recorder:
     """Subscribe to the selected topics as they appear and queue their messages for writing."""
 
@@ -164,7 +176,29 @@ class Recorder:
                        for t in args.topics}
         self.exclude = re.compile(args.exclude_regex) if args.exclude_regex else None
         self.overrides = args.qos_overrides
-        self.timer = node.create_timer(DISCOVERY_PERIOD_SEC, self.discover)
+        self.timer = None
+        self.retry = None
+        self.retries = 0
+        self.discovery = None
+        if _dds.is_supported():
+            # subscribe the moment discovery reports a writer: the tap wakes the executor
+            self.discovery = discovery.for_node(node)
+            self.wakeup = node.create_guard_condition(self._on_discovery_event)
+            self.discovery.add_wakeup(node, self.wakeup)
+        else:
+            self.timer = node.create_timer(DISCOVERY_PERIOD_SEC, self.discover)
+
+    def close(self) -> None:
+        """Stop discovering (before the subscriptions are destroyed)."""
+        for timer in (self.timer, self.retry):
+            if timer is not None:
+                timer.cancel()
+        if self.discovery is not None:
+            self.discovery.remove_wakeup(self.wakeup)
+
+    def _on_discovery_event(self) -> None:
+        self.discovery.process()  # also what buffer-aware subscriptions wait for
+        self.discover()
 
     def _selected(self, name: str) -> bool:
         from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
@@ -179,10 +213,24 @@ class Recorder:
         return self.args.include_hidden_topics or not topic_or_service_is_hidden(name)
 
     def discover(self) -> None:
-        """Subscribe to every selected topic that has appeared since the last poll."""
-        for name, types in self.node.get_topic_names_and_types():
-            if name in self.subscriptions or name in self.skipped or not self._selected(name):
+        """Subscribe to every selected topic that has a publisher and no subscription yet.
+
+        The tap reports a writer from the DDS discovery thread, perhaps before rmw's graph cache
+        lists it (its QoS comes from there): such a topic is looked up again shortly.
+        """
+        graph = self.node.get_topic_names_and_types()
+        writers = set() if self.discovery is None else {
+            _ros_topic_name(t) for t in self.discovery.remote_writers()}
+        # a writer the tap knows and the graph does not list yet (or without its QoS)
+        listed = {name for name, _ in graph}
+        unlisted = any(name is not None and name not in listed and self._wanted(name)
+                       for name in writers)
+        for name, types in graph:
+            if not self._wanted(name):
                 continue
+            if not self.node.get_publishers_info_by_topic(name):
+                unlisted |= name in writers
+                continue  # no publisher: nothing to record yet, nor a QoS to match
             if len(types) > 1:
                 self.node.get_logger().warning(
                     f'{name} has more than one type ({", ".join(types)}); recording {types[0]}')
@@ -191,6 +239,20 @@ class Recorder:
             except (ValueError, TypeError, DefinitionNotFoundError, RecursionError) as exc:
                 self.skipped[name] = str(exc)
                 self.node.get_logger().error(f'not recording {name}: {exc}')
+        if not unlisted:
+            self.retries = 0
+        elif self.retry is None and self.retries < GRAPH_RETRIES:
+            self.retries += 1
+            self.retry = self.node.create_timer(GRAPH_RETRY_SEC, self._retry)
+
+    def _wanted(self, name: str) -> bool:
+        return name not in self.subscriptions and name not in self.skipped and \
+            self._selected(name)
+
+    def _retry(self) -> None:
+        self.node.destroy_timer(self.retry)
+        self.retry = None
+        self.discover()
 
     def _qos(self, name: str, offered):
         """rosbag2's rule: reliable / transient local only if every publisher offers it."""
@@ -442,7 +504,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        recorder.timer.cancel()
+        recorder.close()
         for subscription in recorder.subscriptions.values():  # take nothing more
             if isinstance(subscription, rclpy.subscription.Subscription):
                 node.destroy_subscription(subscription)
