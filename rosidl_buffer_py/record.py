@@ -78,6 +78,9 @@ class TopicStats:
     dropped: int = 0
     bytes: int = 0
     backends: Dict[str, int] = field(default_factory=dict)
+    #: From the first discovery event naming a writer of the topic to its subscription (None
+    #: when the topic was found by polling the graph)
+    subscribe_delay_ms: Optional[float] = None
 
 
 # --- the writer thread --------------------------------------------------------------------------
@@ -179,6 +182,7 @@ class Recorder:
         self.timer = None
         self.retry = None
         self.retries = 0
+        self.first_seen: Dict[str, float] = {}  # topic -> when the tap first reported a writer
         self.discovery = None
         if _dds.is_supported():
             # subscribe the moment discovery reports a writer: the tap wakes the executor
@@ -221,6 +225,9 @@ class Recorder:
         graph = self.node.get_topic_names_and_types()
         writers = set() if self.discovery is None else {
             _ros_topic_name(t) for t in self.discovery.remote_writers()}
+        now = time.monotonic()
+        for name in writers:
+            self.first_seen.setdefault(name, now)
         # a writer the tap knows and the graph does not list yet (or without its QoS)
         listed = {name for name, _ in graph}
         unlisted = any(name is not None and name not in listed and self._wanted(name)
@@ -292,6 +299,9 @@ class Recorder:
         self.bag.add_topic(Topic(name, type_name, definition, offered,
                                  sorted(hashes)[0] if hashes else ''))
         self.stats[name] = TopicStats(type_name, buffer_aware)
+        if name in self.first_seen:
+            self.stats[name].subscribe_delay_ms = round(
+                (time.monotonic() - self.first_seen[name]) * 1e3, 1)
         if buffer_aware:
             self.subscriptions[name] = rosidl_buffer_py.create_subscription(
                 self.node, msg_type, name, self._buffer_callback(name), qos,
