@@ -26,6 +26,7 @@ The mcap library writes every other record (header, schemas, channels, metadata,
 footer); chunks and message indexes are written here, and entered into the library writer's
 statistics and chunk indexes (:class:`_LibraryState`, the one place that reaches into it).
 """
+import heapq
 import os
 import struct
 import threading
@@ -850,21 +851,28 @@ class BagReader:
 
     def messages(self, topics: Optional[Sequence[str]] = None
                  ) -> Iterator[Tuple[Channel, Message]]:
-        """Every message of the selected topics, file after file, in file order.
+        """Every message of the selected topics in log-time order, whatever the file order.
 
-        File order is recording order; it avoids the mcap reader's in-memory sort, which would
-        load a whole unchunked file.
+        Memory stays bounded: each file is read through its chunk indexes (mcap's reader keeps
+        only the chunks whose time ranges overlap), and the files are merged by log time. A file
+        without chunk indexes (this package's recorder before it wrote chunks) is read in file
+        order, which is recording order.
         """
-        for bag_file in self.files:
-            try:
-                with open(bag_file.path, 'rb') as stream:
-                    reader = make_reader(stream)
-                    for _, channel, message in reader.iter_messages(
-                            topics=topics, log_time_order=False):
-                        yield channel, message
-            except (McapError, EOFError, struct.error) as exc:
-                raise BagError(f'{bag_file.path}: damaged message data '
-                               f'({type(exc).__name__}: {exc})') from None
+        streams = [self._file_messages(bag_file, topics) for bag_file in self.files]
+        yield from heapq.merge(*streams, key=lambda item: item[1].log_time)
+
+    def _file_messages(self, bag_file: BagFile, topics: Optional[Sequence[str]]
+                       ) -> Iterator[Tuple[Channel, Message]]:
+        indexed = bool(bag_file.summary.chunk_indexes)
+        try:
+            with open(bag_file.path, 'rb') as stream:
+                reader = make_reader(stream)
+                for _, channel, message in reader.iter_messages(
+                        topics=topics, log_time_order=indexed):
+                    yield channel, message
+        except (McapError, EOFError, struct.error) as exc:
+            raise BagError(f'{bag_file.path}: damaged message data '
+                           f'({type(exc).__name__}: {exc})') from None
 
 
 def format_size(nbytes: float) -> str:

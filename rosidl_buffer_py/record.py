@@ -43,6 +43,7 @@ from rosidl_buffer_py.bag import (
     FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
 from rosidl_buffer_py.message_definition import (
     full_definition, import_message_type, DefinitionNotFoundError)
+from rosidl_buffer_py.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
@@ -484,6 +485,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'buffer_record: error: {exc}', file=sys.stderr)
         return EXIT_USAGE
 
+    native_stdout_to_stderr()  # Fast DDS's log lines are not this tool's output
     stop = threading.Event()
 
     def on_signal(signum, frame) -> None:
