@@ -834,6 +834,25 @@ class BagReader:
                 entry['count'] += counts.get(channel_id, 0)
 
     @property
+    def ros_distro(self) -> str:
+        """The ROS distribution the bag was recorded with ('' when it does not say): from a
+        file's ``rosbag2`` metadata record (its ``ROS_DISTRO`` key, or ``ros_distro`` in the
+        ``serialized_metadata`` rosbag2 embeds), else from the directory's metadata.yaml."""
+        for bag_file in self.files:
+            if bag_file.metadata.get('ROS_DISTRO'):
+                return bag_file.metadata['ROS_DISTRO']
+            distro = _info_field(bag_file.metadata.get('serialized_metadata', ''), 'ros_distro')
+            if distro:
+                return distro
+        metadata = self.path / 'metadata.yaml'
+        if self.path.is_dir() and metadata.is_file():
+            try:
+                return _info_field(metadata.read_text(), 'ros_distro')
+            except OSError:
+                pass
+        return ''
+
+    @property
     def message_count(self) -> int:
         return sum(f.summary.statistics.message_count for f in self.files)
 
@@ -873,6 +892,19 @@ class BagReader:
         except (McapError, EOFError, struct.error) as exc:
             raise BagError(f'{bag_file.path}: damaged message data '
                            f'({type(exc).__name__}: {exc})') from None
+
+
+def _info_field(text: str, key: str) -> str:
+    """``rosbag2_bagfile_information[key]`` of rosbag2 metadata YAML ('' if absent or not
+    YAML)."""
+    if not text:
+        return ''
+    try:
+        info = yaml.safe_load(text)['rosbag2_bagfile_information']
+    except (yaml.YAMLError, KeyError, TypeError):
+        return ''
+    value = info.get(key) if isinstance(info, dict) else None
+    return str(value) if value else ''
 
 
 def format_size(nbytes: float) -> str:
