@@ -60,6 +60,10 @@ COVERAGE = {
     './dev bench-bringup': 'test_bringup.py',             # small frames, 2 trials
     './dev bench-hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     'colcon test': 'test_colcon.py',
+    # "Use it in your own venv": a fresh venv, pip install of a copy of the checkout
+    'python3 -m venv myenv': 'test_install.py',
+    'myenv/bin/pip install /path/to/rosidl_buffer_py': 'test_install.py',
+    'myenv/bin/buffer_bag_info --help': 'test_install.py',
 }
 
 
