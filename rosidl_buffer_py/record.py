@@ -450,10 +450,12 @@ def print_summary(bag: BagWriter, stats: Dict[str, TopicStats], seconds: float,
         entry.written = bag.topic_counts.get(name, 0)
     print(f'buffer_record: wrote {bag.directory} ({len(files)} file'
           f'{"s" if len(files) != 1 else ""}, {format_size(bag.size)}) in {seconds:.1f} s')
-    rows = [('topic', 'type', 'messages', 'zero-copy', 'dropped', 'bytes')]
+    # messages: in the finished files; received, zero-copy (of those received), dropped (no
+    # room in --max-cache-size): what the subscriptions delivered
+    rows = [('topic', 'type', 'messages', 'received', 'zero-copy', 'dropped', 'bytes')]
     for name, entry in sorted(stats.items()):
-        rows.append((name, entry.type, str(entry.written), str(entry.zero_copy),
-                     str(entry.dropped), format_size(entry.bytes)))
+        rows.append((name, entry.type, str(entry.written), str(entry.received),
+                     str(entry.zero_copy), str(entry.dropped), format_size(entry.bytes)))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for index, row in enumerate(rows):
         print('| ' + ' | '.join(cell.ljust(w) for cell, w in zip(row, widths)) + ' |')

@@ -219,6 +219,7 @@ def test_full_disk_leaves_a_readable_bag(tmp_path):
     assert code != 97, f'mounting the tmpfs failed: {err}'
     assert code == 1, f'exit {code}\n{out}\n{err}'
     assert 'No space left on device' in err, err
+    assert "| /full/image | sensor_msgs/msg/Image | " in out  # the summary still printed
     metadata = out_dir / 'metadata.yaml'
     assert not metadata.exists() or metadata.stat().st_size > 0
     assert not list(out_dir.glob('.metadata.yaml*')), 'a temporary file was left'
