@@ -287,7 +287,6 @@ class Recorder:
         import rosidl_buffer_py
         from rosidl_buffer_py import codec
         msg_type = import_message_type(type_name)
-        definition = full_definition(type_name)
         infos = self.node.get_publishers_info_by_topic(name)
         offered = [info.qos_profile for info in infos]
         hashes = {str(info.topic_type_hash) for info in infos} - {'INVALID'}
@@ -297,19 +296,31 @@ class Recorder:
             buffer_aware = True
         except codec.UnsupportedMessageTypeError:
             buffer_aware = False
-        self.bag.add_topic(Topic(name, type_name, definition, offered,
-                                 sorted(hashes)[0] if hashes else ''))
         self.stats[name] = TopicStats(type_name, buffer_aware)
         if name in self.first_seen:
             self.stats[name].subscribe_delay_ms = round(
                 (time.monotonic() - self.first_seen[name]) * 1e3, 1)
+        # The subscription first: DDS matches it (and its history fills) while the type's
+        # definition is read, which takes tens of ms. No callback runs before this method
+        # returns (it runs in the executor), so the channel is in the bag before any message.
         if buffer_aware:
-            self.subscriptions[name] = rosidl_buffer_py.create_subscription(
+            subscription = rosidl_buffer_py.create_subscription(
                 self.node, msg_type, name, self._buffer_callback(name), qos,
                 acceptable_buffer_backends='any')
         else:
-            self.subscriptions[name] = self.node.create_subscription(
+            subscription = self.node.create_subscription(
                 msg_type, name, self._raw_callback(name), qos, raw=True)
+        try:
+            self.bag.add_topic(Topic(name, type_name, full_definition(type_name), offered,
+                                     sorted(hashes)[0] if hashes else ''))
+        except Exception:
+            if buffer_aware:
+                subscription.destroy()
+            else:
+                self.node.destroy_subscription(subscription)
+            del self.stats[name]
+            raise
+        self.subscriptions[name] = subscription
         print(f'buffer_record: recording {name} ({type_name}, '
               f'{"buffer-aware" if buffer_aware else "serialized"})', flush=True)
 
