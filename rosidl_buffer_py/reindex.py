@@ -81,10 +81,9 @@ class _Scan:
         self.end = log_time if self.end is None else max(self.end, log_time)
 
 
-def _messages_in(records: bytes) -> Tuple[List[Tuple[int, int, int, int]], int]:
+def _messages_in(records: bytes) -> List[Tuple[int, int, int, int]]:
     """(channel id, log time, offset, length) of each complete message record in ``records``
-    (a chunk's uncompressed data, perhaps cut short), and the offset after the last complete
-    record of any kind."""
+    (a chunk's uncompressed data, perhaps cut short)."""
     found, offset, size = [], 0, len(records)
     while offset + _PREFIX.size <= size:
         opcode, length = _PREFIX.unpack_from(records, offset)
@@ -95,7 +94,7 @@ def _messages_in(records: bytes) -> Tuple[List[Tuple[int, int, int, int]], int]:
             channel_id, _, log_time, _ = _MESSAGE_HEAD.unpack_from(records, offset + _PREFIX.size)
             found.append((channel_id, log_time, offset, end - offset))
         offset = end
-    return found, offset
+    return found
 
 
 def _parse(record_type, body: bytes):
@@ -132,6 +131,10 @@ def _chunk_records(chunk: Chunk) -> bytes:
     for record in breakup_chunk(chunk):
         record.write(builder)
     return bytes(builder.end())
+
+
+#: Top-level records whose body the scan reads (others are skipped by their length).
+_READ_BODY = {Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA}
 
 
 def _scan(path: Path) -> _Scan:
@@ -179,7 +182,7 @@ def _scan(path: Path) -> _Scan:
             if opcode == Opcode.CHUNK:
                 chunk = _parse(Chunk, body)
                 records = _chunk_records(chunk)
-                messages, _ = _messages_in(records)
+                messages = _messages_in(records)
                 if messages:
                     open_chunk = _OpenChunk(offset, ChunkIndex(
                         message_start_time=chunk.message_start_time,
@@ -212,9 +215,6 @@ def _scan(path: Path) -> _Scan:
     return scan
 
 
-_READ_BODY = {Opcode.CHUNK, Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.METADATA}
-
-
 def _rescue_cut_chunk(stream, offset: int, size: int, scan: _Scan) -> None:
     """The complete messages of an uncompressed chunk the file ends in."""
     stream.seek(offset + _PREFIX.size + _CHUNK_FIXED.size)
@@ -226,7 +226,7 @@ def _rescue_cut_chunk(stream, offset: int, size: int, scan: _Scan) -> None:
         return
     stream.seek(8, os.SEEK_CUR)  # compressed size
     records = stream.read(max(0, size - stream.tell()))
-    messages, _ = _messages_in(records)
+    messages = _messages_in(records)
     for channel_id, log_time, start, length in messages:
         scan.rescued.append((channel_id, log_time, records[start:start + length]))
 

@@ -27,7 +27,8 @@ from std_msgs.msg import String
 rclpy.init()
 node = rclpy.create_node('listener')
 def on_image(msg):
-    print(json.dumps(['/ooo/image', int.from_bytes(bytes(msg.data[:8]), 'little'), time.time()]), flush=True)
+    counter = int.from_bytes(bytes(msg.data[:8]), 'little')
+    print(json.dumps(['/ooo/image', counter, time.time()]), flush=True)
 def on_text(msg):
     print(json.dumps(['/ooo/text', int(msg.data), time.time()]), flush=True)
 subscriptions = [node.create_subscription(Image, '/ooo/image', on_image, QoSProfile(depth=100)),
