@@ -8,6 +8,7 @@ whose disk fills (a tiny tmpfs in a private mount namespace) must leave a readab
 an empty or partial metadata.yaml. Cuts at every offset of a written file are checked in
 process: whatever the cut, every complete message is recovered.
 """
+import importlib.util
 import os
 import shutil
 import signal
@@ -15,6 +16,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import pytest
 import yaml
@@ -83,9 +85,13 @@ def _assert_contiguous(counters, what: str) -> None:
         f'{what}: a gap in {counters}'
 
 
-def _read_with_rosbags(bag: Path) -> int:
-    rosbags = pytest.importorskip('rosbags.rosbag2')
-    with rosbags.Reader(bag) as reader:
+def _read_with_rosbags(bag: Path) -> Optional[int]:
+    """Messages rosbags reads from ``bag``; None when rosbags is not installed (it is not a
+    dependency: `pip install rosbags` to check with it too)."""
+    if importlib.util.find_spec('rosbags') is None:
+        return None
+    from rosbags.rosbag2 import Reader
+    with Reader(bag) as reader:
         return sum(1 for _ in reader.messages())
 
 
@@ -145,7 +151,7 @@ def test_sigkilled_recorder_then_reindex(tmp_path):
     code, out, _ = _reap(_start(sys.executable, '-m', 'rosidl_buffer_py.reindex', str(bag)))
     assert code == 0 and 'complete' in out and 'finished' in out
     assert _messages(bag) == messages
-    assert _read_with_rosbags(bag) == len(messages)
+    assert _read_with_rosbags(bag) in (None, len(messages))
 
 
 def test_every_cut_of_a_file_recovers_every_complete_message(tmp_path):
