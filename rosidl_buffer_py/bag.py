@@ -13,7 +13,8 @@ cut short (SIGKILL, crash, power loss, full disk) keeps every chunk written befo
 :mod:`.reindex` can finish it. Messages smaller than :data:`CHUNK_SIZE` are gathered into one
 uncompressed chunk, written (and its message indexes after it) once it holds
 :data:`CHUNK_SIZE` bytes or its first message is :data:`FLUSH_PERIOD_SEC` old; the file is
-``fdatasync``'ed at most every :data:`FLUSH_PERIOD_SEC`. A larger message is a chunk of its own,
+``fdatasync``'ed every :data:`FLUSH_PERIOD_SEC` by a thread of its own (:class:`_Syncer`). A
+larger message is a chunk of its own,
 written from where its payload is: :meth:`BagWriter.write` passes it straight from a
 shared-memory Buffer to the kernel. A payload of at least :data:`DIRECT_MIN_BYTES` that is
 page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding
@@ -284,6 +285,9 @@ class _FileSink:
             self._pending.clear()
             self._write_all(self._fd, [memoryview(data)])
 
+    def fileno(self) -> int:
+        return self._fd
+
     def sync(self) -> None:
         """Write what is pending and make it durable (fdatasync)."""
         self.flush()
@@ -436,6 +440,58 @@ class _LibraryState:
         self.chunk_indexes.append(index)
 
 
+class _Syncer:
+    """``fdatasync`` of the file being written, in a thread of its own, so that the thread that
+    writes never waits for the disk (syncing a second of a buffered 4K stream can take that
+    long, and the recorder's queue would overflow meanwhile).
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._fd: Optional[int] = None   # a file to sync, requested and not started yet
+        self._busy = False
+        self._closed = False
+        self.error: Optional[OSError] = None  #: the last failure, for the writer to raise
+        self._thread = threading.Thread(target=self._run, name='bag_sync', daemon=True)
+        self._thread.start()
+
+    def request(self, fd: int) -> None:
+        with self._condition:
+            self._fd = fd
+            self._condition.notify_all()
+
+    def quiesce(self) -> None:
+        """Forget a pending request and wait for a running sync: ``fd`` may be closed after."""
+        with self._condition:
+            self._fd = None
+            while self._busy:
+                self._condition.wait()
+
+    def close(self) -> None:
+        self.quiesce()
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while True:
+            with self._condition:
+                while self._fd is None and not self._closed:
+                    self._condition.wait()
+                if self._closed:
+                    return
+                fd, self._fd, self._busy = self._fd, None, True
+            try:
+                os.fdatasync(fd)
+            except OSError as exc:
+                self.error = exc
+            finally:
+                with self._condition:
+                    self._busy = False
+                    self._condition.notify_all()
+
+
 class _PendingChunk:
     """Records of small messages gathered into the next chunk (copied: a few KiB each, so that
     no shared-memory frame is held while the chunk fills)."""
@@ -523,6 +579,7 @@ class BagWriter:
         self._good_end = 0     # file offset after the last record written completely
         self._last_sync = time.monotonic()
         self._unsynced = False
+        self._syncer = _Syncer()
         self.failed = False  #: set by the caller when a write failed (see close)
         self._lock = threading.Lock()
         self._open_next()
@@ -673,16 +730,23 @@ class BagWriter:
         self._unsynced = True
 
     def tick(self) -> None:
-        """Write the gathered chunk once it is :data:`FLUSH_PERIOD_SEC` old, and fdatasync
-        the file at most that often."""
+        """Write the gathered chunk once it is :data:`FLUSH_PERIOD_SEC` old, and have the file
+        fdatasync'ed (by another thread) at most that often.
+
+        :raises OSError: the last fdatasync failed (a disk error).
+        """
         with self._lock:
             if self._sink is None:
                 return
+            if self._syncer.error is not None:
+                error, self._syncer.error = self._syncer.error, None
+                raise error
             now = time.monotonic()
             if self._pending.entries and now - self._pending.opened >= FLUSH_PERIOD_SEC:
                 self._write_pending()
             if self._unsynced and now - self._last_sync >= FLUSH_PERIOD_SEC:
-                self._sink.sync()
+                self._sink.flush()
+                self._syncer.request(self._sink.fileno())
                 self._last_sync = now
                 self._unsynced = False
 
@@ -694,6 +758,7 @@ class BagWriter:
             'serialized_metadata': yaml.safe_dump(metadata, sort_keys=False),
             'ROS_DISTRO': os.environ.get('ROS_DISTRO', 'jazzy')})
         self._writer.finish()
+        self._syncer.quiesce()  # the file is synced here, then closed
         self._sink.sync()
         self._sink.close()
 
@@ -722,6 +787,7 @@ class BagWriter:
                     f'{self.directory}') from None
             finally:
                 sink, self._sink = self._sink, None
+                self._syncer.close()
                 if sink._fd >= 0:
                     sink._pending.clear()
                     sink.close()
