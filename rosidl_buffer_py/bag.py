@@ -8,21 +8,19 @@ has the ``ros2`` profile: one ``ros2msg`` schema per type with its complete defi
 time (reception) and publish time (the publisher's source timestamp), and a ``rosbag2`` metadata
 record with the bag's metadata.
 
-Files are chunked and indexed, as rosbag2's default MCAP profile writes them, so that a file
-cut short (SIGKILL, crash, power loss, full disk) keeps every chunk written before the cut and
+Files are chunked and indexed, as rosbag2's default MCAP profile writes them, so that a file cut
+short (SIGKILL, crash, power loss, full disk) keeps every chunk written before the cut and
 :mod:`.reindex` can finish it. Messages smaller than :data:`CHUNK_SIZE` are gathered into one
-uncompressed chunk, written (and its message indexes after it) once it holds
-:data:`CHUNK_SIZE` bytes or its first message is :data:`FLUSH_PERIOD_SEC` old; the file is
-``fdatasync``'ed every :data:`FLUSH_PERIOD_SEC` by a thread of its own (:class:`_Syncer`). A
-larger message is a chunk of its own,
-written from where its payload is: :meth:`BagWriter.write` passes it straight from a
+uncompressed chunk, written (and its message indexes after it) once it holds :data:`CHUNK_SIZE`
+bytes or its first message is :data:`FLUSH_PERIOD_SEC` old; the file is ``fdatasync``'ed every
+:data:`FLUSH_PERIOD_SEC` by a thread of its own (:class:`_Syncer`). A larger message is a chunk of
+its own, written from where its payload is: :meth:`BagWriter.write` passes it straight from a
 shared-memory Buffer to the kernel. A payload of at least :data:`DIRECT_MIN_BYTES` that is
-page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding
-record (opcode :data:`PADDING_OPCODE`, which MCAP readers skip) before its chunk puts it at a
-page boundary of the file, and the disk reads it from shared memory without a copy into the page
-cache (that copy costs 20 to 50 ms of CPU per 4K frame under sustained load;
-``./dev bench-record``). Other messages, and file systems without ``O_DIRECT``, go through
-``os.pwritev``.
+page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding record
+(opcode :data:`PADDING_OPCODE`, which MCAP readers skip) before its chunk puts it at a page boundary
+of the file, and the disk reads it from shared memory without a copy into the page cache (that copy
+costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench-record``). Other messages,
+and file systems without ``O_DIRECT``, go through ``os.pwritev``.
 The mcap library writes every other record (header, schemas, channels, metadata, summary,
 footer); chunks and message indexes are written here, and entered into the library writer's
 statistics and chunk indexes (:class:`_LibraryState`, the one place that reaches into it).
