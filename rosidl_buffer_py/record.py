@@ -15,9 +15,17 @@ payload's length, the payload straight from the shared-memory view and the trail
 :mod:`.bag`): the payload is never copied into a Python object. Other types are taken as
 serialized bytes by a plain rclpy subscription and written as they came.
 
+A topic is subscribed as soon as DDS discovery reports a writer of it: this package's
+discovery tap (:mod:`.discovery`) triggers a guard condition that wakes the executor, no poll
+(a poll of the ROS graph remains where the tap is unavailable). The subscription is created
+before the type's definition is read, so that DDS matches it sooner.
+
 Messages are handed from the executor to one writer thread through a queue bounded by
-``--max-cache-size`` bytes; a message that does not fit is dropped and counted. SIGINT (Ctrl-C)
-and SIGTERM stop taking messages, write what is queued, finish the file and print a summary.
+``--max-cache-size`` bytes; a message that does not fit is dropped and counted. The files stay
+readable after a crash or SIGKILL once ``buffer_bag_reindex`` (:mod:`.reindex`) finished them
+(see :mod:`.bag`: chunks written within a second). SIGINT (Ctrl-C) and SIGTERM stop taking
+messages, write what is queued, finish the file and print a summary; a full disk stops the
+recording and finishes the file after its last complete chunk.
 
 Usage: ``buffer_record [topics ...] [--all] [-o DIR] [--duration S] [--max-bag-size BYTES]
 [--qos-reliability ...] [--qos-durability ...] [--qos-depth N]
@@ -180,8 +188,8 @@ class Recorder:
                        for t in args.topics}
         self.exclude = re.compile(args.exclude_regex) if args.exclude_regex else None
         self.overrides = args.qos_overrides
-        self.timer = None
-        self.retry = None
+        self.timer = None   # the graph poll, where the discovery tap is unavailable
+        self.retry = None   # a one-shot look at the graph for a writer it does not list yet
         self.retries = 0
         self.first_seen: Dict[str, float] = {}  # topic -> when the tap first reported a writer
         self.discovery = None
