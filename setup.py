@@ -6,10 +6,17 @@ ROS 2 headers and libraries come from is decided by :func:`ros_prefixes` and now
 1. the running interpreter's prefix (``sys.prefix``, or ``sys.real_prefix`` when colcon
    overrides it), where the PyPI ROS wheels put ``include/<pkg>/`` and ``lib/`` (a venv made by
    ``./dev``);
-2. then every entry of ``AMENT_PREFIX_PATH``, in order (``/opt/ros/jazzy`` once its
+2. the prefix where the ``ros-rmw-fastrtps-cpp`` wheel (from ``ros-jazzy-rclpy[fastrtps]``) is
+   installed, when it is not the interpreter's: pip's isolated build environment for
+   ``pip install <checkout>``, which installs pyproject.toml's build requirements there;
+3. then every entry of ``AMENT_PREFIX_PATH``, in order (``/opt/ros/jazzy`` once its
    ``setup.bash`` is sourced, and colcon workspaces above it).
 
-A prefix counts only if it holds ``include/rmw_fastrtps_cpp``. Nothing else is searched.
+A prefix counts only if it holds ``include/rmw_fastrtps_cpp``. Nothing else is searched; with
+none, the build stops with one error that says what to install.
+
+When the ROS packages come from PyPI wheels (1 or 2), they are also install requirements; with
+ROS from apt (3 only) they are not pip distributions, and are not required.
 """
 import os
 import sys
@@ -21,15 +28,45 @@ PACKAGE = 'rosidl_buffer_py'
 HERE = Path(__file__).resolve().parent
 
 
+#: The wheel whose headers the extension needs most; where it is installed is a ROS prefix.
+ROS_WHEEL = 'ros-rmw-fastrtps-cpp'
+#: What the error says to install when no ROS prefix is found.
+MISSING_ROS = (
+    'rosidl_buffer_py: building the native extension needs the ROS 2 Jazzy headers and '
+    'libraries (rmw_fastrtps_cpp, rcl, rmw, fastrtps), and none were found: in {where}, nor in '
+    'AMENT_PREFIX_PATH ({ament}). Either let pip install them (the default build, '
+    'pyproject.toml\'s build requirements; not with --no-build-isolation), or install them '
+    'first: pip install "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces; or, with ROS '
+    'from apt: source /opt/ros/jazzy/setup.bash')
+
+
+def wheel_prefix() -> str:
+    """The prefix holding the ROS wheel's headers ('' when the wheel is not installed)."""
+    from importlib import metadata
+    try:
+        files = metadata.distribution(ROS_WHEEL).files or []
+    except metadata.PackageNotFoundError:
+        return ''
+    for entry in files:
+        parts = Path(entry).parts
+        if 'include' in parts and 'rmw_fastrtps_cpp' in parts:
+            path = Path(metadata.distribution(ROS_WHEEL).locate_file(entry)).resolve()
+            while path.name != 'include':
+                path = path.parent
+            return str(path.parent)
+    return ''
+
+
 def ros_prefixes() -> list:
     """Return the ROS install prefixes to build against, most preferred first."""
     # colcon's sitecustomize points sys.prefix at the install space and keeps the interpreter's
     # own prefix in sys.real_prefix
-    candidates = [sys.prefix, getattr(sys, 'real_prefix', sys.prefix)] + [
+    candidates = [sys.prefix, getattr(sys, 'real_prefix', sys.prefix), wheel_prefix()] + [
         p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
     found = []
     for prefix in candidates:
-        if (Path(prefix) / 'include' / 'rmw_fastrtps_cpp').is_dir() and prefix not in found:
+        if prefix and (Path(prefix) / 'include' / 'rmw_fastrtps_cpp').is_dir() and \
+                prefix not in found:
             found.append(prefix)
     return found
 
@@ -40,12 +77,13 @@ def requirements(name: str) -> list:
     return [line for line in lines if line]
 
 
-def package_version(prefix: str, package: str) -> str:
-    """The <version> of ``<prefix>/share/<package>/package.xml`` ('unknown' when absent)."""
+def package_version(prefix: str, package: str, path: str = '') -> str:
+    """The <version> of ``<prefix>/share/<package>/package.xml`` (or of ``<prefix>/<path>``);
+    'unknown' when absent."""
     import xml.etree.ElementTree as ElementTree
     try:
-        version = ElementTree.parse(Path(prefix) / 'share' / package / 'package.xml').findtext(
-            'version')
+        version = ElementTree.parse(
+            Path(prefix) / (path or Path('share') / package / 'package.xml')).findtext('version')
     except (OSError, ElementTree.ParseError):
         return 'unknown'
     return (version or 'unknown').strip()
@@ -60,8 +98,10 @@ def built_against_macros(prefixes: list) -> list:
             for package in ('rmw_fastrtps_cpp', 'rmw_fastrtps_shared_cpp')]
 
 
-def native_extension() -> Extension:
-    prefixes = ros_prefixes()
+def native_extension(prefixes: list) -> Extension:
+    if not prefixes:
+        raise SystemExit(MISSING_ROS.format(
+            where=sys.prefix, ament=os.environ.get('AMENT_PREFIX_PATH') or 'not set'))
     # ROS packages install their headers as include/<pkg>/<pkg>/...; Fast DDS as include/fastdds.
     include_dirs = []
     for prefix in prefixes:
@@ -70,13 +110,17 @@ def native_extension() -> Extension:
         include_dirs.extend(
             str(d) for d in sorted(include.iterdir()) if d.is_dir() and (d / d.name).is_dir())
     library_dirs = [str(Path(p) / 'lib') for p in prefixes]
+    # pip's build environment is gone once the wheel is built: the extension then finds the
+    # libraries in the venv's lib/, seen from site-packages/<package>/
+    lasting = [str(Path(p) / 'lib') for p in prefixes if p != wheel_prefix() or
+               p in (sys.prefix, getattr(sys, 'real_prefix', sys.prefix))]
     return Extension(
         f'{PACKAGE}._native',
         sources=sorted(str(p.relative_to(HERE)) for p in (HERE / 'src' / 'native').glob('*.cpp')),
         include_dirs=include_dirs,
         define_macros=built_against_macros(prefixes),
         library_dirs=library_dirs,
-        runtime_library_dirs=library_dirs,
+        runtime_library_dirs=lasting + ['$ORIGIN/../../..'],
         # rcl: rcl_*_get_rmw_handle, rcl_take_serialized_message, rcl_trigger_guard_condition;
         # rmw: default options, serialized message helpers; rmw_fastrtps_cpp: the rmw_* entry
         # points and get_datawriter/get_datareader/get_domain_participant; fastrtps: DDS API.
@@ -85,26 +129,35 @@ def native_extension() -> Extension:
         language='c++',
     )
 
+def ros_from_wheels() -> bool:
+    """True when the ROS packages come from PyPI wheels (then they are install requirements)."""
+    return bool(wheel_prefix())
+
+
+PREFIXES = ros_prefixes()
+
 setup(
     name=PACKAGE,
-    version='0.1.0',
+    version=package_version(str(HERE), '.', 'package.xml'),
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'demo_buffer_backend',
                                     'demo_buffer_backend.*', 'launch_free_demos',
                                     'launch_free_demos.*']),
-    ext_modules=[native_extension()],
+    ext_modules=[native_extension(PREFIXES)],
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
     ],
+    package_data={PACKAGE: ['py.typed']},  # PEP 561: the package's type hints are for users
     zip_safe=False,
     maintainer='rosidl_buffer_py maintainers',
     maintainer_email='maintainers@rosidl-buffer-py.invalid',
     description='Zero-copy uint8[] payloads for rclpy on stock ROS 2 Jazzy.',
     license='Apache-2.0',
     python_requires='>=3.11',  # what ./dev requires and CI tests
-    # ROS packages (ros-jazzy-*) are not install_requires: with apt ROS they are not pip
-    # distributions. requirements.txt installs them from PyPI; see README.
-    install_requires=[r for r in requirements('requirements.txt') if not r.startswith('ros-')],
+    # ROS packages (ros-jazzy-*) are install requirements only when they come from PyPI: with
+    # apt ROS they are not pip distributions (see the module docstring).
+    install_requires=[r for r in requirements('requirements.txt')
+                      if ros_from_wheels() or not r.startswith('ros-')],
     extras_require={'test': requirements('requirements-test.txt')},
     tests_require=requirements('requirements-test.txt'),
     entry_points={
@@ -121,6 +174,7 @@ setup(
             'buffer_record = rosidl_buffer_py.record:main',
             'buffer_play = rosidl_buffer_py.play:main',
             'buffer_bag_info = rosidl_buffer_py.bag_info:main',
+            'buffer_bag_reindex = rosidl_buffer_py.reindex:main',
         ],
     },
 )

@@ -650,6 +650,27 @@ def cpu_per_message(samples: List[Sample], sub_index: int, cpu) -> Optional[floa
     return (cpu(last) - cpu(first)) * 1e3 / frames if frames >= 2 else None
 
 
+#: A fan-out series is implausible when the publisher's CPU per message with more subscribers is
+#: below this fraction of a value with fewer (more work cannot cost less: a measurement error,
+#: such as a window caught in discovery, not a result).
+FANOUT_DROP_LIMIT = 0.7
+
+
+def fanout_implausibility(points: List[Tuple[int, float]]) -> Optional[str]:
+    """Why a (subscribers, publisher CPU ms per message) series cannot be right, or None.
+
+    Each added subscriber adds work for the publisher (at least its share of matching and
+    delivery), so its CPU per message must not fall markedly as subscribers are added.
+    """
+    points = sorted(points)
+    for i, (n_few, few) in enumerate(points):
+        for n_more, more in points[i + 1:]:
+            if few > 0 and more < FANOUT_DROP_LIMIT * few:
+                return (f'CPU per message fell from {few:.1f} to {more:.1f} ms from {n_few} to '
+                        f'{n_more} subscribers: a measurement error, not plotted')
+    return None
+
+
 def receive_rate(marks: List[Tuple[float, int]], count: int) -> Optional[float]:
     """Frames per second between the first and the last progress line inside the run."""
     inside = [(t, n) for t, n in marks if 0 < n < count]
@@ -860,8 +881,15 @@ def target_checks(mode: Mode, lat: Dict, rates: Dict, fanout: Dict, memcpy: Dict
         used = {t: [n for n in mode.fanout_subscribers
                     if (t, payload, n) in fanout and fanout[(t, payload, n)].complete]
                 for t in FANOUT_TRANSPORTS}  # runs that lost frames are left out of the fit
-        growth = {t: slope([(n, fanout[(t, payload, n)].pub_cpu_ms) for n in used[t]])
+        series = {t: [(n, fanout[(t, payload, n)].pub_cpu_ms) for n in used[t]
+                      if fanout[(t, payload, n)].pub_cpu_ms is not None]
                   for t in FANOUT_TRANSPORTS}
+        wrong = {t: fanout_implausibility(series[t]) for t in FANOUT_TRANSPORTS}
+        growth = {t: None if wrong[t] else slope(series[t]) for t in FANOUT_TRANSPORTS}
+        for t in FANOUT_TRANSPORTS:
+            checks.append((f'{t}: publisher CPU per message at {payload} does not fall as '
+                           'subscribers are added', wrong[t] or 'it does not', 'plausible',
+                           wrong[t] is None))
         for t in FANOUT_TRANSPORTS:
             checks.append((f'{t}: publisher CPU growth per added subscriber at {payload}, '
                            f'ms/msg (fit over {", ".join(map(str, used[t])) or "no"} complete '
@@ -1027,7 +1055,10 @@ def plot(path: str, mode: Mode, lat: Dict, memcpy: Dict, fanout: Dict,
         for t in FANOUT_TRANSPORTS:
             points = [(n, fanout[(t, payload, n)].pub_cpu_ms) for n in mode.fanout_subscribers
                       if fanout[(t, payload, n)].pub_cpu_ms is not None]
-            if points:
+            wrong = fanout_implausibility(points)
+            if wrong:  # said in the checks table; a wrong figure is not drawn as a result
+                right.plot([], [], linestyle='none', label=f'{t}, {payload}: {wrong}')
+            elif points:
                 xs, ys = zip(*points)
                 right.plot(xs, ys, marker='o', label=f'{t}, {payload}')
     right.set_xlabel('subscribers')

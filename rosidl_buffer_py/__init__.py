@@ -12,7 +12,10 @@ The pieces, each in its own module:
   the per-endpoint channels;
 - :mod:`.publisher`, :mod:`.subscription`: :func:`create_publisher`, :func:`create_subscription`.
 """
-from rosidl_buffer_py.backend import (
+#: The package's version (package.xml's <version>, which setup.py reads too).
+__version__ = '0.1.0'
+
+from rosidl_buffer_py.backend import (  # noqa: E402 (after __version__, readable without ROS)
     BufferBackend, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_SIZE)
 from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.message_support import buffer_fields, enable_buffer_fields
@@ -26,6 +29,7 @@ from rosidl_buffer_py import message_support as _message_support
 _message_support.enable_all_message_types()
 
 __all__ = [
+    '__version__',
     'Buffer',
     'BufferBackend',
     'EndpointInfo',

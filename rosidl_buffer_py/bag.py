@@ -8,20 +8,29 @@ has the ``ros2`` profile: one ``ros2msg`` schema per type with its complete defi
 time (reception) and publish time (the publisher's source timestamp), and a ``rosbag2`` metadata
 record with the bag's metadata.
 
-Files are written without chunks, like rosbag2's ``fastwrite`` storage preset: a message record
-then goes to the file as it is, so :meth:`BagWriter.write` can pass the payload straight from a
+Files are chunked and indexed, as rosbag2's default MCAP profile writes them, so that a file cut
+short (SIGKILL, crash, power loss, full disk) keeps every chunk written before the cut and
+:mod:`.reindex` can finish it. Messages smaller than :data:`CHUNK_SIZE` are gathered into one
+uncompressed chunk, written (and its message indexes after it) once it holds :data:`CHUNK_SIZE`
+bytes or its first message is :data:`FLUSH_PERIOD_SEC` old; the file is ``fdatasync``'ed every
+:data:`FLUSH_PERIOD_SEC` by a thread of its own (:class:`_Syncer`). A larger message is a chunk of
+its own, written from where its payload is: :meth:`BagWriter.write` passes it straight from a
 shared-memory Buffer to the kernel. A payload of at least :data:`DIRECT_MIN_BYTES` that is
-page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding
-record (opcode :data:`PADDING_OPCODE`, which MCAP readers skip) puts it at a page boundary of the
-file, and the disk reads it from shared memory without a copy into the page cache (that copy
-costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench-record``). Other
-messages, and file systems without ``O_DIRECT``, go through ``os.pwritev``.
+page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding record
+(opcode :data:`PADDING_OPCODE`, which MCAP readers skip) before its chunk puts it at a page boundary
+of the file, and the disk reads it from shared memory without a copy into the page cache (that copy
+costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench-record``). Other messages,
+and file systems without ``O_DIRECT``, go through ``os.pwritev``.
 The mcap library writes every other record (header, schemas, channels, metadata, summary,
-footer); only message records are written here, and counted in the library writer's statistics.
+footer); chunks and message indexes are written here, and entered into the library writer's
+statistics and chunk indexes (:class:`_LibraryState`, the one place that reaches into it).
 """
+import heapq
 import os
 import struct
 import threading
+import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
@@ -30,7 +39,8 @@ import yaml
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
-from mcap.records import Channel, Message
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, ChunkIndex, Message, MessageIndex
 from mcap.summary import Summary
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from rclpy.duration import Duration
@@ -58,6 +68,16 @@ _MESSAGE_HEADER = struct.Struct('<BQHIQQ')
 _MESSAGE_FIXED = 2 + 4 + 8 + 8
 #: Small records are gathered up to this many bytes before a write() system call.
 _SMALL_WRITE = 64 * 1024
+#: Messages smaller than this are gathered into one chunk of about this size (rosbag2's MCAP
+#: default, 768 KiB); a larger message is a chunk of its own.
+CHUNK_SIZE = 768 * 1024
+#: A chunk is written once its first message is this old, and the file fdatasync'ed at most
+#: this often: what a crash, SIGKILL or power cut can lose.
+FLUSH_PERIOD_SEC = 1.0
+#: Chunk record up to its data: opcode, record length, message start and end time, uncompressed
+#: size, uncompressed CRC, compression (empty string: its length), compressed size.
+_CHUNK_HEADER = struct.Struct('<BQQQQIIQ')
+_CHUNK_FIXED = _CHUNK_HEADER.size - 9
 _MAX_IOV = 512
 #: Payloads of at least this size, page-aligned in memory, are written with O_DIRECT.
 DIRECT_MIN_BYTES = 1024 * 1024
@@ -263,6 +283,21 @@ class _FileSink:
             self._pending.clear()
             self._write_all(self._fd, [memoryview(data)])
 
+    def fileno(self) -> int:
+        return self._fd
+
+    def sync(self) -> None:
+        """Write what is pending and make it durable (fdatasync)."""
+        self.flush()
+        os.fdatasync(self._fd)
+
+    def truncate(self, size: int) -> None:
+        """Drop everything after ``size`` bytes (a write cut short: ENOSPC); pending bytes
+        are dropped too."""
+        self._pending.clear()
+        os.ftruncate(self._fd, size)
+        self._position = self._flushed = size
+
     def close(self) -> None:
         if self._fd >= 0:
             try:
@@ -293,7 +328,8 @@ class Topic:
     def metadata_entry(self, message_count: int) -> dict:
         return {'topic_metadata': {
             'name': self.name, 'type': self.type, 'serialization_format': SERIALIZATION_FORMAT,
-            'offered_qos_profiles': [qos_to_dict(p) for p in self.offered_qos],
+            'offered_qos_profiles': [p if isinstance(p, dict) else qos_to_dict(p)
+                                     for p in self.offered_qos],
             'type_description_hash': self.type_hash},
             'message_count': message_count}
 
@@ -345,10 +381,165 @@ def bag_metadata(topics: Sequence[Topic], files: Sequence[_FileInfo],
     }}
 
 
+def write_metadata_yaml(directory: Path, metadata: dict) -> None:
+    """Write ``directory/metadata.yaml`` atomically: a temporary file, fsync, rename, fsync of
+    the directory. A crash or a full disk leaves the previous state (no file), never an empty
+    or partial one.
+
+    :raises BagError: naming the file and the system error (the temporary file is removed).
+    """
+    target = Path(directory) / 'metadata.yaml'
+    temporary = target.with_name(f'.metadata.yaml.{os.getpid()}.tmp')
+    data = yaml.safe_dump(metadata, sort_keys=False).encode('utf-8')
+    try:
+        fd = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.rename(temporary, target)
+        directory_fd = os.open(target.parent, os.O_RDONLY | os.O_CLOEXEC)
+        try:
+            os.fsync(directory_fd)
+        finally:
+            os.close(directory_fd)
+    except OSError as exc:
+        try:
+            temporary.unlink()
+        except OSError:
+            pass
+        raise BagError(f'{target}: cannot write: {exc.strerror or exc}') from None
+
+
+class _LibraryState:
+    """The mcap 1.x Writer's statistics and chunk indexes, which this module fills in for the
+    chunks it writes itself: the one place that reaches into the library's private state."""
+
+    def __init__(self, writer: Writer) -> None:
+        self.statistics = getattr(writer, '_Writer__statistics', None)
+        self.chunk_indexes = getattr(writer, '_Writer__chunk_indices', None)
+        if not hasattr(self.statistics, 'channel_message_counts') or \
+                not isinstance(self.chunk_indexes, list):
+            raise BagError('this version of the mcap library keeps its writer state elsewhere; '
+                           'rosidl_buffer_py needs mcap 1.x')
+
+    def add_chunk(self, index: ChunkIndex, counts: Dict[int, int]) -> None:
+        stats = self.statistics
+        stats.message_start_time = index.message_start_time if stats.message_count == 0 \
+            else min(stats.message_start_time, index.message_start_time)
+        stats.message_end_time = max(stats.message_end_time, index.message_end_time)
+        for channel_id, count in counts.items():
+            stats.channel_message_counts[channel_id] += count
+            stats.message_count += count
+        stats.chunk_count += 1
+        self.chunk_indexes.append(index)
+
+
+class _Syncer:
+    """``fdatasync`` of the file being written, in a thread of its own, so that the thread that
+    writes never waits for the disk (syncing a second of a buffered 4K stream can take that
+    long, and the recorder's queue would overflow meanwhile).
+    """
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._fd: Optional[int] = None   # a file to sync, requested and not started yet
+        self._busy = False
+        self._closed = False
+        self.error: Optional[OSError] = None  #: the last failure, for the writer to raise
+        self._thread = threading.Thread(target=self._run, name='bag_sync', daemon=True)
+        self._thread.start()
+
+    def request(self, fd: int) -> None:
+        with self._condition:
+            self._fd = fd
+            self._condition.notify_all()
+
+    def quiesce(self) -> None:
+        """Forget a pending request and wait for a running sync: ``fd`` may be closed after."""
+        with self._condition:
+            self._fd = None
+            while self._busy:
+                self._condition.wait()
+
+    def close(self) -> None:
+        self.quiesce()
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+        self._thread.join()
+
+    def _run(self) -> None:
+        while True:
+            with self._condition:
+                while self._fd is None and not self._closed:
+                    self._condition.wait()
+                if self._closed:
+                    return
+                fd, self._fd, self._busy = self._fd, None, True
+            try:
+                os.fdatasync(fd)
+            except OSError as exc:
+                self.error = exc
+            finally:
+                with self._condition:
+                    self._busy = False
+                    self._condition.notify_all()
+
+
+class _PendingChunk:
+    """Records of small messages gathered into the next chunk (copied: a few KiB each, so that
+    no shared-memory frame is held while the chunk fills)."""
+
+    def __init__(self) -> None:
+        self.data = bytearray()
+        self.entries: List[Tuple[str, int, int, int]] = []  # topic, channel id, log time, offset
+        self.opened = 0.0  # time.monotonic() of its first message
+        self.nbytes = 0    # message data (CDR) bytes
+
+    def add(self, topic: str, channel_id: int, log_time: int, parts: Sequence,
+            nbytes: int) -> None:
+        if not self.entries:
+            self.opened = time.monotonic()
+        self.entries.append((topic, channel_id, log_time, len(self.data)))
+        for part in parts:
+            self.data += part
+        self.nbytes += nbytes
+
+    def clear(self) -> None:
+        self.data = bytearray()
+        self.entries = []
+        self.nbytes = 0
+
+
+def chunk_header(start: int, end: int, size: int, crc: int = 0) -> bytes:
+    """The bytes of an uncompressed chunk record before its ``size`` bytes of records."""
+    return _CHUNK_HEADER.pack(Opcode.CHUNK, _CHUNK_FIXED + size, start, end, size, crc, 0, size)
+
+
+def message_indexes(entries: Sequence[Tuple[int, int, int]]) -> Dict[int, bytes]:
+    """Message index records of a chunk from its (channel id, log time, offset) entries:
+    channel id -> the record's bytes."""
+    per_channel: Dict[int, List[Tuple[int, int]]] = {}
+    for channel_id, log_time, offset in entries:
+        per_channel.setdefault(channel_id, []).append((log_time, offset))
+    records = {}
+    for channel_id, items in per_channel.items():
+        builder = RecordBuilder()
+        MessageIndex(channel_id, items).write(builder)
+        records[channel_id] = bytes(builder.end())
+    return records
+
+
 class BagWriter:
     """Write a bag directory: topics, messages, splits, metadata.
 
     Thread-safe: the recorder adds topics from its executor while its writer thread writes.
+    Call :meth:`tick` at least every :data:`FLUSH_PERIOD_SEC` (the recorder's writer thread
+    does): it writes a chunk that has waited that long and fdatasyncs the file.
 
     :param directory: The bag directory; it must not exist yet (as with ``ros2 bag record``).
     :param max_bag_size: Start a new file before a message once the current file holds at
@@ -358,7 +549,8 @@ class BagWriter:
     """
 
     def __init__(self, directory: Path, *, max_bag_size: int = 0,
-                 max_bag_duration_ns: int = 0, library: str = 'rosidl_buffer_py') -> None:
+                 max_bag_duration_ns: int = 0, library: str = 'rosidl_buffer_py',
+                 chunk_size: int = CHUNK_SIZE) -> None:
         self.directory = Path(directory)
         if self.directory.exists():
             raise BagError(f'{self.directory}: output already exists; choose another -o/--output')
@@ -369,17 +561,24 @@ class BagWriter:
                            f'{exc.strerror}') from None
         self.max_bag_size = max_bag_size
         self.max_bag_duration_ns = max_bag_duration_ns
+        self.chunk_size = chunk_size
         self.library = library
         self.topics: Dict[str, Topic] = {}
         self.files: List[_FileInfo] = []
-        self.topic_counts: Dict[str, int] = {}
-        self.bytes_written = 0  # message data bytes (CDR), all files
+        self.topic_counts: Dict[str, int] = {}  # messages in written chunks, all files
+        self.bytes_written = 0  # message data bytes (CDR) in written chunks, all files
         self._sink: Optional[_FileSink] = None
         self._writer: Optional[Writer] = None
+        self._library: Optional[_LibraryState] = None
         self._channels: Dict[str, int] = {}
         self._schemas: Dict[str, int] = {}
         self._sequences: Dict[str, int] = {}
-        self._stats = None
+        self._pending = _PendingChunk()
+        self._good_end = 0     # file offset after the last record written completely
+        self._last_sync = time.monotonic()
+        self._unsynced = False
+        self._syncer = _Syncer()
+        self.failed = False  #: set by the caller when a write failed (see close)
         self._lock = threading.Lock()
         self._open_next()
 
@@ -391,12 +590,7 @@ class BagWriter:
         info = _FileInfo(f'{self.directory.name}_{len(self.files)}.mcap')
         self._sink = _FileSink(self.directory / info.path)
         self._writer = Writer(self._sink, compression=CompressionType.NONE, use_chunking=False)
-        # Message records are written here, not by the library (see the module docstring), so
-        # they are counted in the library writer's statistics directly.
-        self._stats = getattr(self._writer, '_Writer__statistics', None)
-        if self._stats is None or not hasattr(self._stats, 'channel_message_counts'):
-            raise BagError('this version of the mcap library keeps its statistics elsewhere; '
-                           'rosidl_buffer_py needs mcap 1.x')
+        self._library = _LibraryState(self._writer)
         self._writer.start(profile=PROFILE, library=self.library)
         self._channels.clear()
         self._schemas.clear()
@@ -404,6 +598,8 @@ class BagWriter:
         self.files.append(info)
         for topic in self.topics.values():
             self._register(topic)
+        self._writer.flush()
+        self._good_end = self._sink.tell()
 
     def _register(self, topic: Topic) -> None:
         schema_id = self._schemas.get(topic.type)
@@ -413,9 +609,6 @@ class BagWriter:
             self._schemas[topic.type] = schema_id
         self._channels[topic.name] = self._writer.register_channel(
             topic.name, SERIALIZATION_FORMAT, schema_id, topic.channel_metadata())
-        # unchunked, the library keeps these records until its next write: they must precede
-        # the channel's messages, which are written here
-        self._writer.flush()
 
     def add_topic(self, topic: Topic) -> None:
         """Declare a topic (once): its schema and channel go into every file from now on."""
@@ -423,19 +616,30 @@ class BagWriter:
             if topic.name in self.topics:
                 raise BagError(f'topic {topic.name} was already added')
             self.topics[topic.name] = topic
+            self._write_pending()  # the channel record goes between chunks, never inside one
             self._register(topic)
+            # unchunked, the library keeps these records until its next write: they must
+            # precede the channel's messages, which are written here
+            self._writer.flush()
+            self._good_end = self._sink.tell()
 
     def _should_split(self, log_time: int) -> bool:
         current = self.files[-1]
-        if current.message_count == 0:
+        start = current.start if current.start is not None else (
+            self._pending.entries[0][2] if self._pending.entries else None)
+        if start is None:
             return False
-        if self.max_bag_size and self._sink.tell() >= self.max_bag_size:
+        if self.max_bag_size and self._sink.tell() + len(self._pending.data) >= \
+                self.max_bag_size:
             return True
-        return bool(self.max_bag_duration_ns and
-                    log_time - current.start >= self.max_bag_duration_ns)
+        return bool(self.max_bag_duration_ns and log_time - start >= self.max_bag_duration_ns)
 
     def write(self, topic: str, log_time: int, publish_time: int, parts: Sequence) -> int:
         """Write one message; ``parts`` are bytes-like pieces of its CDR, written in order.
+
+        A message smaller than the chunk size waits (copied) in the chunk being gathered; a
+        larger one is written now, without a copy. Either way the message is on disk within
+        :data:`FLUSH_PERIOD_SEC` (given :meth:`tick`).
 
         :return: The message's size in bytes.
         """
@@ -444,6 +648,7 @@ class BagWriter:
 
     def _write(self, topic: str, log_time: int, publish_time: int, parts: Sequence) -> int:
         if self._should_split(log_time):
+            self._write_pending()
             self._finish_file()
             self._open_next()
         channel_id = self._channels[topic]
@@ -452,30 +657,96 @@ class BagWriter:
         self._sequences[topic] = sequence
         header = _MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_FIXED + size, channel_id,
                                       sequence & 0xFFFFFFFF, log_time, publish_time)
-        payload = memoryview(parts[1]).cast('B') if len(parts) == 3 else None
-        if payload is not None and self._sink.direct_ok(payload):
-            self._write_aligned(header, parts[0], payload, parts[2])
-        else:
-            self._sink.writev([header, *parts])
-        stats = self._stats
-        stats.message_start_time = log_time if stats.message_count == 0 else min(
-            stats.message_start_time, log_time)
-        stats.message_end_time = max(stats.message_end_time, log_time)
-        stats.channel_message_counts[channel_id] += 1
-        stats.message_count += 1
-        self.files[-1].add(topic, log_time)
-        self.topic_counts[topic] = self.topic_counts.get(topic, 0) + 1
-        self.bytes_written += size
+        if size + len(header) < self.chunk_size:
+            self._pending.add(topic, channel_id, log_time, [header, *parts], size)
+            if len(self._pending.data) >= self.chunk_size:
+                self._write_pending()
+            return size
+        self._write_pending()
+        self._write_large(topic, channel_id, log_time, header, parts, size)
         return size
 
-    def _write_aligned(self, header: bytes, head, payload: memoryview, suffix) -> None:
-        """A padding record so that the payload starts page-aligned in the file, the record's
-        header and head, the payload's aligned part with O_DIRECT, then the rest."""
-        before = len(header) + memoryview(head).nbytes
-        pad = -(self._sink.tell() + _RECORD_PREFIX.size + before) % DIRECT_ALIGNMENT
-        self._sink.writev([_RECORD_PREFIX.pack(PADDING_OPCODE, pad), bytes(pad), header, head])
-        done = self._sink.write_direct(payload)
-        self._sink.writev([payload[done:], suffix])
+    def _write_pending(self) -> None:
+        """Write the gathered chunk and its message indexes."""
+        pending = self._pending
+        if not pending.entries:
+            return
+        times = [entry[2] for entry in pending.entries]
+        data = pending.data
+        header = chunk_header(min(times), max(times), len(data), zlib.crc32(data))
+        indexes = message_indexes([(c, t, o) for _, c, t, o in pending.entries])
+        start = self._sink.tell()
+        self._sink.writev([header, data])
+        self._commit(start, len(header) + len(data), indexes, pending.entries, pending.nbytes)
+        pending.clear()
+
+    def _write_large(self, topic: str, channel_id: int, log_time: int, header: bytes,
+                     parts: Sequence, size: int) -> None:
+        """One message as a chunk of its own, the payload passed from where it is."""
+        record = len(header) + size
+        chunk = chunk_header(log_time, log_time, record)
+        indexes = message_indexes([(channel_id, log_time, 0)])
+        payload = memoryview(parts[1]).cast('B') if len(parts) == 3 else None
+        if payload is not None and self._sink.direct_ok(payload):
+            before = len(chunk) + len(header) + memoryview(parts[0]).nbytes
+            pad = -(self._sink.tell() + _RECORD_PREFIX.size + before) % DIRECT_ALIGNMENT
+            self._sink.writev([_RECORD_PREFIX.pack(PADDING_OPCODE, pad), bytes(pad)])
+            start = self._sink.tell()
+            self._sink.writev([chunk, header, parts[0]])
+            done = self._sink.write_direct(payload)
+            self._sink.writev([payload[done:], parts[2]])
+        else:
+            start = self._sink.tell()
+            self._sink.writev([chunk, header, *parts])
+        self._commit(start, len(chunk) + record, indexes, [(topic, channel_id, log_time, 0)],
+                     size)
+
+    def _commit(self, start: int, length: int, indexes: Dict[int, bytes],
+                entries: Sequence[Tuple[str, int, int, int]], nbytes: int) -> None:
+        """After a chunk: its message indexes, then the writer's statistics and chunk index."""
+        index_start = self._sink.tell()
+        offsets, position = {}, index_start
+        for channel_id, record in indexes.items():
+            offsets[channel_id] = position
+            position += len(record)
+        self._sink.writev(list(indexes.values()))
+        self._sink.flush()
+        times = [entry[2] for entry in entries]
+        counts: Dict[int, int] = {}
+        for topic, channel_id, log_time, _ in entries:
+            counts[channel_id] = counts.get(channel_id, 0) + 1
+            self.files[-1].add(topic, log_time)
+            self.topic_counts[topic] = self.topic_counts.get(topic, 0) + 1
+        self._library.add_chunk(ChunkIndex(
+            message_start_time=min(times), message_end_time=max(times),
+            chunk_start_offset=start, chunk_length=length, message_index_offsets=offsets,
+            message_index_length=position - index_start, compression='',
+            compressed_size=length - _CHUNK_HEADER.size,
+            uncompressed_size=length - _CHUNK_HEADER.size), counts)
+        self.bytes_written += nbytes
+        self._good_end = self._sink.tell()
+        self._unsynced = True
+
+    def tick(self) -> None:
+        """Write the gathered chunk once it is :data:`FLUSH_PERIOD_SEC` old, and have the file
+        fdatasync'ed (by another thread) at most that often.
+
+        :raises OSError: the last fdatasync failed (a disk error).
+        """
+        with self._lock:
+            if self._sink is None:
+                return
+            if self._syncer.error is not None:
+                error, self._syncer.error = self._syncer.error, None
+                raise error
+            now = time.monotonic()
+            if self._pending.entries and now - self._pending.opened >= FLUSH_PERIOD_SEC:
+                self._write_pending()
+            if self._unsynced and now - self._last_sync >= FLUSH_PERIOD_SEC:
+                self._sink.flush()
+                self._syncer.request(self._sink.fileno())
+                self._last_sync = now
+                self._unsynced = False
 
     def _finish_file(self) -> None:
         current = self.files[-1]
@@ -485,21 +756,41 @@ class BagWriter:
             'serialized_metadata': yaml.safe_dump(metadata, sort_keys=False),
             'ROS_DISTRO': os.environ.get('ROS_DISTRO', 'jazzy')})
         self._writer.finish()
+        self._syncer.quiesce()  # the file is synced here, then closed
+        self._sink.sync()
         self._sink.close()
 
-    def close(self) -> None:
-        """Finish the current file and write ``metadata.yaml``."""
+    def close(self, failed: bool = False) -> None:
+        """Finish the current file and write ``metadata.yaml`` (atomically).
+
+        :param failed: A write failed (a full disk): drop the record it cut short and finish
+            the file after the last complete chunk; the summary and footer are small.
+        :raises BagError: when the file cannot be finished; ``buffer_bag_reindex`` finishes it
+            later (no metadata.yaml is written then).
+        """
         with self._lock:
             if self._sink is None:
                 return
             try:
+                if failed:
+                    self._pending.clear()
+                    self._sink.truncate(self._good_end)
+                else:
+                    self._write_pending()
                 self._finish_file()
+            except OSError as exc:
+                raise BagError(
+                    f'{self.directory / self.files[-1].path}: cannot finish the file '
+                    f'({exc.strerror or exc}); once there is room, run: buffer_bag_reindex '
+                    f'{self.directory}') from None
             finally:
-                self._sink = None
-                metadata = bag_metadata(list(self.topics.values()), self.files,
-                                        self.topic_counts)
-                (self.directory / 'metadata.yaml').write_text(
-                    yaml.safe_dump(metadata, sort_keys=False))
+                sink, self._sink = self._sink, None
+                self._syncer.close()
+                if sink._fd >= 0:
+                    sink._pending.clear()
+                    sink.close()
+            write_metadata_yaml(self.directory, bag_metadata(
+                list(self.topics.values()), self.files, self.topic_counts))
 
     @property
     def size(self) -> int:
@@ -560,7 +851,8 @@ def _open_file(path: Path) -> BagFile:
             stream.seek(max(0, size - len(MCAP0_MAGIC)))
             if size < 2 * len(MCAP0_MAGIC) or stream.read() != MCAP0_MAGIC:
                 raise BagError(f'{path}: truncated MCAP file ({size} bytes, no footer: its '
-                               'writer did not finish it)')
+                               'writer did not finish it); recover its messages with: '
+                               f'buffer_bag_reindex {path.parent}')
             stream.seek(0)
             reader = make_reader(stream)
             summary = reader.get_summary()
@@ -606,6 +898,25 @@ class BagReader:
                 entry['count'] += counts.get(channel_id, 0)
 
     @property
+    def ros_distro(self) -> str:
+        """The ROS distribution the bag was recorded with ('' when it does not say): from a
+        file's ``rosbag2`` metadata record (its ``ROS_DISTRO`` key, or ``ros_distro`` in the
+        ``serialized_metadata`` rosbag2 embeds), else from the directory's metadata.yaml."""
+        for bag_file in self.files:
+            if bag_file.metadata.get('ROS_DISTRO'):
+                return bag_file.metadata['ROS_DISTRO']
+            distro = _info_field(bag_file.metadata.get('serialized_metadata', ''), 'ros_distro')
+            if distro:
+                return distro
+        metadata = self.path / 'metadata.yaml'
+        if self.path.is_dir() and metadata.is_file():
+            try:
+                return _info_field(metadata.read_text(), 'ros_distro')
+            except OSError:
+                pass
+        return ''
+
+    @property
     def message_count(self) -> int:
         return sum(f.summary.statistics.message_count for f in self.files)
 
@@ -623,21 +934,41 @@ class BagReader:
 
     def messages(self, topics: Optional[Sequence[str]] = None
                  ) -> Iterator[Tuple[Channel, Message]]:
-        """Every message of the selected topics, file after file, in file order.
+        """Every message of the selected topics in log-time order, whatever the file order.
 
-        File order is recording order; it avoids the mcap reader's in-memory sort, which would
-        load a whole unchunked file.
+        Memory stays bounded: each file is read through its chunk indexes (mcap's reader keeps
+        only the chunks whose time ranges overlap), and the files are merged by log time. A file
+        without chunk indexes (this package's recorder before it wrote chunks) is read in file
+        order, which is recording order.
         """
-        for bag_file in self.files:
-            try:
-                with open(bag_file.path, 'rb') as stream:
-                    reader = make_reader(stream)
-                    for _, channel, message in reader.iter_messages(
-                            topics=topics, log_time_order=False):
-                        yield channel, message
-            except (McapError, EOFError, struct.error) as exc:
-                raise BagError(f'{bag_file.path}: damaged message data '
-                               f'({type(exc).__name__}: {exc})') from None
+        streams = [self._file_messages(bag_file, topics) for bag_file in self.files]
+        yield from heapq.merge(*streams, key=lambda item: item[1].log_time)
+
+    def _file_messages(self, bag_file: BagFile, topics: Optional[Sequence[str]]
+                       ) -> Iterator[Tuple[Channel, Message]]:
+        indexed = bool(bag_file.summary.chunk_indexes)
+        try:
+            with open(bag_file.path, 'rb') as stream:
+                reader = make_reader(stream)
+                for _, channel, message in reader.iter_messages(
+                        topics=topics, log_time_order=indexed):
+                    yield channel, message
+        except (McapError, EOFError, struct.error) as exc:
+            raise BagError(f'{bag_file.path}: damaged message data '
+                           f'({type(exc).__name__}: {exc})') from None
+
+
+def _info_field(text: str, key: str) -> str:
+    """``rosbag2_bagfile_information[key]`` of rosbag2 metadata YAML ('' if absent or not
+    YAML)."""
+    if not text:
+        return ''
+    try:
+        info = yaml.safe_load(text)['rosbag2_bagfile_information']
+    except (yaml.YAMLError, KeyError, TypeError):
+        return ''
+    value = info.get(key) if isinstance(info, dict) else None
+    return str(value) if value else ''
 
 
 def format_size(nbytes: float) -> str:

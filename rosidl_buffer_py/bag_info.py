@@ -32,8 +32,7 @@ def info(bag: BagReader) -> dict:
         'files': [str(f.path) for f in bag.files],
         'size': bag.size,
         'storage_id': STORAGE_ID,
-        'ros_distro': next((f.metadata.get('ROS_DISTRO') for f in bag.files
-                            if f.metadata.get('ROS_DISTRO')), ''),
+        'ros_distro': bag.ros_distro,
         'duration_ns': end - start,
         'start_ns': start,
         'end_ns': end,

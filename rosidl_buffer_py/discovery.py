@@ -88,6 +88,13 @@ class ParticipantDiscovery:
             if watch is not None:
                 watch.watchers.discard(watcher)
 
+    def remote_writers(self) -> Dict[str, str]:
+        """DDS topic -> DDS type name of every known writer of other participants (what a
+        recorder subscribes to, before the ROS graph cache may list it)."""
+        with self._lock:
+            return {p.dds_topic: p.type_name for p in self._endpoints.values()
+                    if p.kind is EndpointKind.PUBLISHER and not p.local}
+
     def add_wakeup(self, node, guard_condition) -> None:
         """Trigger ``guard_condition`` whenever a discovery event arrives."""
         _dds.add_discovery_wakeup(node, guard_condition)

@@ -16,6 +16,7 @@ Usage: ``buffer_play <bag> [--topics T ...] [--rate R] [--loop] [--backend NAME]
 [--wait-for-subscribers N]``; also ``python -m rosidl_buffer_py.play``.
 """
 import argparse
+import itertools
 import json
 import signal
 import sys
@@ -26,6 +27,7 @@ from typing import Dict, List, Optional
 
 from rosidl_buffer_py.bag import BagError, BagReader, qos_from_yaml
 from rosidl_buffer_py.message_definition import import_message_type
+from rosidl_buffer_py.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
@@ -49,6 +51,10 @@ class _Output:
     buffer_aware: bool
     published: int = 0
     in_backend: int = 0
+    #: How late publishing began against the message's recorded time (scaled by --rate):
+    #: the topic's first message, and the worst one
+    first_late_ms: Optional[float] = None
+    max_late_ms: float = 0.0
 
 
 def default_backend() -> str:
@@ -213,22 +219,42 @@ class Player:
             output.publisher.publish(data)  # recorded CDR, as it is
         output.published += 1
 
+    def warm_up(self) -> None:
+        """Do once, before the clock starts, what would otherwise delay each topic's first
+        message: the backend's first allocation and the codec's per-type set-up."""
+        from rosidl_buffer_py import codec
+        if self.backend is not None:
+            self.backend.allocate(1)
+        for output in self.outputs.values():
+            if output.buffer_aware:
+                codec.payload_field(output.msg_type)
+
     def play(self, executor) -> None:
+        """Publish the messages in log-time order, each at its recorded time: the clock starts
+        when the first message is ready to go (read from the file, set-up done)."""
         topics = list(self.outputs)
+        self.warm_up()
         while not self.stop.is_set():
-            first_log_time = None
+            messages = self.bag.messages(topics)
+            first = next(messages, None)
+            if first is None:
+                return  # nothing to play (or to loop over)
+            first_log_time = first[1].log_time
             start = time.monotonic()
-            for channel, message in self.bag.messages(topics):
+            for channel, message in itertools.chain([first], messages):
                 if self.stop.is_set():
                     return
-                if first_log_time is None:
-                    first_log_time = message.log_time
-                self._spin_until(
-                    executor, start + (message.log_time - first_log_time) / 1e9 / self.args.rate)
+                due = start + (message.log_time - first_log_time) / 1e9 / self.args.rate
+                self._spin_until(executor, due)
                 if self.stop.is_set():
                     return
-                self._publish(self.outputs[channel.topic], message.data)
-            if not self.args.loop or first_log_time is None:  # done, or nothing to loop over
+                output = self.outputs[channel.topic]
+                late_ms = max(0.0, (time.monotonic() - due) * 1e3)
+                if output.first_late_ms is None:
+                    output.first_late_ms = round(late_ms, 2)
+                output.max_late_ms = round(max(output.max_late_ms, late_ms), 2)
+                self._publish(output, message.data)
+            if not self.args.loop:
                 return
 
     def linger(self, executor) -> None:
@@ -255,6 +281,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'buffer_play: error: {exc}', file=sys.stderr)
         return EXIT_USAGE
 
+    native_stdout_to_stderr()  # Fast DDS's log lines are not this tool's output
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
     signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
@@ -285,7 +312,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                 'role': 'player', 'bag': str(bag.path), 'backend': args.backend,
                 'seconds': round(time.monotonic() - started, 3),
                 'topics': {name: {'published': o.published, 'in_backend': o.in_backend,
-                                  'buffer_aware': o.buffer_aware}
+                                  'buffer_aware': o.buffer_aware,
+                                  'first_late_ms': o.first_late_ms,
+                                  'max_late_ms': o.max_late_ms}
                            for name, o in player.outputs.items()}}, sort_keys=True),
                 flush=True)
         faulthandler.dump_traceback_later(20.0, exit=True)

@@ -15,9 +15,17 @@ payload's length, the payload straight from the shared-memory view and the trail
 :mod:`.bag`): the payload is never copied into a Python object. Other types are taken as
 serialized bytes by a plain rclpy subscription and written as they came.
 
+A topic is subscribed as soon as DDS discovery reports a writer of it: this package's
+discovery tap (:mod:`.discovery`) triggers a guard condition that wakes the executor, no poll
+(a poll of the ROS graph remains where the tap is unavailable). The subscription is created
+before the type's definition is read, so that DDS matches it sooner.
+
 Messages are handed from the executor to one writer thread through a queue bounded by
-``--max-cache-size`` bytes; a message that does not fit is dropped and counted. SIGINT (Ctrl-C)
-and SIGTERM stop taking messages, write what is queued, finish the file and print a summary.
+``--max-cache-size`` bytes; a message that does not fit is dropped and counted. The files stay
+readable after a crash or SIGKILL once ``buffer_bag_reindex`` (:mod:`.reindex`) finished them
+(see :mod:`.bag`: chunks written within a second). SIGINT (Ctrl-C) and SIGTERM stop taking
+messages, write what is queued, finish the file and print a summary; a full disk stops the
+recording and finishes the file after its last complete chunk.
 
 Usage: ``buffer_record [topics ...] [--all] [-o DIR] [--duration S] [--max-bag-size BYTES]
 [--qos-reliability ...] [--qos-durability ...] [--qos-depth N]
@@ -38,15 +46,22 @@ from typing import Dict, List, Optional
 
 import yaml
 
+from rosidl_buffer_py import _dds, discovery
 from rosidl_buffer_py.bag import (
-    BagError, BagWriter, Topic, format_size, qos_from_dict)
+    FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
 from rosidl_buffer_py.message_definition import (
     full_definition, import_message_type, DefinitionNotFoundError)
+from rosidl_buffer_py.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
-#: How often the ROS graph is polled for topics to record.
+#: Where the discovery tap is unavailable (an rmw_fastrtps the native extension was not built
+#: against), how often the ROS graph is polled for topics to record instead.
 DISCOVERY_PERIOD_SEC = 0.5
+#: A writer the tap reported but the ROS graph does not list yet is looked up again this soon.
+GRAPH_RETRY_SEC = 0.01
+#: ... at most this many times in a row (a DDS writer that never becomes a ROS topic).
+GRAPH_RETRIES = 200
 #: rosbag2's default --max-cache-size.
 DEFAULT_MAX_CACHE_SIZE = 100 * 1024 * 1024
 #: Stop waiting for the writer thread after this long once stopped (it then gets reported).
@@ -72,6 +87,9 @@ class TopicStats:
     dropped: int = 0
     bytes: int = 0
     backends: Dict[str, int] = field(default_factory=dict)
+    #: From the first discovery event naming a writer of the topic to its subscription (None
+    #: when the topic was found by polling the graph)
+    subscribe_delay_ms: Optional[float] = None
 
 
 # --- the writer thread --------------------------------------------------------------------------
@@ -96,13 +114,14 @@ class _WriteQueue:
             self.condition.notify()
             return True
 
-    def get(self):
-        """The next item, or None once closed and empty."""
+    def get(self, timeout: float):
+        """The next item; :data:`IDLE` when none came within ``timeout`` seconds; None once
+        closed and empty."""
         with self.condition:
-            while not self.items and not self.closed:
-                self.condition.wait()
+            if not self.items and not self.closed:
+                self.condition.wait(timeout)
             if not self.items:
-                return None
+                return None if self.closed else IDLE
             item, nbytes = self.items.popleft()
             self.nbytes -= nbytes
             return item
@@ -113,13 +132,22 @@ class _WriteQueue:
             self.condition.notify_all()
 
 
+#: What :meth:`_WriteQueue.get` returns when nothing came in time.
+IDLE = object()
+
+
 def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats],
                  errors: List[str], stop: threading.Event) -> None:
+    """Write queued messages; every FLUSH_PERIOD_SEC at most, let the bag write its waiting
+    chunk and fdatasync (crash safety), busy or idle."""
     try:
         while True:
-            item = queue.get()
+            item = queue.get(FLUSH_PERIOD_SEC / 4)
+            bag.tick()
             if item is None:
                 return
+            if item is IDLE:
+                continue
             topic, log_time, publish_time, parts, _keepalive = item
             size = bag.write(topic, log_time, publish_time, parts)
             entry = stats[topic]
@@ -128,6 +156,7 @@ def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats
             del item, parts, _keepalive  # release the shared-memory view now
     except Exception as exc:  # disk full, I/O error: stop the recording, report it
         errors.append(f'writing the bag failed: {type(exc).__name__}: {exc}')
+        bag.failed = True
         stop.set()
         with queue.condition:
             queue.items.clear()
@@ -135,6 +164,12 @@ def _writer_loop(bag: BagWriter, queue: _WriteQueue, stats: Dict[str, TopicStats
 
 
 # --- the recorder node ---------------------------------------------------------------------------
+
+def _ros_topic_name(dds_topic: str) -> Optional[str]:
+    """The ROS topic of a DDS topic name ('rt/camera/image' -> '/camera/image'); None for
+    services, actions' internals and other non-topic names."""
+    return '/' + dds_topic[3:] if dds_topic.startswith('rt/') else None
+
 
 class Recorder:
     """Subscribe to the selected topics as they appear and queue their messages for writing."""
@@ -153,7 +188,30 @@ class Recorder:
                        for t in args.topics}
         self.exclude = re.compile(args.exclude_regex) if args.exclude_regex else None
         self.overrides = args.qos_overrides
-        self.timer = node.create_timer(DISCOVERY_PERIOD_SEC, self.discover)
+        self.timer = None   # the graph poll, where the discovery tap is unavailable
+        self.retry = None   # a one-shot look at the graph for a writer it does not list yet
+        self.retries = 0
+        self.first_seen: Dict[str, float] = {}  # topic -> when the tap first reported a writer
+        self.discovery = None
+        if _dds.is_supported():
+            # subscribe the moment discovery reports a writer: the tap wakes the executor
+            self.discovery = discovery.for_node(node)
+            self.wakeup = node.create_guard_condition(self._on_discovery_event)
+            self.discovery.add_wakeup(node, self.wakeup)
+        else:
+            self.timer = node.create_timer(DISCOVERY_PERIOD_SEC, self.discover)
+
+    def close(self) -> None:
+        """Stop discovering (before the subscriptions are destroyed)."""
+        for timer in (self.timer, self.retry):
+            if timer is not None:
+                timer.cancel()
+        if self.discovery is not None:
+            self.discovery.remove_wakeup(self.wakeup)
+
+    def _on_discovery_event(self) -> None:
+        self.discovery.process()  # also what buffer-aware subscriptions wait for
+        self.discover()
 
     def _selected(self, name: str) -> bool:
         from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
@@ -168,10 +226,27 @@ class Recorder:
         return self.args.include_hidden_topics or not topic_or_service_is_hidden(name)
 
     def discover(self) -> None:
-        """Subscribe to every selected topic that has appeared since the last poll."""
-        for name, types in self.node.get_topic_names_and_types():
-            if name in self.subscriptions or name in self.skipped or not self._selected(name):
+        """Subscribe to every selected topic that has a publisher and no subscription yet.
+
+        The tap reports a writer from the DDS discovery thread, perhaps before rmw's graph cache
+        lists it (its QoS comes from there): such a topic is looked up again shortly.
+        """
+        graph = self.node.get_topic_names_and_types()
+        writers = set() if self.discovery is None else {
+            _ros_topic_name(t) for t in self.discovery.remote_writers()}
+        now = time.monotonic()
+        for name in writers:
+            self.first_seen.setdefault(name, now)
+        # a writer the tap knows and the graph does not list yet (or without its QoS)
+        listed = {name for name, _ in graph}
+        unlisted = any(name is not None and name not in listed and self._wanted(name)
+                       for name in writers)
+        for name, types in graph:
+            if not self._wanted(name):
                 continue
+            if not self.node.get_publishers_info_by_topic(name):
+                unlisted |= name in writers
+                continue  # no publisher: nothing to record yet, nor a QoS to match
             if len(types) > 1:
                 self.node.get_logger().warning(
                     f'{name} has more than one type ({", ".join(types)}); recording {types[0]}')
@@ -180,6 +255,20 @@ class Recorder:
             except (ValueError, TypeError, DefinitionNotFoundError, RecursionError) as exc:
                 self.skipped[name] = str(exc)
                 self.node.get_logger().error(f'not recording {name}: {exc}')
+        if not unlisted:
+            self.retries = 0
+        elif self.retry is None and self.retries < GRAPH_RETRIES:
+            self.retries += 1
+            self.retry = self.node.create_timer(GRAPH_RETRY_SEC, self._retry)
+
+    def _wanted(self, name: str) -> bool:
+        return name not in self.subscriptions and name not in self.skipped and \
+            self._selected(name)
+
+    def _retry(self) -> None:
+        self.node.destroy_timer(self.retry)
+        self.retry = None
+        self.discover()
 
     def _qos(self, name: str, offered):
         """rosbag2's rule: reliable / transient local only if every publisher offers it."""
@@ -206,7 +295,6 @@ class Recorder:
         import rosidl_buffer_py
         from rosidl_buffer_py import codec
         msg_type = import_message_type(type_name)
-        definition = full_definition(type_name)
         infos = self.node.get_publishers_info_by_topic(name)
         offered = [info.qos_profile for info in infos]
         hashes = {str(info.topic_type_hash) for info in infos} - {'INVALID'}
@@ -216,16 +304,31 @@ class Recorder:
             buffer_aware = True
         except codec.UnsupportedMessageTypeError:
             buffer_aware = False
-        self.bag.add_topic(Topic(name, type_name, definition, offered,
-                                 sorted(hashes)[0] if hashes else ''))
         self.stats[name] = TopicStats(type_name, buffer_aware)
+        if name in self.first_seen:
+            self.stats[name].subscribe_delay_ms = round(
+                (time.monotonic() - self.first_seen[name]) * 1e3, 1)
+        # The subscription first: DDS matches it (and its history fills) while the type's
+        # definition is read, which takes tens of ms. No callback runs before this method
+        # returns (it runs in the executor), so the channel is in the bag before any message.
         if buffer_aware:
-            self.subscriptions[name] = rosidl_buffer_py.create_subscription(
+            subscription = rosidl_buffer_py.create_subscription(
                 self.node, msg_type, name, self._buffer_callback(name), qos,
                 acceptable_buffer_backends='any')
         else:
-            self.subscriptions[name] = self.node.create_subscription(
+            subscription = self.node.create_subscription(
                 msg_type, name, self._raw_callback(name), qos, raw=True)
+        try:
+            self.bag.add_topic(Topic(name, type_name, full_definition(type_name), offered,
+                                     sorted(hashes)[0] if hashes else ''))
+        except Exception:
+            if buffer_aware:
+                subscription.destroy()
+            else:
+                self.node.destroy_subscription(subscription)
+            del self.stats[name]
+            raise
+        self.subscriptions[name] = subscription
         print(f'buffer_record: recording {name} ({type_name}, '
               f'{"buffer-aware" if buffer_aware else "serialized"})', flush=True)
 
@@ -362,12 +465,16 @@ def print_summary(bag: BagWriter, stats: Dict[str, TopicStats], seconds: float,
                   errors: List[str]) -> None:
     """The table a user reads, then one JSON line for scripts."""
     files = bag.file_paths
+    for name, entry in stats.items():  # what is in the finished files, not what was queued
+        entry.written = bag.topic_counts.get(name, 0)
     print(f'buffer_record: wrote {bag.directory} ({len(files)} file'
           f'{"s" if len(files) != 1 else ""}, {format_size(bag.size)}) in {seconds:.1f} s')
-    rows = [('topic', 'type', 'messages', 'zero-copy', 'dropped', 'bytes')]
+    # messages: in the finished files; received, zero-copy (of those received), dropped (no
+    # room in --max-cache-size): what the subscriptions delivered
+    rows = [('topic', 'type', 'messages', 'received', 'zero-copy', 'dropped', 'bytes')]
     for name, entry in sorted(stats.items()):
-        rows.append((name, entry.type, str(entry.written), str(entry.zero_copy),
-                     str(entry.dropped), format_size(entry.bytes)))
+        rows.append((name, entry.type, str(entry.written), str(entry.received),
+                     str(entry.zero_copy), str(entry.dropped), format_size(entry.bytes)))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     for index, row in enumerate(rows):
         print('| ' + ' | '.join(cell.ljust(w) for cell, w in zip(row, widths)) + ' |')
@@ -399,6 +506,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'buffer_record: error: {exc}', file=sys.stderr)
         return EXIT_USAGE
 
+    native_stdout_to_stderr()  # Fast DDS's log lines are not this tool's output
     stop = threading.Event()
 
     def on_signal(signum, frame) -> None:
@@ -429,7 +537,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        recorder.timer.cancel()
+        recorder.close()
         for subscription in recorder.subscriptions.values():  # take nothing more
             if isinstance(subscription, rclpy.subscription.Subscription):
                 node.destroy_subscription(subscription)
@@ -441,7 +549,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             errors.append(f'the writer thread did not finish within {DRAIN_TIMEOUT_SEC} s')
         else:
             try:
-                bag.close()
+                bag.close(failed=bag.failed)
             except (OSError, BagError) as exc:
                 errors.append(f'finishing the bag failed: {exc}')
         print_summary(bag, recorder.stats, time.monotonic() - started, errors)

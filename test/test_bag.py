@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from rclpy.duration import Duration
@@ -167,3 +168,20 @@ def test_large_shared_memory_payloads_go_to_the_disk_page_aligned(tmp_path):
         for cdr in sent:
             assert (content.index(cdr) + len(cdr) - nbytes) % DIRECT_ALIGNMENT == 0
         assert content.count(bytes([PADDING_OPCODE])) >= 3
+
+
+def test_ros_distro_from_rosbag2s_embedded_metadata(tmp_path):
+    """rosbag2 writes the distribution inside its ``rosbag2`` metadata record's
+    serialized_metadata (no ROS_DISTRO key): buffer_bag_info shows it."""
+    from mcap.writer import Writer
+    from rosidl_buffer_py.bag_info import format_info, info
+    path = tmp_path / 'rosbag2.mcap'
+    with open(path, 'wb') as stream:
+        writer = Writer(stream)
+        writer.start(profile='ros2', library='rosbag2')
+        writer.add_metadata('rosbag2', {'serialized_metadata': yaml.safe_dump(
+            {'rosbag2_bagfile_information': {'version': 9, 'ros_distro': 'rolling'}})})
+        writer.finish()
+    facts = info(BagReader(path))
+    assert facts['ros_distro'] == 'rolling'
+    assert 'ROS Distro:        rolling' in format_info(facts)

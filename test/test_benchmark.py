@@ -267,3 +267,15 @@ def test_peer_scratch_removes_what_a_run_left_and_keeps_what_is_in_use(tmp_path)
             for path in (held_path, dead_path):
                 if os.path.exists(path):
                     os.remove(path)
+
+
+def test_a_fanout_series_whose_cpu_falls_with_more_subscribers_is_flagged():
+    """The issue's figures: stock's publisher CPU per message 62.6 ms with 1 subscriber and 3.7
+    ms with 4 is a measurement error; a series that grows (or stays within noise) is not."""
+    from launch_free_demos.benchmark import fanout_implausibility
+    reason = fanout_implausibility([(1, 62.6), (2, 20.1), (4, 3.7)])
+    assert reason == ('CPU per message fell from 62.6 to 20.1 ms from 1 to 2 subscribers: a '
+                      'measurement error, not plotted')
+    assert fanout_implausibility([(1, 3.7), (2, 7.9), (4, 15.2)]) is None
+    assert fanout_implausibility([(1, 1.30), (2, 1.21), (4, 1.35)]) is None  # noise
+    assert fanout_implausibility([]) is None

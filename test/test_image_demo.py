@@ -1,4 +1,5 @@
-"""``./dev demo`` (launch_free_demos.image_demo) stops at once when a node fails, and Ctrl-C
+"""``./dev demo`` (launch_free_demos.image_demo) stops at once when a node fails, ends with the
+publisher naming lost frames, validates its options; Ctrl-C
 ends it with the summary so far, no traceback."""
 import os
 import signal
@@ -60,3 +61,32 @@ def test_ctrl_c_stops_the_nodes_and_prints_the_summary_so_far():
     assert '| frames published |' in rest and '| frames received (distinct) |' in rest, rest
     published = int(rest.split('| frames published | ')[1].split(' ')[0])
     assert published > 0, rest
+
+
+def test_lost_frames_end_the_demo_with_the_publisher_and_are_named():
+    """A slow subscriber with --depth 1 loses frames: the demo ends a few seconds after the
+    publisher (not at the subscriber's 60 s timeout), names the lost frames and says why."""
+    started = time.monotonic()
+    process = _start('--width', '64', '--height', '48', '--rate', '30', '--seconds', '1',
+                     '--depth', '1', '--slow-subscriber', '0.1')
+    out, err = _finish(process, 90)
+    assert process.returncode == 1, out[-2000:] + err[-2000:]
+    assert time.monotonic() - started < 40, 'the demo waited for the subscriber\'s timeout'
+    assert 'frames published and never received: ' in out, out
+    assert 'Likely why: a KEEP_LAST history of depth 1' in out
+    assert '--slow-subscriber 0.1 s per frame' in out
+    assert 'The table: frames the publisher sent' in out  # the legend under the table
+
+
+def test_options_are_validated_and_help_is_plain():
+    for option, value in (('--rate', '0'), ('--seconds', '-1'), ('--depth', '0'),
+                          ('--width', 'x')):
+        process = _start(option, value)
+        out, err = _finish(process, 30)
+        assert process.returncode == 2, (option, out, err)
+        assert f'./dev demo: error: argument {option}:' in err and value in err, err
+    process = _start('--help')
+    out, err = _finish(process, 30)
+    assert process.returncode == 0
+    assert out.startswith('usage: ./dev demo') and '``' not in out, out
+    assert 'The summary table:' in out

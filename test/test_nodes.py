@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parent.parent
 PACKAGE = 'rosidl_buffer_py'
 EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
                'legacy_image_subscriber', 'buffer_topic_info', 'buffer_record', 'buffer_play',
-               'buffer_bag_info']
+               'buffer_bag_info', 'buffer_bag_reindex']
 
 
 def _report(stdout: str) -> dict:
@@ -432,3 +432,20 @@ def test_phase_sec_sends_frames_on_a_wall_clock_grid():
     # signed distance of each stamp from its grid point, in (-period/2, period/2]
     offsets = [(t - phase + period / 2) % period - period / 2 for t in stamps]
     assert abs(statistics.median(offsets)) < 0.02, offsets  # grid: not just any 0.1 s apart
+
+
+def test_subscriber_says_what_it_accepts_and_reports_its_timeout():
+    """At start: the backends it takes, how to get zero-copy, when it stops; a subscriber that
+    stops because timeout_sec passed reports timed_out true."""
+    code, out, err = _run([str(executable('image_subscriber')), '--ros-args', '-p',
+                           'topic:=/nobody_publishes', '-p', 'timeout_sec:=1', '-p',
+                           'report_period_sec:=0'])
+    assert code == 0, err
+    assert 'accepting backends: cpu (the default): frames arrive as CPU copies; for zero-copy ' \
+        'pass -p acceptable_buffer_backends:=any, or one of the installed backends (demo' in err
+    assert 'stops after 1 s (timeout_sec; 0 = never)' in err
+    report = _report(out)
+    assert report['timed_out'] is True and report['stopped_by'] == 'timeout_sec'
+    code, out, err = _run([str(executable('image_subscriber')), '--ros-args', '-p',
+                           'acceptable_buffer_backends:=demo', '-p', 'timeout_sec:=0.5'])
+    assert 'accepting backends: demo; stops after 0.5 s' in err, err

@@ -26,7 +26,8 @@ MODULE_KEYS = {
 #: Modules of this repository (or made by the tests) that need no dependency.
 OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'installed',
                'in_process', 'demo_backend_peer',
-               'rbpy_example_backend', 'test_codec', 'test_codec_general', 'my_backend'}
+               'rbpy_example_backend', 'test_codec', 'test_codec_general', 'test_packaging',
+               'my_backend'}
 
 
 def requirement_lines(name):

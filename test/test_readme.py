@@ -60,6 +60,10 @@ COVERAGE = {
     './dev bench-bringup': 'test_bringup.py',             # small frames, 2 trials
     './dev bench-hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     'colcon test': 'test_colcon.py',
+    # "Use it in your own venv": a fresh venv, pip install of a copy of the checkout
+    'python3 -m venv myenv': 'test_install.py',
+    'myenv/bin/pip install /path/to/rosidl_buffer_py': 'test_install.py',
+    'myenv/bin/buffer_bag_info --help': 'test_install.py',
 }
 
 
@@ -183,7 +187,7 @@ def test_scenarios_command_line(name):
 
 #: Each README program and the test that runs it as printed.
 SNIPPET_TESTS = {
-    'camera.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
+    'camera.py': 'test_camera_and_viewer_exchange_zero_copy_frames',  # and the one below
     'viewer.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
     'points.py': 'test_pointcloud_program',
     'my_backend.py': 'test_backend_guide_module_serves_the_nodes_and_leaves_nothing',
@@ -234,6 +238,26 @@ def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
     assert vout.strip() == "('DemoBuffer', (2160, 3840, 3), 0) ('DemoBuffer', (2160, 3840, 3), " \
         "29)", vout + verr[-2000:]
     assert "'sent_on_main_topic': 0" in cout, cout
+
+
+def test_camera_publishes_for_a_plain_subscriber_alone(tmp_path):
+    """README's camera with only a plain rclpy subscriber (rviz's case): it does not wait for a
+    buffer-aware peer forever, the frames go out as CPU bytes."""
+    camera = _write_snippet(tmp_path, 'camera.py')
+    # the subscriber stops after 12 s: camera.py's frames are not image_publisher's, whose
+    # count it would wait for
+    processes = [
+        _popen([str(executable('legacy_image_subscriber')), '--ros-args', '-p',
+                'topic:=/camera/image', '-p', 'timeout_sec:=12']),
+        _popen([sys.executable, str(camera)], cwd=tmp_path)]
+    (scode, sout, serr), (ccode, cout, cerr) = _communicate_all(processes, 150)
+    assert ccode == 0, cerr[-2000:]
+    report = json.loads(next(line for line in sout.splitlines()
+                             if line.startswith('REPORT '))[len('REPORT '):])
+    # camera.py's frames carry no counter or checksum of image_publisher's: count arrivals
+    assert report['received'] > 0 and report['backends'] == {'cpu': report['received']}, \
+        (report, serr[-2000:])
+    assert "'sent_on_main_topic': 0" not in cout, cout
 
 
 def test_pointcloud_program(tmp_path):

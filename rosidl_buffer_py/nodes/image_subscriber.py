@@ -106,6 +106,33 @@ class ImageSubscriber(Node):
                 self, Image, p['topic'], self.on_image, qos, **kwargs)
         if p['report_period_sec'] > 0:
             self.create_timer(p['report_period_sec'], self.log_summary)
+        #: why run() ended: 'expected_count', 'timeout_sec', or None (a signal, or not yet)
+        self.stopped_by = None
+        self.get_logger().info(self.start_line())
+
+    def start_line(self) -> str:
+        """What this subscriber takes and when it stops, said once at start: a user who sees
+        CPU copies learns here how to get zero-copy."""
+        p = self.params
+        if p['legacy']:
+            takes = 'a plain rclpy subscription: every frame arrives as CPU bytes'
+        else:
+            chosen = p['acceptable_buffer_backends']
+            accepted = 'cpu' if chosen == DEFAULT_SENTINEL else chosen
+            installed = ', '.join(sorted(set(rosidl_buffer_py.get_installed_backends()) -
+                                         {'cpu'})) or 'none'
+            takes = f'accepting backends: {accepted}'
+            if accepted.strip() == 'cpu':
+                takes += (' (the default): frames arrive as CPU copies; for zero-copy pass '
+                          '-p acceptable_buffer_backends:=any, or one of the installed '
+                          f'backends ({installed})')
+        stops = []
+        if p['expected_count']:
+            stops.append(f"after {p['expected_count']} distinct frames")
+        if p['timeout_sec']:
+            stops.append(f"after {p['timeout_sec']:g} s (timeout_sec; 0 = never)")
+        return (f"subscribed to {p['topic']}, {takes}; stops "
+                f"{' or '.join(stops) if stops else 'on Ctrl-C only'}")
 
     def on_raw(self, raw: bytes) -> None:
         msg = deserialize_message(raw, Image)
@@ -157,8 +184,10 @@ class ImageSubscriber(Node):
     def done(self) -> bool:
         p = self.params
         if p['expected_count'] and len(self.seen) >= p['expected_count']:
-            return True
-        return bool(p['timeout_sec']) and time.monotonic() - self.start > p['timeout_sec']
+            self.stopped_by = 'expected_count'
+        elif p['timeout_sec'] and time.monotonic() - self.start > p['timeout_sec']:
+            self.stopped_by = 'timeout_sec'
+        return self.stopped_by is not None
 
     def run(self) -> None:
         # spin_once returns after each callback: the last frame ends the loop at once; the
@@ -185,7 +214,9 @@ class ImageSubscriber(Node):
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
             'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
-            'timed_out': bool(p['expected_count']) and len(self.seen) < p['expected_count'],
+            # it stopped because timeout_sec passed (with or without an expected_count)
+            'timed_out': self.stopped_by == 'timeout_sec',
+            'stopped_by': self.stopped_by or 'signal',
         }
         if hasattr(self.subscription, 'statistics'):
             report['statistics'] = self.subscription.statistics()
