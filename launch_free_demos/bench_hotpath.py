@@ -88,7 +88,7 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
     if transport == 'demo':
         stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
         stages.wrap(pool.State, '_drain_link', '      acks and hang-ups from the peer')
-        stages.wrap(publisher._Encoder, 'with_descriptor', '    descriptor message encode')
+        stages.wrap(publisher._Encoder, 'with_descriptors', '    descriptor message encode')
 
 
 def _subscriber_stages(stages: Stages, transport: str) -> None:

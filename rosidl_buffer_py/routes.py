@@ -28,7 +28,8 @@ from that subscription (the DataWriter sends it a GAP instead of the payload).
 Subscription side: one :class:`Stream` per publisher::
 
     MAIN --channel message--> CHANNEL
-      \\--fence--> WAITING --fenced main-topic message delivered, or FENCE_TIMEOUT--> CHANNEL
+      \\--fence--> WAITING --fenced main-topic message delivered, or known lost (a newer
+                            main-topic copy came), or FENCE_TIMEOUT--> CHANNEL
 
 Every copy of a message carries its publisher's source timestamp, increasing per publisher; a
 stream delivers each timestamp at most once and in increasing order. In WAITING, channel
@@ -327,6 +328,8 @@ class Stream(Generic[T]):
     waiting: Deque[Tuple[int, T]] = field(default_factory=collections.deque)
     waiting_since: float = 0.0
     timeouts: int = 0
+    #: Fenced messages known lost (a newer main-topic copy came first).
+    lost_fenced: int = 0
     #: The channel went away while messages were queued (see :meth:`channel_lost`).
     lost: bool = False
 
@@ -338,9 +341,19 @@ class Stream(Generic[T]):
     def main(self, timestamp: int) -> Verdict:
         """A main-topic copy arrived."""
         if self.duplicate(timestamp):
+            self.passed_by(timestamp)
             return Verdict.DUPLICATE
         self.last = timestamp
         return Verdict.DELIVER
+
+    def passed_by(self, timestamp: int) -> None:
+        """A main-topic copy of message ``timestamp`` arrived (delivered or dropped). A RELIABLE
+        reader gets one writer's samples in order, so once a copy newer than the fenced message
+        came, the fenced one will not come any more (DDS lost it, for example to a startup
+        race): the channel's messages need not wait for it."""
+        if (self.state is StreamState.WAITING and self.last < self.fence < timestamp):
+            self.fence = 0
+            self.lost_fenced += 1
 
     def fenced(self, timestamp: int, fence: Fence, now: float) -> None:
         """The publisher switched us to its channel from message ``timestamp`` on."""
@@ -416,6 +429,7 @@ class StreamTable(Generic[T]):
     def __init__(self, *, reliable: bool = True) -> None:
         self.reliable = reliable
         self.streams: Dict[Hashable, Stream[T]] = {}
+        self._ended = [0, 0]  # fence counts of the streams popped
 
     def __getitem__(self, key: Hashable) -> Stream[T]:
         stream = self.streams.get(key)
@@ -432,4 +446,13 @@ class StreamTable(Generic[T]):
         return min(deadlines) if deadlines else None
 
     def pop(self, key: Hashable) -> Optional[Stream[T]]:
-        return self.streams.pop(key, None)
+        stream = self.streams.pop(key, None)
+        if stream is not None:
+            self._ended[0] += stream.timeouts
+            self._ended[1] += stream.lost_fenced
+        return stream
+
+    def fence_counts(self) -> Tuple[int, int]:
+        """Fenced messages given up after FENCE_TIMEOUT_SECONDS, and known lost, so far."""
+        return (self._ended[0] + sum(s.timeouts for s in self.streams.values()),
+                self._ended[1] + sum(s.lost_fenced for s in self.streams.values()))

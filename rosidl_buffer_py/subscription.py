@@ -236,7 +236,9 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                     'advertised_backends': dict(self._advertised),
                     **{key: self._counts[key] for key in (
                         'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
-                        'rejected', 'fences', 'fence_timeouts')},
+                        'rejected', 'fences')},
+                    **dict(zip(('fence_timeouts', 'fenced_lost'),
+                               self._streams.fence_counts())),
                     'peers': self.buffer_peers()}
 
     # the delivery path ----------------------------------------------------------------------
@@ -291,6 +293,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             stream = streams.get(key[0])
             if stream is None or not stream.duplicate(key[1]):
                 break
+            stream.passed_by(key[1])
             if _dds.discard_untaken(self.handle) is not None:
                 self._counts['from_main_topic'] += 1
                 self._counts['duplicates_dropped'] += 1

@@ -200,6 +200,17 @@ def test_a_channel_lost_with_queued_messages_delivers_them_after_the_fenced_one_
     assert stream.main(3) is Verdict.DELIVER
 
 
+def test_a_newer_main_topic_copy_proves_the_fenced_message_lost():
+    """DDS delivers one writer's samples in order: once a copy newer than the fenced message
+    came on the main topic, the fenced one is lost (a startup race), so nothing waits for it."""
+    stream = Stream()
+    stream.fenced(5, Fence(3), now=0.0)
+    stream.channel(5, 'm5', now=0.0)
+    assert stream.main(5) is Verdict.DUPLICATE  # the switch message's main-topic copy
+    assert stream.release(0.1) == 'm5' and stream.lost_fenced == 1 and stream.timeouts == 0
+    assert stream.main(3) is Verdict.DUPLICATE  # too late now: older than what was delivered
+
+
 def test_best_effort_stream_never_waits():
     stream = Stream(reliable=False)
     stream.fenced(3, Fence(2), now=0.0)
