@@ -208,7 +208,7 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
         assert len(rows[what]) == 3 and all(float(c.split()[0]) > 0 for c in rows[what]), \
             completed.stdout
     demo_only = ['backend describe (demo ledger)', 'descriptor message encode',
-                 'backend open (demo pool)', 'of it: segment checks and take record']
+                 'backend open (demo pool)', 'of it: segment checks, hold lock and ack']
     ours = ['writes (descriptor or CPU message)', 'channel takes (empty ones too)',
             'delivery path: take to message'] + demo_only
     for stage in ours:
