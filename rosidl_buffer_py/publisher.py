@@ -295,7 +295,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 self._planned = None  # a route changed state (fenced, gone): plan again
             if plan.main:
                 self._sent_main += 1
-                self._table.main_written(plan.main_served, timestamp)
+                if self._table.main_written(plan.main_served, timestamp):
+                    self._planned = None  # a route may serve from the next message on
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:

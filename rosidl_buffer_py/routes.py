@@ -201,13 +201,17 @@ class Route:
         self.state = RouteState.CONFIRMED if self.acknowledged_probes else RouteState.SERVING
         return Fence(self.last_main or 0)
 
-    def main_written(self, timestamp: int) -> None:
-        """The main topic carried message ``timestamp`` for this subscription."""
-        if not self.needs_main:
-            return
+    def main_written(self, timestamp: int) -> bool:
+        """The main topic carried message ``timestamp`` for this subscription (whatever the
+        state: a plan made before a transition still routes by the main topic, and the fence
+        must name what the subscription was sent). True when the route changed state."""
+        if self.state is RouteState.GONE:
+            return False
         self.last_main = timestamp
         if self.state is RouteState.ACKNOWLEDGED and timestamp > self.acknowledged_after:
             self.state = RouteState.FENCING
+            return True
+        return False
 
     def gone(self) -> None:
         """The subscription's process is known to be gone: nothing more is written to it."""
@@ -281,14 +285,17 @@ class RouteTable(Generic[K]):
         return Plan(tuple(channel), bool(main_served) or self.main_always, tuple(withheld),
                     main_served, recheck_at)
 
-    def main_written(self, keys: Iterable[K], timestamp: int) -> None:
-        """The main topic carried message ``timestamp`` for these subscriptions."""
+    def main_written(self, keys: Iterable[K], timestamp: int) -> bool:
+        """The main topic carried message ``timestamp`` for these subscriptions (those its plan
+        served by the main topic). True when a route changed state: plan again."""
+        changed = False
         for key in keys:
             route = self.routes.get(key)
             if route is None:
                 self._last_main[key] = timestamp
             else:
-                route.main_written(timestamp)
+                changed |= route.main_written(timestamp)
+        return changed
 
 
 # --- subscription side -----------------------------------------------------------------------

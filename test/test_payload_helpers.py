@@ -5,7 +5,6 @@ structured arrays built independently from the same values.
 """
 import array
 import gc
-import os
 
 import numpy
 import pytest
@@ -27,13 +26,10 @@ RING = numpy.dtype({'names': ['x', 'ring', 'normal', 't'],
 @pytest.fixture
 def demo():
     import demo_buffer_backend
-    from demo_buffer_backend import shm
     demo_buffer_backend.shutdown()
     yield registry.get_backend('demo')
     gc.collect()
     demo_buffer_backend.shutdown()
-    prefix = f'{shm.PREFIX}{os.getpid()}_'
-    assert not [n for n in os.listdir(shm.SHM_DIR) if n.startswith(prefix)]
 
 
 def random_points(dtype, shape, seed=0):

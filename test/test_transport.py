@@ -486,7 +486,9 @@ def test_serialized_publishing_while_routes_come_up_reaches_every_subscription(c
     for counter in range(40):
         pub.publish(serialize_message(frame(counter)))
         executor.spin_once(timeout_sec=0.01)
-    assert spin_until(executor, lambda: all(len(g) >= 40 for g in got.values())), got
+    assert spin_until(executor, lambda: all(len(g) >= 40 for g in got.values())), (
+        {a: sorted(set(range(40)) - set(g)) for a, g in got.items()},
+        [s.statistics() for s in node.subscriptions if hasattr(s, 'statistics')])
     assert all(g == list(range(40)) for g in got.values()), got
     node.destroy_node()
 
