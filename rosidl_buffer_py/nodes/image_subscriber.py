@@ -185,6 +185,7 @@ class ImageSubscriber(Node):
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
             'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
+            'late_over_200ms': sum(1 for value in self.latencies if value > 200.0),
             'timed_out': bool(p['expected_count']) and len(self.seen) < p['expected_count'],
         }
         if hasattr(self.subscription, 'statistics'):
