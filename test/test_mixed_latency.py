@@ -18,5 +18,5 @@ def test_channel_frames_are_not_held_behind_a_legacy_listeners_frames():
                          topic='/test_mixed_latency/image')
     demo, plain = result['demo_sub'], result['plain_sub']
     assert demo['channels'] == 240 - demo['lost'], result  # the frames came on the channel
-    assert demo['lost'] == 0, result
     assert demo['p99'] <= plain['p99'] + 100.0, result
+    assert demo['lost'] == 0, result  # a descriptor lost and not repaired before 10 newer ones
