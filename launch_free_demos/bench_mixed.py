@@ -8,6 +8,8 @@ Graphs, each a demo publisher (frames filled in place) of ``--payload`` at ``--r
   publisher pays to serve a legacy subscriber);
 - ``stock mixed``: ``mixed`` with stock endpoints only (the demo subscriber's place taken by a
   plain subscriber): what the same graph costs without this package;
+- ``cpu``, ``cpu mixed``: ``pure`` and ``mixed`` with a publisher of CPU frames (the
+  buffer-aware subscriber then gets whole frames on its channel; its column is still "demo");
 - ``neighbour``: ``pure``, with a stock publisher and a plain subscriber of the same frames on
   *another* topic: the machine as loaded as in ``mixed`` (two more processes copying 25 MB
   frames, on 2 cores), with nothing shared. What ``mixed`` costs the demo subscriber beyond this
@@ -45,6 +47,12 @@ GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
     'stock mixed': [('demo_sub', 'legacy_image_subscriber', {}),
                     ('plain_sub', 'legacy_image_subscriber', {}),
                     ('pub', 'legacy_image_publisher', {})],
+    # a publisher of CPU frames: buffer-aware subscribers get the whole frame on their channel
+    'cpu': [('demo_sub', 'image_subscriber', {}),
+            ('pub', 'image_publisher', {'backend': 'cpu', 'wait_for_buffer_peers': 1})],
+    'cpu mixed': [('demo_sub', 'image_subscriber', {}),
+                  ('plain_sub', 'legacy_image_subscriber', {}),
+                  ('pub', 'image_publisher', {'backend': 'cpu', 'wait_for_buffer_peers': 1})],
     'neighbour': [('demo_sub', 'image_subscriber', {'acceptable_buffer_backends': 'demo'}),
                   ('plain_sub', 'legacy_image_subscriber', {'topic_suffix': '_neighbour'}),
                   ('neighbour_pub', 'legacy_image_publisher', {'topic_suffix': '_neighbour'}),

@@ -15,7 +15,7 @@
 //     .take() -> (bytes, publisher_gid, info) | None
 //     .take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None
 //     .matched_count() -> int   matched publishers
-//     .gid, .topic_name, .valid
+//     .gid, .topic_name, .valid, .on_udp (listens on UDP only: see "channel transport" below)
 //     .destroy()
 //
 //   write_message(message, source_timestamp, targets)  convert once, write to each target
