@@ -107,11 +107,12 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
 
 
 def run_latency(graph: str, width: int, height: int, frames: int, rate: float, depth: int,
-                topic: str) -> Dict[str, dict]:
+                topic: str, patience: float = 60.0) -> Dict[str, dict]:
     """One run of ``graph``: each subscriber's latency percentiles (ms, publisher's stamp to
     the callback), how many frames came over 200 ms late and how many never came (a reliable
     KEEP_LAST writer drops a sample not acknowledged before ``depth`` newer ones); checks
-    the frames' contents."""
+    the frames' contents. A subscriber missing frames gives up ``patience`` seconds after the
+    last frame is due."""
     nodes = GRAPHS[graph]
     with MeasuredRun() as run:
         started = {}
@@ -126,9 +127,9 @@ def run_latency(graph: str, width: int, height: int, frames: int, rate: float, d
                 params.update(count=frames, rate_hz=rate, wait_timeout_sec=30.0, linger_sec=3.0,
                               wait_for_subscribers=subscribers if not suffix else 1)
             else:
-                params.update(expected_count=frames, timeout_sec=60.0 + frames / rate)
+                params.update(expected_count=frames, timeout_sec=patience + frames / rate)
             started[label] = run.start(label, executable, **params)
-        deadline = time.monotonic() + 90.0 + frames / rate
+        deadline = time.monotonic() + patience + 30.0 + frames / rate
         while not all([node.try_reap() for node in started.values()]) and \
                 time.monotonic() < deadline:
             time.sleep(0.05)
