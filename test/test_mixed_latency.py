@@ -8,8 +8,9 @@ publisher's shared-memory segment, where the main topic's 921 KB frames recycled
 the demo subscriber read them: its p99 was 0.3 to 1.6 s, 5 to 50 times the plain subscriber's.
 Nothing here is compared with an absolute time: the demo subscriber's p99 is compared with the
 plain subscriber's of the same run (whatever the machine's load did to both), with a 100 ms
-margin, far below the stalls this guards against. With ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT=participant
-(channels back in shared memory, as before the fix) it fails: demo p99 279 ms against 22 ms.
+margin, far below the stalls this guards against. With
+ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT=participant (channels back in shared memory, as before the
+fix) it fails: demo p99 279 ms against 22 ms.
 """
 from launch_free_demos.bench_mixed import run_latency
 
