@@ -8,6 +8,8 @@ Graphs, each a demo publisher (frames filled in place) of ``--payload`` at ``--r
   publisher pays to serve a legacy subscriber);
 - ``stock mixed``: ``mixed`` with stock endpoints only (the demo subscriber's place taken by a
   plain subscriber): what the same graph costs without this package;
+- ``cpu``, ``cpu mixed``: ``pure`` and ``mixed`` with a publisher of CPU frames (the
+  buffer-aware subscriber then gets whole frames on its channel; its column is still "demo");
 - ``neighbour``: ``pure``, with a stock publisher and a plain subscriber of the same frames on
   *another* topic: the machine as loaded as in ``mixed`` (two more processes copying 25 MB
   frames, on 2 cores), with nothing shared. What ``mixed`` costs the demo subscriber beyond this
@@ -45,6 +47,12 @@ GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
     'stock mixed': [('demo_sub', 'legacy_image_subscriber', {}),
                     ('plain_sub', 'legacy_image_subscriber', {}),
                     ('pub', 'legacy_image_publisher', {})],
+    # a publisher of CPU frames: buffer-aware subscribers get the whole frame on their channel
+    'cpu': [('demo_sub', 'image_subscriber', {}),
+            ('pub', 'image_publisher', {'backend': 'cpu', 'wait_for_buffer_peers': 1})],
+    'cpu mixed': [('demo_sub', 'image_subscriber', {}),
+                  ('plain_sub', 'legacy_image_subscriber', {}),
+                  ('pub', 'image_publisher', {'backend': 'cpu', 'wait_for_buffer_peers': 1})],
     'neighbour': [('demo_sub', 'image_subscriber', {'acceptable_buffer_backends': 'demo'}),
                   ('plain_sub', 'legacy_image_subscriber', {'topic_suffix': '_neighbour'}),
                   ('neighbour_pub', 'legacy_image_publisher', {'topic_suffix': '_neighbour'}),
@@ -98,6 +106,73 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
     return cpu
 
 
+def run_latency(graph: str, width: int, height: int, frames: int, rate: float, depth: int,
+                topic: str, patience: float = 60.0) -> Dict[str, dict]:
+    """One run of ``graph``: each subscriber's latency percentiles (ms, publisher's stamp to
+    the callback), how many frames came over 200 ms late and how many never came (a reliable
+    KEEP_LAST writer drops a sample not acknowledged before ``depth`` newer ones); checks
+    the frames' contents. A subscriber missing frames gives up ``patience`` seconds after the
+    last frame is due."""
+    nodes = GRAPHS[graph]
+    with MeasuredRun() as run:
+        started = {}
+        subscribers = sum(1 for _, exe, other in nodes if exe.endswith('subscriber')
+                          and not other.get('topic_suffix'))
+        for label, executable, params in nodes:
+            params = dict(params)
+            suffix = params.pop('topic_suffix', '')
+            params.update(topic=topic + suffix, width=width, height=height, encoding='rgb8',
+                          depth=depth)
+            if executable.endswith('publisher'):
+                params.update(count=frames, rate_hz=rate, wait_timeout_sec=30.0, linger_sec=3.0,
+                              wait_for_subscribers=subscribers if not suffix else 1)
+            else:
+                params.update(expected_count=frames, timeout_sec=patience + frames / rate)
+            started[label] = run.start(label, executable, **params)
+        deadline = time.monotonic() + patience + 30.0 + frames / rate
+        while not all([node.try_reap() for node in started.values()]) and \
+                time.monotonic() < deadline:
+            time.sleep(0.05)
+        run.stop_all()
+        reports = run.reports()
+    result = {}
+    for label, executable, _ in nodes:
+        report = reports.get(label)
+        if not executable.endswith('subscriber') or label.startswith('neighbour'):
+            continue
+        if report is None or report['checksum_failures'] or not report['distinct']:
+            raise RuntimeError(f'{graph}: {label} did not get its frames intact: {report}')
+        stats = report.get('statistics') or {}
+        result[label] = dict(report['latency_ms'], late=report.get('late_over_200ms'),
+                             lost=frames - report['distinct'],
+                             channels=stats.get('from_channels'),
+                             main=stats.get('from_main_topic'))
+    return result
+
+
+def latency_table(results: Dict[str, List[Dict[str, dict]]], graphs: List[str], payload: str,
+                  rate: float, frames: int, depth: int) -> str:
+    """A markdown table: per graph and run, the demo and plain subscribers' latencies."""
+    lines = [f'Latency, ms, publisher stamp -> subscriber callback, {payload} rgb8 at {rate:g} '
+             f'Hz, {frames} frames, depth {depth}, each run on its own line; late: frames over '
+             '200 ms; lost: frames never received.\n',
+             '| graph | demo p50 | demo p90 | demo p99 | demo max | demo late | demo lost | '
+             'plain p50 | plain p99 | plain late | demo p99 / plain p99 |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
+    for graph in graphs:
+        for run in results.get(graph, []):
+            demo = run.get('demo_sub')
+            plain = run.get('plain_sub')
+            cells = [f"{demo[k]:.1f}" if demo else '-' for k in ('p50', 'p90', 'p99', 'max')]
+            cells += [str(demo[k]) if demo else '-' for k in ('late', 'lost')]
+            cells += [f"{plain[k]:.1f}" if plain else '-' for k in ('p50', 'p99')]
+            cells.append(str(plain['late']) if plain else '-')
+            cells.append(f"{demo['p99'] / plain['p99']:.2f}" if demo and plain and plain['p99']
+                         else '-')
+            lines.append(f'| {graph} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
 def measure(width: int, height: int, rate: float, frames: int, extra: int, rounds: int,
             graphs: List[str]) -> Dict[Tuple[str, str], List[float]]:
     """(graph, process label) -> CPU ms per frame of each round."""
@@ -145,6 +220,10 @@ def main(argv=None) -> int:
     parser.add_argument('--extra', type=int, default=40, help='more frames in the long run')
     parser.add_argument('--rounds', type=int, default=2, help='repeats (medians are shown)')
     parser.add_argument('--graphs', default='pure,mixed,neighbour,stock,stock mixed')
+    parser.add_argument('--latency', action='store_true',
+                        help='measure latency instead of CPU: --frames frames per run, each '
+                        'graph --rounds times (interleaved), at --depth')
+    parser.add_argument('--depth', type=int, default=10, help='QoS depth (with --latency)')
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.payload.split('x'))
     graphs = [g.strip() for g in args.graphs.split(',') if g.strip()]
@@ -152,6 +231,19 @@ def main(argv=None) -> int:
     if unknown:
         parser.error(f'unknown graph(s) {unknown}; known: {", ".join(GRAPHS)}')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if args.latency:
+        results: Dict[str, List[Dict[str, dict]]] = {}
+        serial = 0
+        for _ in range(args.rounds):
+            for graph in graphs:
+                serial += 1
+                topic = f'/bench_mixed_{os.getpid()}/{graph.replace(" ", "_")}_{serial}'
+                run = run_latency(graph, width, height, args.frames, args.rate, args.depth,
+                                  topic)
+                print(f'bench_mixed: {graph}: {run}', file=sys.stderr, flush=True)
+                results.setdefault(graph, []).append(run)
+        print(latency_table(results, graphs, args.payload, args.rate, args.frames, args.depth))
+        return 0
     per_frame = measure(width, height, args.rate, args.frames, args.extra, args.rounds, graphs)
     print(table(per_frame, graphs, args.payload, args.rate, args.frames, args.extra,
                 args.rounds))

@@ -27,7 +27,9 @@ ChannelPublisher = _native.ChannelPublisher
 #: ``.take() -> Optional[TakenMessage]``,
 #: ``.take_message(msg_class, max_size=-1) -> Optional[TakenMessage]``
 #: (the message deserialized in C when it can be, see :func:`take_message_with_gid`),
-#: ``.matched_count() -> int``, ``.destroy()``, ``.gid``, ``.topic_name``, ``.valid``.
+#: ``.matched_count() -> int``, ``.destroy()``, ``.gid``, ``.topic_name``, ``.valid``,
+#: ``.on_udp`` (its DataReader listens on UDP only, not on the participant's shared memory:
+#: see src/native/README.md, "Channel transport").
 ChannelSubscription = _native.ChannelSubscription
 
 #: The rmw implementation the native layer works with.

@@ -280,6 +280,29 @@ def test_channel_in_process_wakeup_and_subscription_gid(ctx):
     node.destroy_node()
 
 
+def test_channel_subscription_listens_on_udp_unless_asked_not_to(ctx, monkeypatch):
+    """Channel readers stay off the participant's shared-memory segment (README, "Channel
+    transport"); rmw's default DataReaderQos is given back after each creation (the second
+    one, made without the override, listens where the participant does)."""
+    node = _node(ctx, 'chan_udp')
+    topic = _channel_topic(_unique('chan_udp'))
+    sub = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=5))
+    assert sub.on_udp
+    monkeypatch.setenv('ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT', 'participant')
+    other = _dds.create_channel_subscription(node, Image, _channel_topic(_unique('chan_shm')),
+                                             QoSProfile(depth=5))
+    assert not other.on_udp
+    pub = _dds.create_channel_publisher(node, Image, topic, QoSProfile(depth=5))
+    assert _wait(lambda: pub.matched_count() == 1 and sub.matched_count() == 1)
+    data = serialize_message(_image(64))
+    pub.publish(data)
+    taken = _wait(sub.take)
+    assert taken[0] == data and taken[1] == pub.gid
+    for entity in (sub, other, pub):
+        entity.destroy()
+    node.destroy_node()
+
+
 def test_channel_pending_counts_announced_samples_until_taken(ctx):
     """``pending`` is what lets the subscription stop after a take without an empty take: it
     never under-counts the announced samples still in the reader."""

@@ -214,6 +214,7 @@ class ImageSubscriber(Node):
             'wrong_backend': self.counters['wrong_backend'],
             'backends': dict(self.backends), 'problems': self.problems,
             'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
+            'late_over_200ms': sum(1 for value in self.latencies if value > 200.0),
             # it stopped because timeout_sec passed (with or without an expected_count)
             'timed_out': self.stopped_by == 'timeout_sec',
             'stopped_by': self.stopped_by or 'signal',

@@ -15,7 +15,7 @@
 //     .take() -> (bytes, publisher_gid, info) | None
 //     .take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None
 //     .matched_count() -> int   matched publishers
-//     .gid, .topic_name, .valid
+//     .gid, .topic_name, .valid, .on_udp (listens on UDP only: see "channel transport" below)
 //     .destroy()
 //
 //   write_message(message, source_timestamp, targets)  convert once, write to each target
@@ -25,6 +25,7 @@
 // subscription pins its guard condition, which it triggers from the DDS thread (rmw's
 // on-new-message callback) whenever data arrives.
 #include <atomic>
+#include <cstdlib>
 #include <cstring>
 #include <memory>
 #include <mutex>
@@ -33,6 +34,7 @@
 
 #include "dds_common.hpp"
 #include "dds_writer.hpp"
+#include "rmw_fastrtps_private.hpp"
 
 #include "rcl/error_handling.h"
 #include "rcutils/error_handling.h"
@@ -43,6 +45,10 @@
 #include "rmw/serialized_message.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
 #include "fastdds/dds/subscriber/DataReader.hpp"
+#include "fastdds/dds/subscriber/Subscriber.hpp"
+#include "fastdds/dds/subscriber/qos/DataReaderQos.hpp"
+#include "fastdds/rtps/common/Locator.h"
+#include "fastdds/rtps/common/LocatorList.hpp"
 #include "rmw_fastrtps_cpp/get_publisher.hpp"
 #include "rmw_fastrtps_cpp/get_subscriber.hpp"
 #include "rmw_fastrtps_shared_cpp/guid_utils.hpp"
@@ -87,6 +93,95 @@ void on_new_message(const void * user_data, size_t number_of_events)
   }
 }
 
+// ------------------------------------------------------------------ channel transport
+//
+// A channel subscription's DataReader listens on UDP only (loopback on one host), not on the
+// participant's shared-memory locator: measured (issue #19, src/native/README.md "Channel
+// transport"), a channel sample sent over Fast DDS's SHM transport beside main-topic traffic is
+// lost and repaired up to a second later. The publisher's participant has ONE SHM segment
+// (512 KB by default) for everything it sends; a main-topic frame larger than that (640x480
+// rgb8 is 15 fragments, 921 KB) makes each fragment's allocation recycle the oldest buffers not
+// yet taken by their receiver, among them the descriptor written just before, still queued
+// in the buffer-aware subscriber's port. Its reader then waits for a heartbeat to learn of the
+// loss, and keeps every later descriptor back until the repair arrives (in-order delivery).
+// UDP datagrams do not go through that segment.
+//
+// How: rmw_create_subscription starts from its Subscriber's default DataReaderQos; for the
+// channel's creation that default gets one unicast locator, UDPv4 "any" with port 0, which
+// Fast DDS expands to the participant's own UDPv4 addresses and default user-traffic port (the
+// receiver it already has). Only when the default names no locators (a user's XML profile that
+// does is left alone), and only if the reader then listens on UDPv4; otherwise the
+// subscription is created again with the participant's locators, as before.
+// ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT=participant turns this off (for comparisons).
+
+bool channel_transport_udp()
+{
+  const char * value = std::getenv("ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT");
+  return value == nullptr || std::strcmp(value, "participant") != 0;
+}
+
+bool listens_on_udp_only(rmw_subscription_t * subscription)
+{
+  eprosima::fastdds::dds::DataReader * reader = rmw_fastrtps_cpp::get_datareader(subscription);
+  eprosima::fastdds::rtps::LocatorList locators;
+  if (reader == nullptr || reader->get_listening_locators(locators) !=
+    eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK || locators.empty())
+  {
+    return false;
+  }
+  for (const auto & locator : locators) {
+    if (locator.kind != LOCATOR_KIND_UDPv4) {
+      return false;
+    }
+  }
+  return true;
+}
+
+/// rmw_create_subscription for a channel (GIL held: rclpy creates its entities with the GIL
+/// held, so no rclpy thread creates a DataReader while the default QoS is changed).
+/// `*on_udp` tells whether the reader listens on UDP only.
+rmw_subscription_t * create_channel_subscription(
+  rmw_node_t * node, const rosidl_message_type_support_t * ts, const char * topic_name,
+  const rmw_qos_profile_t * qos, const rmw_subscription_options_t * options, bool * on_udp)
+{
+  *on_udp = false;
+  std::string error;
+  eprosima::fastdds::dds::Subscriber * subscriber =
+    channel_transport_udp() ? rmw_private::rmw_subscriber_of(node, &error) : nullptr;
+  if (subscriber != nullptr) {
+    static std::mutex creation_mutex;  // our own creations, from threads without the GIL
+    std::lock_guard<std::mutex> lock(creation_mutex);
+    const eprosima::fastdds::dds::DataReaderQos saved = subscriber->get_default_datareader_qos();
+    if (saved.endpoint().unicast_locator_list.empty() &&
+      saved.endpoint().multicast_locator_list.empty())
+    {
+      eprosima::fastdds::dds::DataReaderQos udp = saved;
+      eprosima::fastrtps::rtps::Locator_t any;  // UDPv4, address 0.0.0.0, port 0
+      any.kind = LOCATOR_KIND_UDPv4;
+      any.port = 0;
+      udp.endpoint().unicast_locator_list.push_back(any);
+      if (subscriber->set_default_datareader_qos(udp) ==
+        eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
+      {
+        rmw_subscription_t * subscription = rmw_create_subscription(
+          node, ts, topic_name, qos, options);
+        subscriber->set_default_datareader_qos(saved);
+        if (subscription != nullptr && listens_on_udp_only(subscription)) {
+          *on_udp = true;
+          return subscription;
+        }
+        if (subscription != nullptr &&
+          rmw_destroy_subscription(node, subscription) != RMW_RET_OK)
+        {
+          rcutils_reset_error();
+        }
+        rcutils_reset_error();
+      }
+    }
+  }
+  return rmw_create_subscription(node, ts, topic_name, qos, options);
+}
+
 /// Fields shared by both channel types.
 struct ChannelBase
 {
@@ -111,6 +206,7 @@ struct ChannelSubscriptionObject
   PinnedHandle * guard_condition;     // owned; may hold nothing
   NewMessageNotify * notify;          // owned; nullptr without guard condition
   rmw_serialized_message_t * buffer;  // owned; reused by take()
+  bool on_udp;                        // the DataReader listens on UDP only
 };
 
 int base_alloc(ChannelBase * base)
@@ -591,6 +687,7 @@ PyObject * sub_new(PyTypeObject * type, PyObject *, PyObject *)
   self->subscription = nullptr;
   self->notify = nullptr;
   self->buffer = nullptr;
+  self->on_udp = false;
   self->guard_condition = new (std::nothrow) PinnedHandle();
   if (self->guard_condition == nullptr || base_alloc(&self->base) < 0) {
     if (!PyErr_Occurred()) {
@@ -639,14 +736,15 @@ int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
   rmw_gid_t gid;
   std::memset(&gid, 0, sizeof(gid));
   std::string error;
+  bool on_udp = false;
   {
-    GilRelease nogil;
     rcutils_allocator_t allocator = rcutils_get_default_allocator();
     if (rmw_serialized_message_init(self->buffer, 0, &allocator) != RMW_RET_OK) {
       rcutils_reset_error();
     }
-    subscription = rmw_create_subscription(
-      self->base.rmw_node, ts, self->base.topic_name->c_str(), &qos, &options);
+    // GIL held on purpose (see create_channel_subscription)
+    subscription = create_channel_subscription(
+      self->base.rmw_node, ts, self->base.topic_name->c_str(), &qos, &options, &on_udp);
     if (subscription == nullptr) {
       error = take_rmw_error();
     } else if (self->notify != nullptr &&
@@ -678,6 +776,7 @@ int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
     }
   }
   self->subscription = subscription;
+  self->on_udp = on_udp;
   return 0;
 }
 
@@ -850,6 +949,11 @@ PyObject * sub_matched_count(PyObject * op, PyObject *)
     "ChannelSubscription", "rmw_subscription_count_matched_publishers");
 }
 
+PyObject * sub_on_udp(PyObject * op, void *)
+{
+  return PyBool_FromLong(reinterpret_cast<ChannelSubscriptionObject *>(op)->on_udp);
+}
+
 PyObject * sub_valid(PyObject * op, void *)
 {
   return PyBool_FromLong(
@@ -889,6 +993,9 @@ PyGetSetDef sub_getset[] = {
   {"gid", base_gid, nullptr, "16-byte GID (as in get_subscriptions_info_by_topic)", nullptr},
   {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
   {"valid", sub_valid, nullptr, "False once destroyed", nullptr},
+  {"on_udp", sub_on_udp, nullptr, "True if the DataReader listens on UDP only, not on the "
+    "participant's shared memory (the default; see ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT)",
+    nullptr},
   {nullptr, nullptr, nullptr, nullptr, nullptr},
 };
 

@@ -14,6 +14,10 @@
 //   `PublisherImpl* publisher_` and `RTPSWriter* writer_` (DataWriterImplHead below). Reached
 //   from the installed DataWriter.hpp's protected `impl_`; checked against the DataWriter's
 //   publisher (Publisher.hpp's protected `impl_`) and GUID before the writer is used;
+// - rmw_fastrtps_shared_cpp/include/rmw_fastrtps_shared_cpp/rmw_context_impl.hpp and
+//   custom_participant_info.hpp: rmw_context_impl_s::participant_info, a CustomParticipantInfo
+//   whose subscriber_ is the one Subscriber rmw creates every DataReader with (read to adjust
+//   the default DataReaderQos around a channel subscription's creation, dds_channels.cpp);
 // - Fast DDS's installed RTPSWriter.h: its protected `mp_history` (the WriterHistory, whose
 //   public next_sequence_number() tells the next sample's sequence number).
 // The layouts come from the headers of the prefix setup.py builds against. A patch release that
@@ -32,7 +36,12 @@
 #include "fastdds/rtps/history/WriterHistory.h"
 #include "fastdds/rtps/writer/RTPSWriter.h"
 #include "fastrtps/config.h"
+#include "fastdds/dds/subscriber/Subscriber.hpp"
+#include "rmw/init.h"
+#include "rmw_fastrtps_cpp/get_participant.hpp"
+#include "rmw_fastrtps_shared_cpp/custom_participant_info.hpp"
 #include "rmw_fastrtps_shared_cpp/custom_publisher_info.hpp"
+#include "rmw_fastrtps_shared_cpp/rmw_context_impl.hpp"
 
 #ifndef RBPY_BUILT_RMW_FASTRTPS_CPP
 #define RBPY_BUILT_RMW_FASTRTPS_CPP "unknown"
@@ -215,6 +224,31 @@ int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer)
 {
   eprosima::fastrtps::rtps::WriterHistory * history = writer->*member_of(WriterHistoryTag{});
   return history == nullptr ? -1 : history->next_sequence_number().to64long();
+}
+
+eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::string * error)
+{
+  if (!layout_verified()) {
+    *error = kNotVerified;
+    return nullptr;
+  }
+  eprosima::fastdds::dds::DomainParticipant * participant =
+    rmw_fastrtps_cpp::get_domain_participant(node);
+  if (participant == nullptr || node->context == nullptr || node->context->impl == nullptr ||
+    node->context->impl->participant_info == nullptr)
+  {
+    *error = "the node has no participant";
+    return nullptr;
+  }
+  auto * info = static_cast<CustomParticipantInfo *>(node->context->impl->participant_info);
+  // Checked before use: rmw's participant info points to the node's participant.
+  if (info->participant_ != participant || info->subscriber_ == nullptr ||
+    info->subscriber_->get_participant() != participant)
+  {
+    *error = "rmw's participant info does not have the layout of rmw_fastrtps 8.4";
+    return nullptr;
+  }
+  return info->subscriber_;
 }
 
 }  // namespace rmw_private

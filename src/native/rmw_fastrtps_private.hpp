@@ -22,6 +22,7 @@ namespace dds
 class DataWriter;
 class DomainParticipant;
 class DomainParticipantListener;
+class Subscriber;
 }  // namespace dds
 }  // namespace fastdds
 namespace fastrtps
@@ -87,6 +88,11 @@ bool is_own_reader_filter(
 /// The sequence number the RTPSWriter gives its next sample (from its WriterHistory, a
 /// protected member of the public RTPSWriter). Read it only while nothing else writes.
 int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer);
+
+/// The Subscriber rmw creates every DataReader of the node's participant with
+/// (CustomParticipantInfo::subscriber_), checked to belong to the node's DomainParticipant;
+/// nullptr with `error` otherwise.
+eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::string * error);
 
 }  // namespace rmw_private
 }  // namespace rbpy_dds
