@@ -37,8 +37,8 @@ def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
     command = [str(ROOT / 'dev'), 'benchmark'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.benchmark']
-    completed = subprocess.run(  # README's command for the quick mode, as CI runs it
-        command + ['--quick', '--out', str(out)],
+    completed = subprocess.run(  # README's command; --smoke: the quick mode's code, fewer frames
+        command + ['--smoke', '--out', str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
     assert completed.returncode == 0, completed.stderr[-3000:]
     return out, completed.stdout

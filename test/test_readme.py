@@ -30,7 +30,7 @@ COVERAGE = {
     './dev test': 'ci',                                   # .ci/run runs exactly this
     './dev bench': 'here',
     './dev bench-transport': 'here',                      # with fewer frames and payloads
-    './dev benchmark --quick': 'test_benchmark.py',
+    './dev benchmark --quick': 'test_benchmark.py',  # --smoke: the same code, fewest frames
     './dev benchmark': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
     # benchmark's peers, test_benchmark runs each peer where it is installed
