@@ -1,7 +1,8 @@
 """The benchmark suite runs end to end and writes its table and plot (no timing asserts).
 
-Runs README's quick mode, ``./dev benchmark --quick``, in a subprocess, inside this test
-session's ROS domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
+Runs README's ``./dev benchmark`` in its smoke mode (the quick mode's code with the fewest
+frames and sizes that still fill every table) in a subprocess, inside this test session's ROS
+domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
 test``) the same module runs with the interpreter under test, as ``./dev`` would exec it.
 """
 import contextlib
@@ -49,13 +50,13 @@ def test_markdown_has_every_transport_row_for_every_payload(smoke_run):
     saved = (out / 'benchmark.md').read_text()
     assert stdout.split('Wrote ')[0].strip() in saved  # stdout and the file agree
     rows = table_rows(saved)
-    for payload in MODES['quick'].payloads:
+    for payload in MODES['smoke'].payloads:
         found = {cells[1] for cells in rows if cells[0] == payload}
         assert set(ALL_ROWS) <= found, (payload, found)
-    for payload in MODES['quick'].fanout_payloads:
+    for payload in MODES['smoke'].fanout_payloads:
         for transport in FANOUT_TRANSPORTS:
             counts = {cells[2] for cells in rows if cells[:2] == [payload, transport]}
-            assert {str(n) for n in MODES['quick'].fanout_subscribers} <= counts
+            assert {str(n) for n in MODES['smoke'].fanout_subscribers} <= counts
     assert '## Target checks' in saved
     assert 'latency CPU path / stock' in saved
 
@@ -68,20 +69,21 @@ def test_peers_table_shows_installed_peers_and_skips_absent_ones(smoke_run):
     saved = (out / 'benchmark.md').read_text()
     assert '## Peers side by side' in saved
     section = saved.split('## Peers side by side', 1)[1].split('\n## ', 1)[0]
-    assert f'Produced by `./dev benchmark --quick --out {out}`' in section
+    assert f'Produced by `./dev benchmark --smoke --out {out}`' in section
     rows = {(cells[0], cells[1]): cells for cells in table_rows(section)}
-    for payload in MODES['quick'].payloads:
+    for payload in MODES['smoke'].payloads:
         for label in PEER_TABLE_OURS:
             cells = rows[(payload, label)]
             float(cells[5])  # time to a numpy view, ms
-            assert cells[6] == '8/8' or cells[6].endswith('!'), cells
+            frames = MODES['smoke'].frames
+            assert cells[6] == f'{frames}/{frames}' or cells[6].endswith('!'), cells
         assert (payload, MEMCPY) in rows
     for t in PEERS:
         shown = {payload for payload, label in rows if label == t.label}
         if peer_version(t) is None:
             assert skipped_note(t) in section and not shown
         else:
-            assert shown == set(MODES['quick'].peer_payloads), shown
+            assert shown == set(MODES['smoke'].peer_payloads), shown
 
 
 def test_plot_is_a_png(smoke_run):
