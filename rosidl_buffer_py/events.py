@@ -10,6 +10,7 @@ own event handlers). Incompatible-QoS events come from the main topic's DDS enti
 peer (:func:`once_per_peer`); every other event (liveliness, matched, message lost) comes from
 them through rclpy's own event handlers as it is.
 """
+import contextlib
 from typing import Callable, NamedTuple, Set
 
 from rclpy.clock import Clock, ClockType
@@ -82,8 +83,10 @@ def once_per_peer(callback: Callable, incompatible_peers: Callable[[], Set[bytes
             new = {b''}  # the graph does not list the peer yet: report it, once
         reported.update(new)
         total += len(new)
-        _note_stock_peers_may_count_twice()
-        callback(IncompatibleQoSInfo(total, len(new), info.last_policy_kind))
+        try:
+            callback(IncompatibleQoSInfo(total, len(new), info.last_policy_kind))
+        finally:  # the user's callback first, as with stock; this note never stops it
+            _note_stock_peers_may_count_twice()
 
     return on_event
 
@@ -96,8 +99,10 @@ def _note_stock_peers_may_count_twice() -> None:
     global _noted
     if not _noted:
         _noted = True
-        get_logger('rosidl_buffer_py').warning(
-            'incompatible QoS with a buffer-aware endpoint: a plain rclpy/rclcpp peer may '
-            'report it more than once (a buffer-aware endpoint publishes its USER_DATA '
-            'advertisement after creation and when it finds a new buffer-aware peer: discovery '
-            'events); buffer-aware endpoints report it once per peer, as stock does')
+        with contextlib.suppress(Exception):  # a failing log handler is not ours to raise
+            get_logger('rosidl_buffer_py').warning(
+                'incompatible QoS with a buffer-aware endpoint: a plain rclpy/rclcpp peer may '
+                'report it more than once (a buffer-aware endpoint publishes its USER_DATA '
+                'advertisement after creation and when it finds a new buffer-aware peer: '
+                'discovery events); buffer-aware endpoints report it once per peer, as stock '
+                'does')

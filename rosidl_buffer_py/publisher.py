@@ -159,7 +159,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if self._transport:
             event_callbacks = incompatible_qos_once_per_peer(
                 event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
-                _dds.endpoint_gid(publisher_impl, 'publisher'))
+                _dds.endpoint_gid(publisher_impl, 'publisher'), topic)
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._peer_kind = EndpointKind.SUBSCRIPTION

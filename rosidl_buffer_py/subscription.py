@@ -156,7 +156,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         reader._owner = lambda: None
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
-            _dds.endpoint_gid(reader, 'subscription'))
+            _dds.endpoint_gid(reader, 'subscription'), topic)
         try:
             super().__init__(reader, msg_type, topic, callback, callback_group, qos_profile,
                              False, event_callbacks=event_callbacks)

@@ -109,14 +109,15 @@ def reliable_subscription(node, topic: str, gid: bytes) -> bool:
 
 
 def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: EndpointKind,
-                                   gid: bytes):
+                                   gid: bytes, topic_as_passed: str):
     """A copy of rclpy ``event_callbacks`` whose incompatible-QoS callback (the user's, or one
-    logging rclpy's default warning) fires once per incompatible peer (see
-    :func:`rosidl_buffer_py.events.once_per_peer`)."""
+    logging rclpy's default warning, which names the topic as it was passed, as rclpy's does)
+    fires once per incompatible peer (see :func:`rosidl_buffer_py.events.once_per_peer`)."""
     callback = event_callbacks.incompatible_qos
     if callback is None and not event_callbacks.use_default_callbacks:
         return event_callbacks
-    topic = endpoint_impl.get_topic_name()
+    resolved = endpoint_impl.get_topic_name()
+    topic = topic_as_passed
     if callback is None:
         logger = get_logger(endpoint_impl.get_logger_name())
         if kind is EndpointKind.PUBLISHER:
@@ -132,7 +133,7 @@ def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: E
                  else EndpointKind.PUBLISHER)
     event_callbacks = copy.copy(event_callbacks)
     event_callbacks.incompatible_qos = once_per_peer(
-        callback, lambda: incompatible_peers(node, topic, gid, peer_kind))
+        callback, lambda: incompatible_peers(node, resolved, gid, peer_kind))
     return event_callbacks
 
 

@@ -154,7 +154,8 @@ def test_deadline_events_count_every_route(context, kind):
 @pytest.mark.parametrize('kind', ['stock', 'ours'])
 def test_incompatible_qos_is_logged_once_per_peer(kind, tmp_path):
     """A BEST_EFFORT publisher and a RELIABLE subscription: each side logs rclpy's
-    incompatible-QoS warning once, as stock does (no channel, no re-announce loop)."""
+    incompatible-QoS warning once, as stock does (no channel, no re-announce loop), naming the
+    topic as it was passed (relative here), as rclpy's does."""
     script = tmp_path / 'incompatible.py'
     script.write_text(textwrap.dedent(f'''
         import time, rclpy
@@ -166,11 +167,11 @@ def test_incompatible_qos_is_logged_once_per_peer(kind, tmp_path):
         best, reliable = (QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT),
                           QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         if {kind!r} == 'stock':
-            node.create_publisher(Image, '/incompatible', best)
-            node.create_subscription(Image, '/incompatible', print, reliable)
+            node.create_publisher(Image, 'incompatible', best)
+            node.create_subscription(Image, 'incompatible', print, reliable)
         else:
-            rosidl_buffer_py.create_publisher(node, Image, '/incompatible', best)
-            rosidl_buffer_py.create_subscription(node, Image, '/incompatible', print, reliable,
+            rosidl_buffer_py.create_publisher(node, Image, 'incompatible', best)
+            rosidl_buffer_py.create_subscription(node, Image, 'incompatible', print, reliable,
                                                  acceptable_buffer_backends='any')
         end = time.monotonic() + 3.5
         while time.monotonic() < end:
@@ -183,6 +184,7 @@ def test_incompatible_qos_is_logged_once_per_peer(kind, tmp_path):
     assert result.returncode == 0, result.stderr
     assert result.stderr.count('offering incompatible QoS') == 1, result.stderr
     assert result.stderr.count('requesting incompatible QoS') == 1, result.stderr
+    assert result.stderr.count("on topic 'incompatible'") == 2, result.stderr
 
 
 #: README's subscriber snippet, as a user runs it as a script (Ctrl-C ends it).
