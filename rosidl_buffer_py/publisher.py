@@ -32,7 +32,6 @@ import functools
 import rclpy.publisher
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
-from rclpy.logging import get_logger
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
@@ -48,7 +47,6 @@ from rosidl_buffer_py.transport import (
     BufferEndpoint, incompatible_qos_once_per_peer, reliable_subscription,
     track_endpoint, warn_unsupported_rmw)
 
-_logger = get_logger('rosidl_buffer_py.publisher')
 
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
@@ -164,6 +162,8 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._peer_kind = EndpointKind.SUBSCRIPTION
         self._node = node
+        #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
+        self._logger = node.get_logger().get_child('rosidl_buffer_py')
         self._lock = threading.RLock()
         self._peers: Dict[bytes, _SubscriptionPeer] = {}
         self._last_timestamp = 0
@@ -312,7 +312,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             fence = peer.route.take_fence()
             if fence is not None:
                 changed = True
-                _logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message '
+                self._logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message '
                               f'{fence.last_main})')
                 peer.channel.publish(control.encode(fence), timestamp)
         if encoder.cpu_message:
@@ -335,7 +335,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 except EndpointGone:
                     # its process is gone (the backend knows before DDS does): nothing more
                     # is written to it, neither this message nor a CPU copy
-                    _logger.debug(f'{peer.info.gid_hex} is gone: its route ends')
+                    self._logger.debug(f'{peer.info.gid_hex} is gone: its route ends')
                     peer.route.gone()
                     changed = True
                     continue
@@ -381,7 +381,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if self._excluding:
             self._withheld += len(withheld)
         elif self._exclusions is False:
-            _logger.warning(
+            self._logger.warning(
                 f'publisher of {self._topic_name}: this Fast DDS DataWriter cannot keep '
                 'main-topic samples from subscriptions served on channels; they receive and '
                 'drop them (costs CPU, loses nothing)', once=True)
@@ -410,7 +410,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             route.channel_matched(matched > 0, now)
             if route.awaits_acknowledgment and peer.channel.wait_for_all_acked(0.0):
                 route.acknowledged(self._last_timestamp)
-                _logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
+                self._logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
                               f'({route.state.value})')
             probes = route.probes_due(now)
             if probes:
@@ -502,7 +502,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             except EndpointGone:
                 raise
             except Exception as exc:  # a failing backend degrades to CPU bytes for this field
-                _logger.error(f'backend {vendor!r} failed to describe a buffer for '
+                self._logger.error(f'backend {vendor!r} failed to describe a buffer for '
                               f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU '
                               'bytes', throttle_duration_sec=5.0)
                 continue
@@ -519,7 +519,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             try:  # before rclpy destroys the DataWriter the filter sits on
                 _dds.remove_write_exclusions(self)
             except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
-                _logger.debug(f'removing the main-topic exclusions: {exc}')
+                self._logger.debug(f'removing the main-topic exclusions: {exc}')
         super()._release()
 
     def _node_entities(self) -> list:

@@ -36,7 +36,6 @@ from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple
 import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.logging import get_logger
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
@@ -54,7 +53,6 @@ from rosidl_buffer_py.transport import (
     BufferEndpoint, incompatible_qos_once_per_peer, track_endpoint,
     warn_unsupported_rmw)
 
-_logger = get_logger('rosidl_buffer_py.subscription')
 
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
 MAX_BATCH = 64
@@ -131,6 +129,8 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._peer_kind = EndpointKind.PUBLISHER
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         self._node = node
+        #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
+        self._logger = node.get_logger().get_child('rosidl_buffer_py')
         self._lock = threading.RLock()
         self._peers: Dict[bytes, _PublisherPeer] = {}
         #: one stream per publisher: the route protocol's subscription side
@@ -363,7 +363,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         if message is not None:
             if isinstance(message, routes.Fence):
                 self._counts['fences'] += 1
-                _logger.debug(f'route fence from {peer.info.gid_hex}: main-topic messages up '
+                self._logger.debug(f'route fence from {peer.info.gid_hex}: main-topic messages up '
                               f'to {message.last_main} first')
                 stream.fenced(ts, message, now)
                 self._arm_fence_timer()
@@ -430,7 +430,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
     def _reject(self, taken: _Taken, why: str) -> None:
         """Data from the network that is not to be delivered: counted and logged (throttled)."""
         self._counts['rejected'] += 1
-        _logger.warning(f'rejected a message on {self._topic_name} from '
+        self._logger.warning(f'rejected a message on {self._topic_name} from '
                         f'{taken.publisher_gid.hex()}: {why} ({self._counts["rejected"]} '
                         'rejected so far)', throttle_duration_sec=5.0)
 

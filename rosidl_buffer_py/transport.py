@@ -275,7 +275,7 @@ class BufferEndpoint:
             try:
                 ok, _groups = backend.on_discovering_endpoint(info, existing, advertised)
             except Exception as exc:  # a broken backend degrades this peer to CPU bytes
-                _logger.error(f'backend {name!r} on_discovering_endpoint failed: '
+                self._logger.error(f'backend {name!r} on_discovering_endpoint failed: '
                               f'{type(exc).__name__}: {exc}')
                 ok = False
             if ok:
@@ -323,7 +323,7 @@ class BufferEndpoint:
                     (self._node.destroy_timer if hasattr(entity, 'timer_period_ns')
                      else self._node.destroy_guard_condition)(entity)
                 except Exception as exc:  # the node was destroyed first
-                    _logger.debug(f'destroying {entity!r}: {exc}')
+                    self._logger.debug(f'destroying {entity!r}: {exc}')
             self._release()
         _live_endpoints.discard(self)
 

@@ -256,3 +256,65 @@ def test_qos_overriding_options_declare_the_same_parameters(context, kind):
     declared = sorted(name for name in node._parameters if name.startswith('qos_overrides.'))
     assert len(declared) == 6, declared  # history, depth, reliability for each
     node.destroy_node()
+
+
+def test_an_endpoints_warning_reaches_rosout_of_another_process(tmp_path):
+    """A buffer-aware subscription rejecting data logs through its node's logger, so another
+    process sees the line on /rosout (rqt_console, a bag of /rosout), named after the node."""
+    script = tmp_path / 'rejecting.py'
+    script.write_text(textwrap.dedent('''
+        import time, rclpy
+        from rclpy.qos import QoSProfile
+        from sensor_msgs.msg import Image
+        import rosidl_buffer_py
+        from rosidl_buffer_py import codec
+        rclpy.init()
+        node = rclpy.create_node('rejecting')
+        sub = rosidl_buffer_py.create_subscription(node, Image, '/rosout_check', print, 10,
+                                                   acceptable_buffer_backends='demo')
+        pub = rosidl_buffer_py.create_publisher(node, Image, '/rosout_check', 10)
+        end = time.monotonic() + 15
+        while not any(p['channel_serving'] for p in pub.buffer_peers()):
+            assert time.monotonic() < end
+            rclpy.spin_once(node, timeout_sec=0.05)
+        bad = codec.encode(Image(), ('demo', b'not a demo descriptor'))
+        while time.monotonic() < end and sub.statistics()['rejected'] == 0:
+            pub._planned.peers[0].channel.publish(bad, time.time_ns())
+            rclpy.spin_once(node, timeout_sec=0.2)
+        end = time.monotonic() + 2
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    '''))
+    import rclpy
+    from rcl_interfaces.msg import Log
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node('rosout_listener', context=context)
+    lines = []
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+    node.create_subscription(Log, '/rosout', lines.append, QoSProfile(
+        depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL))  # as rosout's publishers
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        end = time.monotonic() + 30
+        while time.monotonic() < end and not any('rejected a message' in m.msg for m in lines):
+            _spin_once(node, context)
+        proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    warned = [m for m in lines if 'rejected a message' in m.msg]
+    assert warned and warned[0].name == 'rejecting.rosidl_buffer_py', [
+        (m.name, m.msg) for m in lines]
+
+
+def _spin_once(node, context):
+    from rclpy.executors import SingleThreadedExecutor
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    executor.spin_once(timeout_sec=0.1)
+    executor.remove_node(node)
