@@ -6,12 +6,13 @@ into ``install/``, ``colcon test`` runs a few test files against that install sp
 of the suite runs directly in ``./dev test``) and ``colcon test-result`` must report no failure
 or error. Everything happens under the test's tmp_path, which is removed at the end.
 
-The environment is a fresh virtual environment that installs exactly ``requirements.txt``,
-``requirements-build.txt`` and ``requirements-test.txt`` (what package.xml declares, as
-test_packaging.py checks): nothing of ./dev's venv, not this package, leaks in. It is the
-underlay, declared as colcon users declare one: in ``AMENT_PREFIX_PATH`` (setup.py looks for ROS
-headers there; colcon's own sitecustomize hides the venv's ``sys.prefix`` from setup.py during
-the build).
+The underlay is the venv the tests run in (``./dev``'s: exactly ``requirements.txt``,
+``requirements-build.txt`` and ``requirements-test.txt``, what package.xml declares, as
+test_packaging.py checks), declared as colcon users declare one: in ``AMENT_PREFIX_PATH``
+(setup.py looks for ROS headers there; colcon's own sitecustomize hides the venv's
+``sys.prefix`` from setup.py during the build). The inner run imports the package colcon built,
+not the one ``./dev`` installed (checked below). A fresh venv holding only the requirement files
+is test_install.py's.
 
 The inner run sets ``RBPY_INSIDE_COLCON_TEST`` to the install prefix: the build-and-test test
 below is then skipped (no recursion) and :func:`test_inner_run_uses_the_colcon_install_space`
@@ -38,19 +39,17 @@ INNER_TESTS = ('test/test_colcon.py', 'test/test_codec.py', 'test/test_registry.
                'test/test_packaging.py')
 INNER_TIMEOUT = 600
 #: What the fresh environment installs: the PyPI form of package.xml's dependencies.
-REQUIREMENTS = ('requirements.txt', 'requirements-build.txt', 'requirements-test.txt')
 
 
-def _fresh_venv(directory: Path) -> Path:
-    """A new venv with exactly the requirement files installed; returns its interpreter."""
-    if shutil.which('colcon', path=str(Path(sys.executable).parent)) is None:
+def _underlay() -> Path:
+    """The venv this test runs in (``./dev``'s, made from exactly the requirement files), as the
+    underlay colcon users declare: its interpreter. A fresh venv holding only the requirement
+    files is test_install.py's job (``pip install <checkout>`` there); here what matters is the
+    colcon build and its install space."""
+    venv = Path(sys.prefix)
+    if shutil.which('colcon', path=str(venv / 'bin')) is None:
         pytest.skip('colcon is not installed (requirements-test.txt installs it: ./dev setup)')
-    _run([sys.executable, '-m', 'venv', str(directory)], ROOT, dict(os.environ))
-    python = directory / 'bin' / 'python'
-    _run([str(python), '-m', 'pip', 'install', '--quiet', '--disable-pip-version-check',
-          *[arg for name in REQUIREMENTS for arg in ('-r', str(ROOT / name))]],
-         ROOT, dict(os.environ), timeout=900)
-    return python
+    return venv
 
 
 def _copy_source(destination: Path) -> None:
@@ -77,11 +76,11 @@ def _run(cmd, cwd, env, timeout=600):
 
 @pytest.mark.skipif(bool(os.environ.get(INSIDE)), reason='inside the colcon test run')
 def test_colcon_build_install_space_and_colcon_test(tmp_path):
-    venv = tmp_path / 'venv'
+    venv = _underlay()
     workspace = tmp_path / 'ws'
     source = workspace / 'src' / PACKAGE
     try:
-        python = _fresh_venv(venv)
+        python = venv / 'bin' / 'python'
         colcon = str(venv / 'bin' / 'colcon')
         _copy_source(source)
         env = dict(os.environ)
@@ -154,7 +153,6 @@ def test_colcon_build_install_space_and_colcon_test(tmp_path):
         print(summary[-1])
     finally:
         shutil.rmtree(workspace, ignore_errors=True)
-        shutil.rmtree(venv, ignore_errors=True)
         shutil.rmtree(tmp_path / 'colcon_home', ignore_errors=True)
 
 
