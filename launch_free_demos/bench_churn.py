@@ -23,7 +23,7 @@ import sys
 import time
 from typing import Dict, List
 
-from launch_free_demos.runner import Run
+from launch_free_demos.runner import NodeProcess, Run
 
 STEADY = {'demo': {'acceptable_buffer_backends': 'demo'}, 'cpu': {}, 'plain': {'legacy': True}}
 
@@ -47,24 +47,20 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
                   linger_sec=5.0, **({'backend': 'demo', 'wait_for_buffer_peers': 2}
                                      if ours else {'legacy': True}))
         churn = {'acceptable_buffer_backends': 'demo'} if ours else {'legacy': True}
+        # label -> (period, how the previous one ends: Ctrl-C or SIGKILL), next start
+        churners = {'come_go': (come_go, NodeProcess.stop),
+                    'killed': (kill_every, NodeProcess.kill)}
         started = time.monotonic()
-        next_come, next_kill, round_ = started, started + kill_every / 2, 0
+        next_at = {'come_go': started, 'killed': started + kill_every / 2}
         while run.nodes['pub'].process.poll() is None:
             now = time.monotonic()
-            if now >= next_come:
-                old = run.nodes.get('come_go')
-                if old is not None:
-                    old.stop()
-                run.start('come_go', 'image_subscriber', topic=topic, depth=50,
-                          timeout_sec=come_go + 30.0, **churn)
-                next_come = now + come_go
-            if now >= next_kill:
-                old = run.nodes.get('killed')
-                if old is not None:
-                    old.kill()
-                run.start('killed', 'image_subscriber', topic=topic, depth=50,
-                          timeout_sec=kill_every + 30.0, **churn)
-                next_kill, round_ = now + kill_every, round_ + 1
+            for label, (period, end) in churners.items():
+                if now >= next_at[label]:
+                    if label in run.nodes:
+                        end(run.nodes[label])
+                    run.start(label, 'image_subscriber', topic=topic, depth=50,
+                              timeout_sec=period + 30.0, **churn)
+                    next_at[label] = now + period
             time.sleep(0.05)
         for label in ('come_go', 'killed'):
             if label in run.nodes:

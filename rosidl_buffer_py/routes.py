@@ -39,7 +39,7 @@ topic delivered the fenced message; main-topic messages are never held.
 import collections
 import enum
 from dataclasses import dataclass, field
-from typing import Deque, Dict, Generic, Hashable, Iterable, List, NamedTuple, Optional, Tuple, \
+from typing import Deque, Dict, Generic, Hashable, Iterable, NamedTuple, Optional, Tuple, \
     TypeVar
 
 #: How long a channel must have been matched before it serves its subscription, when its
@@ -444,9 +444,15 @@ class StreamTable(Generic[T]):
             stream = self.streams[key] = Stream(reliable=self.reliable)
         return stream
 
-    def waiting(self) -> List[Stream[T]]:
-        """The streams holding queued channel messages."""
-        return [s for s in self.streams.values() if s.holding]
+    @property
+    def any_holding(self) -> bool:
+        """Some stream holds queued channel messages."""
+        return any(s.holding for s in self.streams.values())
+
+    @property
+    def any_switched(self) -> bool:
+        """Some publisher serves us on its channel: its main-topic copies may be duplicates."""
+        return any(s.switch is not None for s in self.streams.values())
 
     def next_deadline(self) -> Optional[float]:
         deadlines = [d for s in self.streams.values() if (d := s.wait_deadline()) is not None]

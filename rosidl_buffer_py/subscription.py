@@ -258,7 +258,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                     return None
                 msg = self._accept_main(taken)
                 if msg is not None:
-                    if self._streams.waiting():
+                    if self._streams.any_holding:
                         self._wake()  # it may open a fence: the channel guard delivers the rest
                     return self._delivered(msg, taken)
             return None
@@ -286,7 +286,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         """
         key = None
         streams = self._streams.streams
-        while self._suspects or any(s.switch is not None for s in streams.values()):
+        while self._suspects or self._streams.any_switched:
             key = _dds.peek_untaken(self.handle)
             if key is None:
                 return None
@@ -392,7 +392,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             except BaseException:
                 self._wake()
                 raise
-            if not self._streams.waiting() and not any(p.pending for p in self._channels):
+            if not self._streams.any_holding and not any(p.pending for p in self._channels):
                 # drained (each take counts what its reader holds): no empty take to prove it.
                 # A sample arriving from now on triggers the guard again; main-topic samples
                 # wake the executor through the main reader itself.
