@@ -27,6 +27,12 @@ from launch_free_demos.runner import NodeProcess, Run
 
 STEADY = {'demo': {'acceptable_buffer_backends': 'demo'}, 'cpu': {}, 'plain': {'legacy': True}}
 
+#: After the last frame: how long the publisher stays for subscribers still taking, and then
+#: how long the steady subscribers may go on taking what is in flight. A subscriber that got
+#: every frame leaves at once; one that lost some (stock's under load) would otherwise keep
+#: the graph up for nothing: a RELIABLE sample not in flight 2 s after the last frame is lost.
+DRAIN_SEC = 2.0
+
 
 def _busy(stop) -> None:
     while not stop.is_set():
@@ -44,7 +50,7 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
                       **(params if ours else {'legacy': True}))
         run.start('pub', 'image_publisher', topic=topic, depth=50, count=count, rate_hz=rate,
                   width=width, height=height, wait_for_subscribers=3, wait_timeout_sec=60.0,
-                  linger_sec=5.0, **({'backend': 'demo', 'wait_for_buffer_peers': 2}
+                  linger_sec=DRAIN_SEC, **({'backend': 'demo', 'wait_for_buffer_peers': 2}
                                      if ours else {'legacy': True}))
         churn = {'acceptable_buffer_backends': 'demo'} if ours else {'legacy': True}
         # label -> (period, how the previous one ends: Ctrl-C or SIGKILL), next start
@@ -65,7 +71,7 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
         for label in ('come_go', 'killed'):
             if label in run.nodes:
                 run.nodes[label].kill()
-        run.wait(list(STEADY), 10.0)  # what they still take; then Ctrl-C (they report)
+        run.wait(list(STEADY), DRAIN_SEC)  # what they still take; Ctrl-C, they report
         run.stop_all()
         reports = run.reports()
     result: Dict[str, object] = {label: (reports.get(label) or {}).get('distinct', 0)
