@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional
+from typing import Callable, Dict, List, Optional, Set
 
 from rosidl_buffer_py.nodes.common import REPORT_PREFIX
 
@@ -56,12 +56,42 @@ def lock_free(path: str) -> bool:
         return False
 
 
-def fastdds_leftovers(since: float, domain_id: int) -> List[str]:
+def _fastdds_base(name: str) -> str:
+    """The segment or port a Fast DDS file belongs to: ``fastrtps_port7411`` for
+    ``fastrtps_port7411_el`` and ``sem.fastrtps_port7411_mutex``."""
+    name = name[len('sem.'):] if name.startswith('sem.') else name
+    for suffix in ('_el', '_sl', '_mutex'):
+        if name.endswith(suffix):
+            return name[:-len(suffix)]
+    return name
+
+
+def fastdds_files_of(pid: int) -> Set[str]:
+    """The Fast DDS segments and ports (base names, see :func:`fastdds_leftovers`) that
+    process ``pid`` has mapped or open now: what its exit may leave, told apart from the
+    files of other processes on the machine (another test run's SIGKILLed nodes)."""
+    names = set()
+    try:
+        with open(f'/proc/{pid}/maps') as maps:
+            names.update(line.split('/dev/shm/', 1)[1].split()[0]
+                         for line in maps if '/dev/shm/' in line)
+        for fd in os.listdir(f'/proc/{pid}/fd'):
+            target = os.readlink(f'/proc/{pid}/fd/{fd}')
+            if target.startswith('/dev/shm/'):
+                names.add(target[len('/dev/shm/'):].split()[0])
+    except (FileNotFoundError, ProcessLookupError):
+        pass
+    return {_fastdds_base(n) for n in names if 'fastrtps_' in n}
+
+
+def fastdds_leftovers(since: float, domain_id: int,
+                      among: Optional[Set[str]] = None) -> List[str]:
     """Fast DDS files in /dev/shm that processes of this run left behind (created at or after
     ``since``): those whose lock file no living process holds (the rule of Fast DDS's own
     ``fastdds shm clean``), and lock-less port files of the domain's ports (7400 + 250 x
     domain onwards: the caller vouches that the domain is its alone). SIGKILLed participants
-    leave them; a participant that exits normally removes its own."""
+    leave them; a participant that exits normally removes its own. ``among``: only the files of
+    these segments and ports (see :func:`fastdds_files_of`), when other runs share the machine."""
     names = set(os.listdir('/dev/shm'))
 
     def recent(name):
@@ -83,7 +113,8 @@ def fastdds_leftovers(since: float, domain_id: int) -> List[str]:
         if (match and first <= int(match.group(1)) < first + 250 and recent(name) and
                 not any(f'{name}_{kind}' in names for kind in ('el', 'sl'))):
             dead += [name, f'sem.{name}_mutex']
-    return [name for name in dict.fromkeys(dead) if name in names]
+    return [name for name in dict.fromkeys(dead) if name in names and
+            (among is None or _fastdds_base(name) in among)]
 
 
 def remove_fastdds_leftovers(since: float, domain_id: int) -> List[str]:

@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
 from in_process import frame, spin_until
-from launch_free_demos.runner import fastdds_leftovers
+from launch_free_demos.runner import fastdds_files_of, fastdds_leftovers
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -222,6 +222,7 @@ def test_ctrl_c_out_of_spin_leaves_what_stock_leaves_in_dev_shm(tmp_path):
         try:
             assert proc.stdout.readline().strip() == 'spinning'
             time.sleep(1.0)  # discovery traffic under way, as in a real run
+            files = fastdds_files_of(proc.pid)  # its own, not other test runs' leftovers
             proc.send_signal(signal.SIGINT)
             _, err = proc.communicate(timeout=30)
         finally:
@@ -229,13 +230,14 @@ def test_ctrl_c_out_of_spin_leaves_what_stock_leaves_in_dev_shm(tmp_path):
                 proc.kill()
                 proc.wait()
         time.sleep(0.3)
-        left = fastdds_leftovers(since, domain)
+        left = fastdds_leftovers(since, domain, among=files)
         outcome.setdefault(kind, []).append((proc.returncode, left))
         # KeyboardInterrupt's traceback runs through rclpy's executor, as with stock; nothing
         # of ours may show in it (our teardown at exit, an exception of our threads)
         assert 'rosidl_buffer_py' not in err and 'Exception ignored' not in err, err
     assert outcome['ours'] == outcome['stock'], outcome
     assert all(left == [] for _, left in outcome['stock']), outcome
+    assert files, 'the subscriber mapped no Fast DDS file: nothing was compared'
 
 
 @pytest.mark.parametrize('kind', ['stock', 'ours'])

@@ -3,7 +3,7 @@ import fcntl
 import os
 import time
 
-from launch_free_demos.runner import fastdds_leftovers, remove_fastdds_leftovers
+from launch_free_demos.runner import fastdds_files_of, fastdds_leftovers, remove_fastdds_leftovers
 
 
 def _touch(name: str) -> str:
@@ -30,6 +30,33 @@ def test_files_of_dead_participants_are_removed_and_live_ones_kept():
         assert not os.path.exists(paths[0]) and os.path.exists(paths[2])
     finally:
         holder.close()
+        for path in paths:
+            if os.path.exists(path):
+                os.remove(path)
+
+
+def test_files_of_a_process_are_told_apart_from_other_processes_leftovers():
+    """fastdds_files_of names the segments a process holds (lock file and semaphore folded
+    into their segment), and ``among`` keeps other processes' dead files out of the count."""
+    import subprocess
+    import sys
+    since = time.time() - 1.0
+    mine, theirs = (f'fastrtps_{os.getpid() + k:016x}' for k in (7, 8))
+    paths = [_touch(n) for n in (mine, mine + '_el', theirs, theirs + '_el')]
+    holder = subprocess.Popen(
+        [sys.executable, '-c', 'import sys, time; f = open(sys.argv[1], "ab"); '
+         'print(flush=True); time.sleep(30)', paths[1]], stdout=subprocess.PIPE)
+    try:
+        holder.stdout.readline()
+        files = fastdds_files_of(holder.pid)
+        assert files == {mine}, files
+    finally:
+        holder.kill()
+        holder.wait()
+    try:
+        found = fastdds_leftovers(since, int(os.environ['ROS_DOMAIN_ID']), among=files)
+        assert set(found) == {mine, mine + '_el'}, found
+    finally:
         for path in paths:
             if os.path.exists(path):
                 os.remove(path)
