@@ -20,6 +20,9 @@ from launch_free_demos.benchmark import (
     ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
     StealMeter, measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
 
+#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
+pytestmark = pytest.mark.xdist_group('test_benchmark')
+
 ROOT = Path(__file__).resolve().parent.parent
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 

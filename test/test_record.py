@@ -32,6 +32,9 @@ from rosidl_buffer_py.message_definition import full_definition
 from rosidl_buffer_py.nodes.common import REPORT_PREFIX
 from rosidl_buffer_py.nodes.frames import pattern
 
+#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
+pytestmark = pytest.mark.xdist_group('test_record')
+
 WIDTH, HEIGHT, COUNT = 64, 48, 20
 FINITE = {'/rec/demo': ('image_publisher', 'demo'), '/rec/cpu': ('image_publisher', 'cpu'),
           '/rec/legacy': ('legacy_image_publisher', 'cpu')}
