@@ -6,7 +6,9 @@ from typing import Any, Optional, Tuple
 
 from rosidl_buffer_py.buffer import Buffer
 
-from demo_buffer_backend import pool
+from demo_buffer_backend import lifecycle
+from demo_buffer_backend.mappings import Hold
+from demo_buffer_backend.slots import Pin
 
 BACKEND_TYPE = 'demo'
 
@@ -72,7 +74,7 @@ class DemoBuffer(Buffer):
         """Internal: wrap ``host`` memory; ``keepalive`` is the pool's pin or hold (``None`` for
         private memory). Use :meth:`from_cpu` or :meth:`allocate`."""
         super().__init__(BACKEND_TYPE, host, keepalive=keepalive)
-        self._in_shm = isinstance(keepalive, (pool.Pin, pool.Hold))
+        self._in_shm = isinstance(keepalive, (Pin, Hold))
 
     @classmethod
     def allocate(cls, nbytes: int) -> 'DemoBuffer':
@@ -81,7 +83,7 @@ class DemoBuffer(Buffer):
             raise TypeError(f'nbytes must be an int, got {type(nbytes).__name__}')
         if nbytes < 0:
             raise ValueError(f'nbytes must be >= 0, got {nbytes}')
-        got = pool.get_state().allocate(nbytes)
+        got = lifecycle.get_pool().allocate(nbytes)
         if got is None:
             return cls(bytearray(nbytes))
         view, pin = got
@@ -91,7 +93,7 @@ class DemoBuffer(Buffer):
     def from_cpu(cls, data: Any) -> 'DemoBuffer':
         """A read-only DemoBuffer holding a copy of ``data``'s raw bytes (one memcpy)."""
         source = _byte_view(data)
-        got = pool.get_state().allocate(source.nbytes)
+        got = lifecycle.get_pool().allocate(source.nbytes)
         if got is None:
             return cls(bytes(source))
         view, pin = got
