@@ -9,7 +9,6 @@ from rosidl_buffer_py.buffer import Buffer
 from demo_buffer_backend import handover, lifecycle, limits
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
 from demo_buffer_backend.ledgers import EndpointLedger
-from demo_buffer_backend.slots import Pin
 
 
 def _depth_of(endpoint_info: EndpointInfo) -> int:
@@ -114,8 +113,8 @@ class DemoBackend(BufferBackend):
         it. ``EndpointGone`` when the peer's process hung up its link."""
         pool = lifecycle.get_pool()
         token = self._peers.get(endpoint_info.gid)
-        if token is None or not isinstance(buffer, DemoBuffer) or \
-                not isinstance(buffer._keepalive, Pin):
+        pin = buffer.pin if isinstance(buffer, DemoBuffer) else None
+        if token is None or pin is None:
             pool.decline()
             return None
         key = (endpoint_info.gid, endpoint_info.local_gid)
@@ -126,7 +125,7 @@ class DemoBackend(BufferBackend):
                 ledger = self._ledgers[key] = EndpointLedger(
                     token, depth, per_channel=key[1] is not None)
         ledger.depth = depth
-        return pool.describe(buffer._keepalive, ledger)
+        return pool.describe(pin, ledger)
 
     def peer_ledgers(self) -> Dict[str, dict]:
         """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):

@@ -107,7 +107,7 @@ def _attack(buf) -> dict:
     """Try to change the size or bytes of ``buf``'s segment behind its readers' backs, through
     the descriptor this process received (read-only) and through a read-write reopening of it
     (``<name>_rw``)."""
-    received = buf._keepalive.mapping.received.fd
+    received = buf.hold.mapping.received.fd
     size = os.fstat(received).st_size
     libc = ctypes.CDLL(None, use_errno=True)
     results = {}

@@ -189,6 +189,8 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
     got = backend.from_descriptor_with_endpoint(desc, ep)
     assert isinstance(got, DemoBuffer) and got.readonly and got.in_shm
     assert got.segment == buf.segment and got.generation == buf.generation
+    assert (buf.pin.slot.id, buf.hold, got.pin) == (buf.segment[1], None, None)
+    assert got.hold.mapping.key.segment_id == buf.segment[1]  # what republishing cannot describe
     assert bytes(memoryview(got)) == bytes(memoryview(buf))
     numpy.asarray(buf)[0] = 200  # the subscriber's view is the same memory
     assert numpy.asarray(got)[0] == 200
