@@ -43,9 +43,9 @@ class Counters:
     peers_gone: int = 0
     cpu_foreign_peer: int = 0
 
-    def add(self, name: str, count: int = 1) -> None:
-        """Count ``count`` events of a counter named at run time (``fallbacks_<cause>``)."""
-        setattr(self, name, getattr(self, name) + count)
+    def add(self, name: str) -> None:
+        """Count one event of a counter named at run time (``fallbacks_<cause>``)."""
+        setattr(self, name, getattr(self, name) + 1)
 
     def as_dict(self) -> Dict[str, int]:
         return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}

