@@ -17,7 +17,7 @@ from demo_buffer_backend.slots import Slot, Slots
 
 def gone_error(token: str, how: str = '') -> EndpointGone:
     """What describing for a process that hung up raises."""
-    return EndpointGone(f'the process of demo peer {token} is gone{how}')
+    return EndpointGone(f'demo subscriber process {token} is gone{how}')
 
 
 class Links:
@@ -42,15 +42,15 @@ class Links:
         if link is None:
             try:
                 link = self.by_token[token] = handover.Link(token)
-            except handover.PeerGone:
+            except handover.ProcessGone:
                 self.hung_up(token)
             except BlockingIOError:  # its backlog is full: CPU bytes for now, retry later
                 self.counters.handovers_busy += 1
                 return None
             except OSError as exc:
                 self.counters.cpu_foreign_peer += 1
-                self.diagnostics.warn_once(f'link_{token}',
-                                           f'demo peer {token}: {exc}; it gets CPU bytes')
+                self.diagnostics.warn_once(
+                    f'link_{token}', f'demo subscriber process {token}: {exc}; it gets CPU bytes')
                 return None
         if token in self.gone:
             raise gone_error(token, ' (its link hung up)')
@@ -65,7 +65,7 @@ class Links:
         """Apply the takes ``link``'s process acknowledged; note whether it hung up."""
         try:
             acks = link.acks()
-        except handover.PeerGone:
+        except handover.ProcessGone:
             self.hung_up(link.token)
             return
         for segment_id, generation in acks:
@@ -93,13 +93,14 @@ class Links:
             link.hand_over(self.nonce, slot.id, slot.capacity, fd)
             self.counters.handovers_sent += 1
             return True
-        except handover.PeerGone:
+        except handover.ProcessGone:
             self.hung_up(link.token)
             raise gone_error(link.token) from None
         except OSError as exc:  # its queue is full (EAGAIN), or fds in flight at their limit
             self.counters.handovers_busy += 1
-            self.diagnostics.warn_once('handover_busy', f'cannot hand a segment to demo peer '
-                                       f'{link.token}: {exc}; it gets CPU bytes until it drains')
+            self.diagnostics.warn_once(
+                'handover_busy', f'cannot hand a segment to demo subscriber process '
+                f'{link.token}: {exc}; it gets CPU bytes until it drains')
             return False
         finally:
             os.close(fd)

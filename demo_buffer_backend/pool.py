@@ -11,8 +11,9 @@ Words, one concept each, in every module of the backend:
 - *mapping*: a segment handed to this process, mapped read-only (:mod:`.mappings`); *hold*: a
   received DemoBuffer's claim on it.
 
-(The public words keep their older name: ``peer`` in ``stats()`` keys, ``peer_ledgers()`` and
-``max_inflight_per_peer`` means an endpoint, in ``peers_gone`` a process.)
+Public names keep the older word: *peer* means an endpoint in ``DemoBackend`` (as in the plugin
+interface), ``peer_ledgers()``, ``max_inflight_per_peer`` and the ``peer_share`` key, and a
+process in the ``peers_gone``, ``peers_hung_up`` and ``cpu_foreign_peer`` keys of ``stats()``.
 
 :class:`Pool` is what :mod:`.buffer` and :mod:`.backend` call; :mod:`.lifecycle` makes one per
 process. Everything runs under one guard (:mod:`.guard`); limits and timings are in
