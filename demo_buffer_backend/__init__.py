@@ -15,8 +15,9 @@ readable until the subscriber drops them.
 - :mod:`.backend`: :class:`DemoBackend`, the plugin;
 - :mod:`.pool`: :class:`~.pool.Pool`, the process's backend composed behind one interface, of
   :mod:`.slots` (the publisher's segments and pins), :mod:`.ledgers` (per-endpoint fairness),
-  :mod:`.links` (the publisher's links to subscriber processes) and :mod:`.mappings` (the
-  subscriber's received segments and holds), under one lock (:mod:`.guard`);
+  :mod:`.links` (the publisher's links to subscriber processes), :mod:`.inbox` (the subscriber's
+  listener and inbound connections) and :mod:`.mappings` (its received segments and holds),
+  under one lock (:mod:`.guard`);
 - :mod:`.lifecycle`: the process's one pool, made on first use, closed at exit, forgotten in a
   forked child;
 - :mod:`.limits`: every limit and timing; :mod:`.diagnostics`: counters and warnings;

@@ -1,7 +1,7 @@
 """The subscriber's mapped segments: what publisher processes handed to this one, and the views
 of them that received DemoBuffers hold.
 
-Segments arrive on the listener's connections (drained, never waited for, when a descriptor
+Segments arrive in the inbox (:mod:`.inbox`; drained, never waited for, when a descriptor
 names a segment not yet known, and every ``limits.SWEEP_INTERVAL`` seconds); a descriptor is
 accepted only for a segment that its own publisher pid (SO_PEERCRED) handed over, and its
 generation and size are checked under the shared OFD lock that protects the views (:class:`Hold`).
@@ -20,6 +20,7 @@ from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
+from demo_buffer_backend.inbox import Inbox
 from demo_buffer_backend.slots import Slot, Slots
 
 
@@ -74,34 +75,23 @@ class Hold:
 
 
 class Mappings:
-    """This process's listener, the connections of publisher processes to it, and the segments
-    they handed over (plus our own, for in-process subscriptions: ``slots``)."""
+    """The segments publisher processes handed to this one through ``inbox`` (plus our own,
+    for in-process subscriptions: ``slots``), and the holds on them. ``token``: ours, for the
+    takes of our own segments."""
 
-    def __init__(self, token: str, slots: Slots, guard: Guard,
+    def __init__(self, token: str, inbox: Inbox, slots: Slots, guard: Guard,
                  diagnostics: Diagnostics) -> None:
         self.token = token
+        self.inbox = inbox
         self.slots = slots
         self.guard = guard
         self.diagnostics = diagnostics
         self.counters = diagnostics.counters
-        self.listener: Optional[handover.Listener] = None
-        self.inbound: Dict[socket.socket, int] = {}  #: connection -> its publisher's pid
         self.by_key: Dict[SegmentKey, Mapping] = {}
-        self.last_sweep = 0.0  #: time.monotonic() of the last drain of the listener
+        self.last_sweep = 0.0  #: time.monotonic() of the last drain of the inbox
 
     def __len__(self) -> int:
         return len(self.by_key)
-
-    def listen(self) -> bool:
-        """Whether this process listens for segments (its listener created if need be)."""
-        if self.listener is None:
-            try:
-                self.listener = handover.Listener(self.token)
-            except OSError as exc:
-                self.diagnostics.warn_once('listener', f'cannot listen for demo segments: '
-                                           f'{exc}; publishers will send this process CPU bytes')
-                return False
-        return True
 
     def held(self) -> Tuple[int, int]:
         """``(segments held by a view, views held)``."""
@@ -135,31 +125,17 @@ class Mappings:
         self.counters.mappings_opened += 1
 
     def receive(self) -> None:
-        """Accept pending connections and take every segment handed over (never blocks), then
-        close the segments nobody can use any more."""
+        """Take every segment handed over meanwhile (never blocks), note the publishers that
+        hung up, then close the segments nobody can use any more."""
         self.last_sweep = time.monotonic()
-        if self.listener is not None:
-            for conn, cred in self.listener.accept():
-                if cred.uid != os.geteuid() or len(self.inbound) >= limits.MAX_INBOUND:
-                    self.counters.connections_refused += 1
-                    self.diagnostics.warn_once(
-                        f'uid {cred.uid}', f'refused a demo connection from pid {cred.pid} uid '
-                        f'{cred.uid} (only uid {os.geteuid()} may hand us memory, on at most '
-                        f'{limits.MAX_INBOUND} connections)')
-                    conn.close()
-                else:
-                    self.inbound[conn] = cred.pid
-        for conn, pid in list(self.inbound.items()):
-            got, rejected, hung_up = handover.receive(conn)
-            for problem in rejected:
-                self._refuse_handover(pid, problem)
-            for record in got:
-                self._take_handover(conn, pid, record)
-            if hung_up:
-                del self.inbound[conn]
-                conn.close()
+        for delivery in self.inbox.drain():
+            for problem in delivery.rejected:
+                self._refuse_handover(delivery.pid, problem)
+            for record in delivery.handovers:
+                self._take_handover(delivery.conn, delivery.pid, record)
+            if delivery.hung_up:
                 for mapping in self.by_key.values():
-                    if mapping.conn is conn:
+                    if mapping.conn is delivery.conn:
                         mapping.orphan = True
                         mapping.conn = None
         self._close_unused()
@@ -221,28 +197,19 @@ class Mappings:
                 self._close(mapping)
 
     def close(self) -> None:
-        """Close every segment, connection and the listener. Views still alive keep their
-        memory (the kernel frees it with them)."""
+        """Close every segment. Views still alive keep their memory (the kernel frees it with
+        them)."""
         for mapping in list(self.by_key.values()):
             self._close(mapping)
-        for conn in self.inbound:
-            conn.close()
-        self.inbound.clear()
-        if self.listener is not None:
-            self.listener.close()
-            self.listener = None
 
     def forget_after_fork(self) -> None:
-        """In a forked child: close our copies of the parent's descriptors, touch nothing."""
-        for sock in list(self.inbound) + ([self.listener] if self.listener else []):
-            sock.close()
+        """In a forked child: close our copies of the parent's segments, touch nothing."""
         for mapping in self.by_key.values():
             try:
                 os.close(mapping.received.fd)
             except OSError:
                 pass
-        self.by_key, self.inbound = {}, {}
-        self.listener = None
+        self.by_key = {}
 
     # --- taking -------------------------------------------------------------------------------
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:

@@ -8,6 +8,8 @@ Words, one concept each, in every module of the backend:
   flight to it (:mod:`.ledgers`);
 - *process*, named by its *token*: the other end of a *link* (:mod:`.links`) or of an inbound
   connection; it is *gone* once it hung up;
+- *inbox*: this process's listener and the connections publisher processes opened to it
+  (:mod:`.inbox`);
 - *mapping*: a segment handed to this process, mapped read-only (:mod:`.mappings`); *hold*: a
   received DemoBuffer's claim on it.
 
@@ -28,6 +30,7 @@ from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import limits
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
+from demo_buffer_backend.inbox import Inbox
 from demo_buffer_backend.ledgers import EndpointLedger
 from demo_buffer_backend.links import Links, gone_error
 from demo_buffer_backend.mappings import Hold, Mappings
@@ -57,7 +60,8 @@ class Pool:
         self.counters = self.diagnostics.counters
         self.slots = Slots(self.pid, self.nonce, self.guard, self.diagnostics, self._retire)
         self.links = Links(self.nonce, self.slots, self.diagnostics)
-        self.mappings = Mappings(token, self.slots, self.guard, self.diagnostics)
+        self.inbox = Inbox(token, self.diagnostics)
+        self.mappings = Mappings(token, self.inbox, self.slots, self.guard, self.diagnostics)
 
     def _retire(self, slot: Slot) -> None:
         self.links.retire(slot)
@@ -117,7 +121,7 @@ class Pool:
     def advertise(self) -> Optional[str]:
         """This process's token, its listener created if need be; None when it cannot be."""
         with self.guard:
-            if self.closed or not self.mappings.listen():
+            if self.closed or not self.inbox.listen():
                 return None
             return self.token
 
@@ -168,11 +172,13 @@ class Pool:
             self.closed = True
             self.links.close()
             self.mappings.close()
+            self.inbox.close()
             self.slots.close()
 
     def forget_after_fork(self) -> None:
         """In a forked child: close our copies of the parent's descriptors, touch nothing."""
         self.closed = True
         self.links.close()
+        self.inbox.close()
         self.mappings.forget_after_fork()
         self.slots.forget_after_fork()

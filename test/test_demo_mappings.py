@@ -1,6 +1,7 @@
-"""Unit tests of the demo backend's subscriber mappings (demo_buffer_backend/mappings.py) and of
-the publisher's links (links.py) that feed them, both ends in this process, without DDS:
-handover, take and ack, stale and unknown descriptors, holds, retired and orphaned segments."""
+"""Unit tests of the demo backend's subscriber mappings (demo_buffer_backend/mappings.py), fed
+through its inbox (inbox.py) by the publisher's links (links.py), both ends in this process,
+without DDS: handover, take and ack, stale and unknown descriptors, holds, retired and orphaned
+segments, a refused connection."""
 import gc
 import os
 
@@ -11,6 +12,7 @@ from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
+from demo_buffer_backend.inbox import Inbox
 from demo_buffer_backend.links import Links
 from demo_buffer_backend.mappings import Hold, Mappings
 from demo_buffer_backend.slots import Slots
@@ -27,8 +29,9 @@ class Ends:
         self.slots = Slots(os.getpid(), nonce, guard, self.publisher,
                            lambda slot: self.links.retire(slot))
         self.links = Links(nonce, self.slots, self.publisher)
-        self.mappings = Mappings(self.token, self.slots, guard, self.subscriber)
-        assert self.mappings.listen()
+        self.inbox = Inbox(self.token, self.subscriber)
+        self.mappings = Mappings(self.token, self.inbox, self.slots, guard, self.subscriber)
+        assert self.inbox.listen()
 
     def publish(self, data: bytes):
         """A slot holding ``data`` handed over to the subscriber, and its descriptor."""
@@ -44,6 +47,7 @@ class Ends:
         gc.collect()
         self.links.close()
         self.mappings.close()
+        self.inbox.close()
         self.slots.close()
 
 
@@ -111,9 +115,16 @@ def test_segments_of_a_publisher_that_hung_up_close_after_orphan_seconds(ends, m
 
 
 def test_a_process_that_hung_up_is_gone_for_the_links(ends):
-    ends.mappings.close()  # the subscriber process stops listening
+    ends.inbox.close()  # the subscriber process stops listening
     with pytest.raises(EndpointGone):
         ends.links.get(ends.token)
     assert ends.token in ends.links.gone and ends.publisher.counters.peers_gone == 1
     with pytest.raises(EndpointGone, match='its link hung up'):
         ends.links.get(ends.token)
+
+
+def test_the_inbox_refuses_connections_past_max_inbound(ends, monkeypatch):
+    monkeypatch.setattr(limits, 'MAX_INBOUND', 0)
+    handover.Link(ends.token).close()
+    assert ends.inbox.drain() == [] and not ends.inbox.inbound
+    assert ends.subscriber.counters.connections_refused == 1
