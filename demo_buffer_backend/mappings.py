@@ -14,7 +14,7 @@ Callers hold the pool's guard (:mod:`.guard`); a hold is dropped through it.
 import os
 import socket
 import time
-from typing import Dict, NamedTuple, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -202,14 +202,12 @@ class Mappings:
         for mapping in list(self.by_key.values()):
             self._close(mapping)
 
-    def forget_after_fork(self) -> None:
-        """In a forked child: close our copies of the parent's segments, touch nothing."""
-        for mapping in self.by_key.values():
-            try:
-                os.close(mapping.received.fd)
-            except OSError:
-                pass
+    def forget_after_fork(self) -> List[int]:
+        """In a forked child: forget the parent's segments, touching nothing; return our copies
+        of their descriptors (the caller closes them)."""
+        fds = [mapping.received.fd for mapping in self.by_key.values()]
         self.by_key = {}
+        return fds
 
     # --- taking -------------------------------------------------------------------------------
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:

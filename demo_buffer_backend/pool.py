@@ -180,5 +180,8 @@ class Pool:
         self.closed = True
         self.links.close()
         self.inbox.close()
-        self.mappings.forget_after_fork()
-        self.slots.forget_after_fork()
+        for fd in self.slots.forget_after_fork() + self.mappings.forget_after_fork():
+            try:
+                os.close(fd)
+            except OSError:
+                pass

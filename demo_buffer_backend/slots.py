@@ -11,9 +11,8 @@ generation); only then does an allocation fall back to private memory (sent as C
 Callers hold the pool's guard (:mod:`.guard`); a pin is dropped through it.
 """
 import errno
-import os
 import time
-from typing import AbstractSet, Callable, Dict, Optional, Tuple
+from typing import AbstractSet, Callable, Dict, List, Optional, Tuple
 
 from demo_buffer_backend import limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics, logger
@@ -246,11 +245,9 @@ class Slots:
         for slot in list(self.by_id.values()):
             self.remove(slot)
 
-    def forget_after_fork(self) -> None:
-        """In a forked child: close our copies of the parent's segments, touch nothing else."""
-        for slot in self.by_id.values():
-            try:
-                os.close(slot.segment.fd)
-            except OSError:
-                pass
+    def forget_after_fork(self) -> List[int]:
+        """In a forked child: forget the parent's slots, touching nothing; return our copies of
+        their descriptors (the caller closes them)."""
+        fds = [slot.segment.fd for slot in self.by_id.values()]
         self.by_id = {}
+        return fds
