@@ -13,8 +13,14 @@ readable until the subscriber drops them.
 
 - :mod:`.buffer`: :class:`DemoBuffer` (``from_cpu``, ``allocate``, ``to_array``);
 - :mod:`.backend`: :class:`DemoBackend`, the plugin;
-- :mod:`.pool`: the process-wide slots, per-peer ledgers (fairness), received segments, limits,
-  counters and lifecycle;
+- :mod:`.pool`: :class:`~.pool.Pool`, the process's backend composed behind one interface, of
+  :mod:`.slots` (the publisher's segments and pins), :mod:`.ledgers` (per-endpoint fairness),
+  :mod:`.links` (the publisher's links to subscriber processes), :mod:`.inbox` (the subscriber's
+  listener and inbound connections) and :mod:`.mappings` (its received segments and holds),
+  under one lock (:mod:`.guard`);
+- :mod:`.lifecycle`: the process's one pool, made on first use, closed at exit, forgotten in a
+  forked child;
+- :mod:`.limits`: every limit and timing; :mod:`.diagnostics`: counters and warnings;
 - :mod:`.memory`: sealed segments, their header, their OFD hold lock, and the checks of a
   received one;
 - :mod:`.handover`: listeners, links, handover and acknowledgement records, credentials;
@@ -35,14 +41,15 @@ answer for another. Everything refused is counted (:func:`stats`) and logged onc
 """
 from demo_buffer_backend.backend import DemoBackend
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
-from demo_buffer_backend.pool import configure, shutdown, stats
+from demo_buffer_backend.lifecycle import shutdown, stats
+from demo_buffer_backend.limits import configure
 
 
 def sweep() -> None:
     """Take segments handed over meanwhile; close those nobody can use any more (retired by
-    their publisher, or unused for ``pool.ORPHAN_SECONDS`` since their publisher hung up)."""
-    from demo_buffer_backend import pool
-    pool.get_state().sweep()
+    their publisher, or unused for ``limits.ORPHAN_SECONDS`` since their publisher hung up)."""
+    from demo_buffer_backend import lifecycle
+    lifecycle.get_pool().sweep()
 
 
 __all__ = ['BACKEND_TYPE', 'DemoBackend', 'DemoBuffer', 'configure', 'shutdown', 'stats',

@@ -6,8 +6,9 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo
 from rosidl_buffer_py.buffer import Buffer
 
-from demo_buffer_backend import handover, pool
+from demo_buffer_backend import handover, lifecycle, limits
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
+from demo_buffer_backend.ledgers import EndpointLedger
 
 
 def _depth_of(endpoint_info: EndpointInfo) -> int:
@@ -22,12 +23,13 @@ def _depth_of(endpoint_info: EndpointInfo) -> int:
 class DemoBackend(BufferBackend):
     """Payloads in sealed anonymous memory; a 52-byte descriptor crosses the middleware.
 
-    Every instance shares the process-wide pool (:mod:`.pool`). The keyword arguments, when
-    given, set the process-wide limits (see :func:`demo_buffer_backend.configure`).
+    Every instance shares the process-wide pool (:mod:`.pool`, made by :mod:`.lifecycle`). The
+    keyword arguments, when given, set the process-wide limits (see
+    :func:`demo_buffer_backend.configure`).
 
     Peers are compatible when they advertise our domain (same boot, network, mount and pid
     namespaces, same uid) and a token (the address of their listener). Each peer endpoint has a
-    ledger of its descriptors in flight (see :mod:`.pool`, "Fairness").
+    ledger of its descriptors in flight (see :mod:`.ledgers`).
     ``create_descriptor_with_endpoint`` returns None (CPU bytes for that peer) for peers that
     cannot use this memory, and raises ``EndpointGone`` for one whose process hung up.
     """
@@ -37,15 +39,15 @@ class DemoBackend(BufferBackend):
                  max_inflight_per_peer: Optional[int] = None) -> None:
         if (max_pool_bytes, max_slots, reclaim_timeout, max_inflight_per_peer) != \
                 (None, None, None, None):
-            pool.configure(max_pool_bytes=max_pool_bytes, max_slots=max_slots,
-                           reclaim_timeout=reclaim_timeout,
-                           max_inflight_per_peer=max_inflight_per_peer)
+            limits.configure(max_pool_bytes=max_pool_bytes, max_slots=max_slots,
+                             reclaim_timeout=reclaim_timeout,
+                             max_inflight_per_peer=max_inflight_per_peer)
         self._domain = handover.domain()
         self._lock = threading.Lock()
         #: Compatible peers: gid -> token of their process.
         self._peers: Dict[bytes, str] = {}
         #: (peer gid, local publisher gid or None) -> ledger of its descriptors in flight.
-        self._ledgers: Dict[Tuple[bytes, Optional[bytes]], pool.PeerLedger] = {}
+        self._ledgers: Dict[Tuple[bytes, Optional[bytes]], EndpointLedger] = {}
 
     def get_backend_type(self) -> str:
         return BACKEND_TYPE
@@ -54,7 +56,7 @@ class DemoBackend(BufferBackend):
         """``<domain>.<token>``: the domain ``mfd1.<boot id>.<net ns>.<mnt ns>.<pid ns>.<euid>``
         (hex), then this process's token ``<pid>_<16 hex>``, which names its listener. Just the
         domain (no peer will hand us memory) when the listener cannot be created."""
-        token = pool.get_state().advertise()
+        token = lifecycle.get_pool().advertise()
         return f'{self._domain}.{token}' if token else self._domain
 
     def parse_metadata(self, metadata: Optional[str]) -> Tuple[bool, Optional[str]]:
@@ -93,7 +95,7 @@ class DemoBackend(BufferBackend):
         with self._lock:
             self._peers.pop(endpoint_info.gid, None)
             self._forget_ledgers(endpoint_info.gid)
-        pool.get_state().sweep()
+        lifecycle.get_pool().sweep()
 
     def is_compatible(self, endpoint_info: EndpointInfo) -> bool:
         """Whether the endpoint was discovered and shares our domain."""
@@ -109,21 +111,21 @@ class DemoBackend(BufferBackend):
         private (fallback) memory, a received buffer (republishing one would let the original
         publisher reuse it under the new peer), a listener not of our user, or a full queue to
         it. ``EndpointGone`` when the peer's process hung up its link."""
-        state = pool.get_state()
+        pool = lifecycle.get_pool()
         token = self._peers.get(endpoint_info.gid)
-        if token is None or not isinstance(buffer, DemoBuffer) or \
-                not isinstance(buffer._keepalive, pool.Pin):
-            state.decline()
+        pin = buffer.pin if isinstance(buffer, DemoBuffer) else None
+        if token is None or pin is None:
+            pool.decline()
             return None
         key = (endpoint_info.gid, endpoint_info.local_gid)
         depth = _depth_of(endpoint_info)
         with self._lock:
             ledger = self._ledgers.get(key)
             if ledger is None:
-                ledger = self._ledgers[key] = pool.PeerLedger(
+                ledger = self._ledgers[key] = EndpointLedger(
                     token, depth, per_channel=key[1] is not None)
         ledger.depth = depth
-        return state.describe(buffer._keepalive, ledger)
+        return pool.describe(pin, ledger)
 
     def peer_ledgers(self) -> Dict[str, dict]:
         """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):
@@ -135,7 +137,7 @@ class DemoBackend(BufferBackend):
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> DemoBuffer:
-        view, hold = pool.get_state().open_descriptor(descriptor)
+        view, hold = lifecycle.get_pool().open_descriptor(descriptor)
         return DemoBuffer(view, keepalive=hold)
 
     def allocate(self, nbytes: int) -> DemoBuffer:
@@ -143,9 +145,9 @@ class DemoBackend(BufferBackend):
 
     def stats(self) -> dict:
         """Process-wide counters (see :func:`demo_buffer_backend.stats`)."""
-        return pool.stats()
+        return lifecycle.stats()
 
     def close(self) -> None:
         """Close every segment, link and listener of this process (process-wide: shared by all
         instances; the backend stays usable and starts afresh on next use)."""
-        pool.shutdown()
+        lifecycle.shutdown()

@@ -6,7 +6,9 @@ from typing import Any, Optional, Tuple
 
 from rosidl_buffer_py.buffer import Buffer
 
-from demo_buffer_backend import pool
+from demo_buffer_backend import lifecycle
+from demo_buffer_backend.mappings import Hold
+from demo_buffer_backend.slots import Pin
 
 BACKEND_TYPE = 'demo'
 
@@ -72,7 +74,9 @@ class DemoBuffer(Buffer):
         """Internal: wrap ``host`` memory; ``keepalive`` is the pool's pin or hold (``None`` for
         private memory). Use :meth:`from_cpu` or :meth:`allocate`."""
         super().__init__(BACKEND_TYPE, host, keepalive=keepalive)
-        self._in_shm = isinstance(keepalive, (pool.Pin, pool.Hold))
+        self._pin = keepalive if isinstance(keepalive, Pin) else None
+        self._hold = keepalive if isinstance(keepalive, Hold) else None
+        self._claim = self._pin or self._hold
 
     @classmethod
     def allocate(cls, nbytes: int) -> 'DemoBuffer':
@@ -81,7 +85,7 @@ class DemoBuffer(Buffer):
             raise TypeError(f'nbytes must be an int, got {type(nbytes).__name__}')
         if nbytes < 0:
             raise ValueError(f'nbytes must be >= 0, got {nbytes}')
-        got = pool.get_state().allocate(nbytes)
+        got = lifecycle.get_pool().allocate(nbytes)
         if got is None:
             return cls(bytearray(nbytes))
         view, pin = got
@@ -91,7 +95,7 @@ class DemoBuffer(Buffer):
     def from_cpu(cls, data: Any) -> 'DemoBuffer':
         """A read-only DemoBuffer holding a copy of ``data``'s raw bytes (one memcpy)."""
         source = _byte_view(data)
-        got = pool.get_state().allocate(source.nbytes)
+        got = lifecycle.get_pool().allocate(source.nbytes)
         if got is None:
             return cls(bytes(source))
         view, pin = got
@@ -102,18 +106,30 @@ class DemoBuffer(Buffer):
     def in_shm(self) -> bool:
         """True when the bytes live in a shared-memory slot (False: private fallback memory,
         which is sent as CPU bytes)."""
-        return self._in_shm
+        return self._claim is not None
+
+    @property
+    def pin(self) -> Optional[Pin]:
+        """The publisher's pin on the slot holding the bytes (what ``DemoBackend`` describes);
+        ``None`` for a received buffer or private memory."""
+        return self._pin
+
+    @property
+    def hold(self) -> Optional[Hold]:
+        """This subscriber's hold on the received segment holding the bytes; ``None`` for a
+        buffer made here (published from) or private memory."""
+        return self._hold
 
     @property
     def segment(self) -> Optional[Tuple[int, int]]:
         """``(publisher pid, segment id)`` of the shared segment holding the bytes (``None`` for
         private memory)."""
-        return self._keepalive.segment if self._in_shm else None
+        return self._claim.segment if self._claim is not None else None
 
     @property
     def generation(self) -> Optional[int]:
         """Generation of the slot these bytes belong to (``None`` for private memory)."""
-        return self._keepalive.generation if self._in_shm else None
+        return self._claim.generation if self._claim is not None else None
 
     def to_array(self) -> array.array:
         """A copy of the bytes as ``array.array('B')`` (what stock rclpy hands out)."""

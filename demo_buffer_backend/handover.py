@@ -35,7 +35,7 @@ MAX_RECORDS_PER_DRAIN = 256
 _GONE = (errno.EPIPE, errno.ECONNRESET, errno.ECONNREFUSED, errno.ENOENT, errno.ENOTCONN)
 
 
-class PeerGone(Exception):
+class ProcessGone(Exception):
     """The process at the other end of a link is gone (or never listened)."""
 
 
@@ -183,7 +183,7 @@ class Link:
     __slots__ = ('token', 'sock', 'segments')
 
     def __init__(self, token: str) -> None:
-        """Connect to ``token``'s listener without waiting. ``PeerGone`` when nobody listens
+        """Connect to ``token``'s listener without waiting. ``ProcessGone`` when nobody listens
         there; ``PermissionError`` when who listens is not that process of our user;
         ``BlockingIOError`` when its backlog is full (a stopped process: try again later)."""
         self.token = token
@@ -200,18 +200,18 @@ class Link:
         except OSError as exc:
             self.sock.close()
             if exc.errno in _GONE:
-                raise PeerGone(f'nobody listens for demo token {token}: {exc}') from None
+                raise ProcessGone(f'nobody listens for demo token {token}: {exc}') from None
             raise
 
     def hand_over(self, nonce: int, segment_id: int, capacity: int, fd: int) -> None:
-        """Push one segment's descriptor. ``PeerGone`` when the subscriber hung up;
+        """Push one segment's descriptor. ``ProcessGone`` when the subscriber hung up;
         ``BlockingIOError`` when its queue is full (try again with a later frame)."""
         record = HANDOVER.pack(HANDOVER_MAGIC, nonce, segment_id, 0, capacity)
         try:
             socket.send_fds(self.sock, [record], [fd], socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
         except OSError as exc:
             if exc.errno in _GONE:
-                raise PeerGone(f'demo subscriber {self.token} hung up: {exc}') from None
+                raise ProcessGone(f'demo subscriber {self.token} hung up: {exc}') from None
             raise
         self.segments.add(segment_id)
 
@@ -227,7 +227,7 @@ class Link:
 
     def acks(self) -> List[Tuple[int, int]]:
         """Takes acknowledged since the last call, ``(segment id, generation)`` each;
-        ``PeerGone`` when the subscriber hung up."""
+        ``ProcessGone`` when the subscriber hung up."""
         got = []
         while True:
             try:
@@ -235,9 +235,9 @@ class Link:
             except (BlockingIOError, InterruptedError):
                 return got
             except OSError as exc:
-                raise PeerGone(f'demo subscriber {self.token} hung up: {exc}') from None
+                raise ProcessGone(f'demo subscriber {self.token} hung up: {exc}') from None
             if not data:
-                raise PeerGone(f'demo subscriber {self.token} hung up')
+                raise ProcessGone(f'demo subscriber {self.token} hung up')
             if len(data) == ACK.size:
                 segment_id, _, generation = ACK.unpack(data)
                 got.append((segment_id, generation))

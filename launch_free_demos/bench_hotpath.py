@@ -32,7 +32,7 @@ from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
-from demo_buffer_backend import DemoBuffer, backend as demo_backend, pool
+from demo_buffer_backend import DemoBuffer, backend as demo_backend, links, mappings
 from launch_free_demos.domains import claim_domain_ids
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import codec, publisher, subscription
@@ -87,7 +87,7 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
     stages.wrap(publisher.Publisher, '_current_plan', '  route plan (cached while current)')
     if transport == 'demo':
         stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
-        stages.wrap(pool.State, '_drain_link', '      acks and hang-ups from the peer')
+        stages.wrap(links.Links, 'drain', '      acks and hang-ups from the peer')
         stages.wrap(publisher._Encoder, 'with_descriptors', '    descriptor message encode')
 
 
@@ -101,7 +101,7 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
         stages.wrap(codec, 'decode', '  descriptor message decode')
         stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',
                     '  backend open (demo pool)')
-        stages.wrap(pool.State, '_open', '    of it: segment checks, hold lock and ack')
+        stages.wrap(mappings.Mappings, 'open', '    of it: segment checks, hold lock and ack')
     stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
 
 

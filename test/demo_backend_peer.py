@@ -17,7 +17,7 @@ Speaks JSON lines: one command per line on stdin, one reply per line on stdout. 
   (or "accepted") and the buffer's digest afterwards.
 - ``{"cmd": "memory"}``: ``{"maps": memfd mappings in /proc/self/maps, "fds": memfd
   descriptors in /proc/self/fd}``.
-- ``{"cmd": "orphan_seconds", "value": S}``: set ``pool.ORPHAN_SECONDS``.
+- ``{"cmd": "orphan_seconds", "value": S}``: set ``limits.ORPHAN_SECONDS``.
 - ``{"cmd": "sha", "key": K}``, ``{"cmd": "drop", "key": K}``, ``{"cmd": "stats"}``,
   ``{"cmd": "sweep"}``, ``{"cmd": "exit"}`` (a normal exit, running atexit handlers).
 """
@@ -37,7 +37,7 @@ from rosidl_buffer_py import EndpointInfo, EndpointKind
 from rosidl_buffer_py.backend import EndpointGone
 
 import demo_buffer_backend
-from demo_buffer_backend import DemoBackend, DemoBuffer, pool
+from demo_buffer_backend import DemoBackend, DemoBuffer, limits
 
 #: The GID both sides use for "the other endpoint".
 PEER_GID = bytes(range(16))
@@ -107,7 +107,7 @@ def _attack(buf) -> dict:
     """Try to change the size or bytes of ``buf``'s segment behind its readers' backs, through
     the descriptor this process received (read-only) and through a read-write reopening of it
     (``<name>_rw``)."""
-    received = buf._keepalive.mapping.received.fd
+    received = buf.hold.mapping.received.fd
     size = os.fstat(received).st_size
     libc = ctypes.CDLL(None, use_errno=True)
     results = {}
@@ -168,7 +168,7 @@ def main() -> int:
         elif cmd == 'memory':
             reply(memfd_usage())
         elif cmd == 'orphan_seconds':
-            pool.ORPHAN_SECONDS = request['value']
+            limits.ORPHAN_SECONDS = request['value']
             reply({'ok': True})
         elif cmd == 'take':
             try:

@@ -23,7 +23,8 @@ from rosidl_buffer_py.backend import EndpointGone
 
 import demo_buffer_backend
 from demo_backend_peer import Peer, memfd_usage
-from demo_buffer_backend import DemoBackend, DemoBuffer, descriptor, handover, memory, pool
+from demo_buffer_backend import (DemoBackend, DemoBuffer, descriptor, diagnostics, handover,
+                                 lifecycle, limits, memory)
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 
@@ -54,7 +55,7 @@ def _memfd_usage_of(pid):
 @pytest.fixture
 def fresh():
     """A fresh process-wide pool with default limits; everything removed afterwards."""
-    saved = dict(pool._limits.as_dict())
+    saved = dict(limits.current.as_dict())
     demo_buffer_backend.shutdown()
     yield
     gc.collect()
@@ -156,14 +157,14 @@ def test_allocate_is_writable_shared_memory_without_copies(fresh):
     b[0] = 9  # the same memory
     assert memoryview(buf)[0] == 9 and memoryview(buf)[1] == 7
     # the bytes are the segment's: read them through its descriptor
-    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    fd = lifecycle.get_pool().slots.by_id[buf.segment[1]].segment.fd
     assert os.pread(fd, 4, memory.HEADER_SIZE) == bytes([9, 7, 7, 7])
 
 
 def test_segments_are_sealed_backed_memfds_and_small_descriptors(backend):
     import fcntl
     buf = DemoBuffer.from_cpu(b'x' * 5000)
-    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    fd = lifecycle.get_pool().slots.by_id[buf.segment[1]].segment.fd
     assert os.readlink(f'/proc/self/fd/{fd}').startswith('/memfd:rbpy_demo')
     assert fcntl.fcntl(fd, fcntl.F_GET_SEALS) == memory.SEALS
     st = os.fstat(fd)
@@ -188,6 +189,8 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
     got = backend.from_descriptor_with_endpoint(desc, ep)
     assert isinstance(got, DemoBuffer) and got.readonly and got.in_shm
     assert got.segment == buf.segment and got.generation == buf.generation
+    assert (buf.pin.slot.id, buf.hold, got.pin) == (buf.segment[1], None, None)
+    assert got.hold.mapping.key.segment_id == buf.segment[1]  # what republishing cannot describe
     assert bytes(memoryview(got)) == bytes(memoryview(buf))
     numpy.asarray(buf)[0] = 200  # the subscriber's view is the same memory
     assert numpy.asarray(got)[0] == 200
@@ -396,7 +399,7 @@ def test_shutdown_closes_our_segments_and_fork_child_leaves_them(fresh):
         finally:
             os._exit(0)
     assert os.waitpid(pid, 0)[1] == 0
-    assert segment[1] in pool.get_state().slots
+    assert segment[1] in lifecycle.get_pool().slots.by_id
     assert DemoBuffer.from_cpu(b'g' * 100).in_shm
     demo_buffer_backend.shutdown()
     assert demo_buffer_backend.stats()['slots'] == 0
@@ -522,11 +525,11 @@ def test_limits_from_configure_and_constructor(fresh):
 
 
 def test_limits_from_environment(fresh, monkeypatch):
-    monkeypatch.setenv(pool.ENV_MAX_SLOTS, '7')
-    monkeypatch.setenv(pool.ENV_MAX_POOL_BYTES, '12345678')
-    monkeypatch.setenv(pool.ENV_RECLAIM_TIMEOUT, '1.5')
-    limits = pool._Limits()
-    assert (limits.max_slots, limits.max_pool_bytes, limits.reclaim_timeout) == (7, 12345678, 1.5)
+    monkeypatch.setenv(limits.ENV_MAX_SLOTS, '7')
+    monkeypatch.setenv(limits.ENV_MAX_POOL_BYTES, '12345678')
+    monkeypatch.setenv(limits.ENV_RECLAIM_TIMEOUT, '1.5')
+    read = limits.Limits()
+    assert (read.max_slots, read.max_pool_bytes, read.reclaim_timeout) == (7, 12345678, 1.5)
 
 
 # --- steady state --------------------------------------------------------------------------------
@@ -769,7 +772,7 @@ def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers)
     assert all(d is not None for _, _, d in to_stuck)
     # its share (the last frame) is protected: never reused, and it can still take it
     segment, generation, last = to_stuck[-1]
-    assert pool.get_state().slots[segment[1]].generation == generation
+    assert lifecycle.get_pool().slots.by_id[segment[1]].generation == generation
     assert stuck_peer('take', desc=last.hex(), key='last')['sha'] == \
         hashlib.sha256(bytes([29]) * 3000).hexdigest()
 
@@ -862,7 +865,7 @@ def test_take_waits_a_bounded_time_for_a_held_lock(backend):
     ep = _endpoint()
     buf = DemoBuffer.from_cpu(b'q' * 4096)
     desc = backend.create_descriptor_with_endpoint(buf, ep)
-    own = pool.get_state().slots[buf.segment[1]].segment.fd
+    own = lifecycle.get_pool().slots.by_id[buf.segment[1]].segment.fd
     fd = os.open(f'/proc/self/fd/{own}', os.O_RDWR)  # another description
     try:
         assert memory.try_lock(fd, exclusive=True)
@@ -879,7 +882,7 @@ def test_take_waits_a_bounded_time_for_a_held_lock(backend):
 
 def test_pool_exhausted_warning_names_the_cause(backend, monkeypatch):
     messages = []
-    monkeypatch.setattr(pool._logger, 'warning', lambda msg, **kw: messages.append(msg))
+    monkeypatch.setattr(diagnostics.logger, 'warning', lambda msg, **kw: messages.append(msg))
     demo_buffer_backend.configure(max_pool_bytes=1 << 16, max_slots=2)
     assert not DemoBuffer.allocate(1 << 20).in_shm
     assert 'larger than max_pool_bytes' in messages[-1]

@@ -172,8 +172,8 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
 def backend():
     import gc
     import demo_buffer_backend
-    from demo_buffer_backend import pool
-    saved = dict(pool._limits.as_dict())
+    from demo_buffer_backend import limits
+    saved = dict(limits.current.as_dict())
     demo_buffer_backend.shutdown()
     be = demo_buffer_backend.DemoBackend()
     started = []
@@ -201,9 +201,9 @@ def test_never_taking_peer_process_is_capped_and_keeps_getting_descriptors(backe
     it, its oldest descriptors are given up (not CPU bytes for it), while a peer that takes
     keeps every frame zero-copy and the pool never falls back."""
     from rosidl_buffer_py import EndpointInfo, EndpointKind
-    from demo_buffer_backend import DemoBuffer, pool, stats
+    from demo_buffer_backend import DemoBuffer, configure, stats
     be, started = backend
-    pool.configure(max_slots=8, reclaim_timeout=3600)  # share: 2
+    configure(max_slots=8, reclaim_timeout=3600)  # share: 2
     taker = _peer(started, be)
     silent = _peer(started)
     to_silent = EndpointInfo(b'\x77' * 16, '/faults', EndpointKind.SUBSCRIPTION)
@@ -237,12 +237,12 @@ _LOCK_HOLDER = textwrap.dedent('''
 
 def test_same_uid_lock_holder_delays_a_take_only_boundedly(backend):
     from rosidl_buffer_py import EndpointInfo, EndpointKind
-    from demo_buffer_backend import DemoBuffer, pool
+    from demo_buffer_backend import DemoBuffer, lifecycle
     be, started = backend
     taker = _peer(started, be)
     ep = EndpointInfo(PEER_GID, '/faults', EndpointKind.SUBSCRIPTION)
     buf = DemoBuffer.from_cpu(b'L' * 50_000)
-    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    fd = lifecycle.get_pool().slots.by_id[buf.segment[1]].segment.fd
     holder = subprocess.Popen([sys.executable, '-c', _LOCK_HOLDER, f'/proc/{os.getpid()}/fd/{fd}'],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
@@ -268,7 +268,7 @@ def test_segment_cannot_be_shrunk_grown_or_written_under_a_reader(backend):
     bytes unchanged."""
     import fcntl
     from rosidl_buffer_py import EndpointInfo, EndpointKind
-    from demo_buffer_backend import DemoBuffer, memory, pool
+    from demo_buffer_backend import DemoBuffer, lifecycle, memory
     be, started = backend
     reader = _peer(started, be)
     ep = EndpointInfo(PEER_GID, '/faults', EndpointKind.SUBSCRIPTION)
@@ -282,7 +282,7 @@ def test_segment_cannot_be_shrunk_grown_or_written_under_a_reader(backend):
         assert attack[name + '_rw'] == 'EPERM', attack  # reopened read-write: the seals
     assert attack['size_after'] == memory.HEADER_SIZE + memory.round_capacity(300_000)
     assert attack['sha'] == reply['sha']
-    fd = pool.get_state().slots[buf.segment[1]].segment.fd
+    fd = lifecycle.get_pool().slots.by_id[buf.segment[1]].segment.fd
     for action in (lambda: os.ftruncate(fd, 0), lambda: os.ftruncate(fd, 1 << 30),
                    lambda: fcntl.fcntl(fd, fcntl.F_ADD_SEALS, 0)):  # no seal can be removed
         with pytest.raises(PermissionError):
@@ -478,11 +478,11 @@ _FULL_MEMORY = textwrap.dedent('''
     import json, resource, sys
     resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 20, 1 << 20))
     import demo_buffer_backend
-    from demo_buffer_backend import DemoBackend, DemoBuffer, pool
+    from demo_buffer_backend import DemoBackend, DemoBuffer, diagnostics
     from rosidl_buffer_py import EndpointInfo, EndpointKind
     messages = []
-    real_warning = pool._logger.warning
-    pool._logger.warning = lambda msg, **kw: (messages.append(msg), real_warning(msg, **kw))
+    real_warning = diagnostics.logger.warning
+    diagnostics.logger.warning = lambda msg, **kw: (messages.append(msg), real_warning(msg, **kw))
     be = DemoBackend()
     ep = EndpointInfo(b'\\x11' * 16, '/full', EndpointKind.SUBSCRIPTION)
     be.on_discovering_endpoint(ep, [], {'demo': be.get_backend_metadata()})

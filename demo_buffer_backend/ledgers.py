@@ -1,0 +1,99 @@
+"""Per-endpoint ledgers: which descriptors a subscriber endpoint may still take (fairness).
+
+What one subscriber does costs only that subscriber. Each subscriber endpoint (per local
+publisher when ``EndpointInfo.local_gid`` names it) has an :class:`EndpointLedger` of its
+descriptors in flight, in send order. A descriptor stops pinning its slot (:mod:`.slots`) when
+the endpoint cannot take it any more or has used up its share, never by sending it CPU bytes:
+
+- *KEEP_LAST depth N* (``EndpointInfo.history_depth``): N newer messages on the channel pushed
+  it out of the endpoint's reader history (``released_window``);
+- *in order*: the endpoint took a newer one, so it dropped this one (``released_skipped``);
+- *share*: the endpoint has ``endpoint_share`` descriptors (or a third of the pool's bytes) in
+  flight: its oldest are given up, as a KEEP_LAST history would drop them (``released_share``).
+  A slow endpoint keeps getting descriptors; a given-up one it takes later is refused as stale
+  only if its slot was reused meanwhile;
+- *gone*: the endpoint's process hung up its link: nothing it was sent pins anything (the slots
+  leave such tokens out, see :meth:`.slots.Slot.pinning`).
+
+A ledger counts per process token in its slots (``sent``, ``taken``, ``released``): several
+endpoints of one process share those counts, which is why the in-order rule applies only to a
+ledger of one channel (``per_channel``).
+"""
+import collections
+from typing import Deque, List, NamedTuple
+
+from demo_buffer_backend import limits
+from demo_buffer_backend.diagnostics import Counters
+from demo_buffer_backend.slots import Slot
+
+
+class InFlight(NamedTuple):
+    """One descriptor an endpoint has not been seen to take."""
+
+    slot: Slot
+    generation: int
+    seq: int  #: the endpoint's message number it was sent with
+
+
+class EndpointLedger:
+    """The descriptors in flight to one subscriber endpoint (see the module docstring).
+
+    ``token``: the endpoint's process. ``depth``: its KEEP_LAST history depth, 0 for KEEP_ALL or
+    unknown (or when the ledger may see the messages of several channels: not ``per_channel``).
+    """
+
+    __slots__ = ('token', 'depth', 'per_channel', 'seq', 'inflight')
+
+    def __init__(self, token: str, depth: int = 0, per_channel: bool = True) -> None:
+        self.token = token
+        self.depth = depth
+        self.per_channel = per_channel
+        self.seq = 0  #: messages described for the endpoint
+        self.inflight: Deque[InFlight] = collections.deque()
+
+    def summary(self) -> dict:
+        return {'token': self.token, 'depth': self.depth, 'messages': self.seq,
+                'in_flight': len(self.inflight)}
+
+    def record(self, slot: Slot) -> None:
+        """One descriptor of the slot's generation is sent with the current message number."""
+        slot.sent[self.token] = slot.sent.get(self.token, 0) + 1
+        self.inflight.append(InFlight(slot, slot.generation, self.seq))
+
+    def settle(self, counters: Counters) -> None:
+        """Bring the in-flight list up to date before message ``seq`` is sent: drop what the
+        endpoint took or what was reclaimed, give up what it can no longer take and what
+        exceeds its share."""
+        token = self.token
+        kept: List[InFlight] = []
+        for entry in self.inflight:
+            slot = entry.slot
+            # reclaimed or removed: nothing left to protect (slot.current(), inlined: this runs
+            # for every entry on every message)
+            if slot.closed or slot.generation != entry.generation:
+                continue
+            if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
+                if self.per_channel:  # taken in order: what it had not taken, it dropped
+                    for skipped in kept:
+                        counters.released_skipped += self._give_up(skipped)
+                    kept = []
+                continue
+            kept.append(entry)
+        inflight = collections.deque(kept)
+        if self.depth:  # seq is the message being described now
+            while inflight and self.seq - inflight[0].seq >= self.depth:
+                counters.released_window += self._give_up(inflight.popleft())
+        share = limits.current.endpoint_share()
+        share_bytes = limits.current.endpoint_share_bytes()
+        while inflight and (len(inflight) >= share or sum(
+                e.slot.capacity for e in inflight) >= share_bytes):
+            counters.released_share += self._give_up(inflight.popleft())
+        self.inflight = inflight
+
+    def _give_up(self, entry: InFlight) -> bool:
+        """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
+        slot = entry.slot
+        if slot.closed or slot.generation != entry.generation:
+            return False
+        slot.released[self.token] = slot.released.get(self.token, 0) + 1
+        return True

@@ -1,0 +1,80 @@
+"""Unit tests of the demo backend's per-endpoint ledgers (demo_buffer_backend/ledgers.py): what
+an endpoint gives up by its KEEP_LAST window, by taking in order and past its share."""
+import os
+
+import pytest
+
+from demo_buffer_backend import limits, memory
+from demo_buffer_backend.diagnostics import Counters
+from demo_buffer_backend.ledgers import EndpointLedger
+from demo_buffer_backend.slots import Slot
+
+TOKEN = f'{os.getpid()}_00000000000000aa'
+
+
+@pytest.fixture
+def new_slot():
+    """Makes slots (segments of one page, generation 1); closes them afterwards."""
+    saved = limits.current.as_dict()
+    made = []
+
+    def make():
+        slot = Slot(len(made) + 1, memory.Segment(memory.PAGE_SIZE))
+        slot.start_generation(1, 10)
+        made.append(slot)
+        return slot
+
+    yield make
+    for slot in made:
+        slot.segment.close()
+    limits.configure(**saved)
+
+
+def _send(ledger, slot, counters):
+    """What the pool does to describe one message for the ledger's endpoint."""
+    ledger.seq += 1
+    ledger.settle(counters)
+    ledger.record(slot)
+
+
+def test_keep_last_depth_gives_up_what_left_the_readers_history(new_slot):
+    ledger, counters = EndpointLedger(TOKEN, depth=2), Counters()
+    slots = [new_slot() for _ in range(4)]
+    for slot in slots:
+        _send(ledger, slot, counters)
+    assert [e.slot for e in ledger.inflight] == slots[2:]
+    assert counters.released_window == 2
+    assert [s.released.get(TOKEN, 0) for s in slots] == [1, 1, 0, 0]
+
+
+def test_a_newer_take_gives_up_the_older_ones_on_one_channel_only(new_slot):
+    for per_channel, skipped in ((True, 2), (False, 0)):
+        ledger, counters = EndpointLedger(TOKEN, per_channel=per_channel), Counters()
+        slots = [new_slot() for _ in range(3)]
+        for slot in slots:
+            _send(ledger, slot, counters)
+        slots[2].taken[TOKEN] = 1
+        _send(ledger, new_slot(), counters)
+        assert counters.released_skipped == skipped
+        assert len(ledger.inflight) == (1 if per_channel else 3)
+
+
+def test_past_its_share_an_endpoint_gives_up_its_oldest(new_slot):
+    limits.configure(max_inflight_per_peer=2)
+    ledger, counters = EndpointLedger(TOKEN), Counters()
+    slots = [new_slot() for _ in range(5)]
+    for slot in slots:
+        _send(ledger, slot, counters)
+    assert [e.slot for e in ledger.inflight] == slots[3:]
+    assert counters.released_share == 3
+    assert ledger.summary() == {'token': TOKEN, 'depth': 0, 'messages': 5, 'in_flight': 2}
+
+
+def test_reused_slots_leave_the_ledger_and_are_not_given_up(new_slot):
+    ledger, counters = EndpointLedger(TOKEN, depth=1), Counters()
+    slot = new_slot()
+    _send(ledger, slot, counters)
+    slot.start_generation(2, 10)  # reclaimed meanwhile
+    _send(ledger, new_slot(), counters)
+    assert counters.released_window == 0 and not slot.released
+    assert [e.generation for e in ledger.inflight] == [1]
