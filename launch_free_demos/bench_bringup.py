@@ -51,7 +51,8 @@ def run_subscriber(topic: str, after: int, timeout: float, stock: bool = False) 
     from sensor_msgs.msg import Image
 
     import rosidl_buffer_py
-    from rosidl_buffer_py.nodes.common import print_report, run_node
+    from rosidl_buffer_py.nodes.common import run_node
+    from rosidl_buffer_py.nodes.report import print_report
     from rosidl_buffer_py.nodes.frames import check_frame
 
     class BringupSubscriber(Node):

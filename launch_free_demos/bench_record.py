@@ -9,7 +9,7 @@ One run, three phases on the same file system (``--dir``, default the system tem
    MCAP layout (unchunked, ``ros2`` profile, same schema and channel metadata);
 3. ``dd`` writes as many bytes as phase 1 did through the page cache, then ``--dd-mib`` (2 GiB)
    with ``conv=fdatasync`` (what the disk sustains) and with ``oflag=direct bs=24M`` (how
-   ``buffer_record`` writes large shared-memory frames: O_DIRECT, see :mod:`rosidl_buffer_py.bag`).
+   ``buffer_record`` writes large shared-memory frames: O_DIRECT, see :mod:`rosidl_buffer_py.tools.bag`).
 
 Per recorder: frames published and written, frames lost, the recorder's CPU time per written
 frame (its process CPU clock from the moment it is subscribed to the moment it is stopped),
@@ -20,7 +20,6 @@ through the writers in this process (chunked ``add_message``, unchunked ``add_me
 Run: ``./dev bench-record [--seconds 20] [--rate 30] [--width 3840 --height 2160] [--dir D]``.
 """
 import argparse
-import json
 import os
 import re
 import shutil
@@ -36,15 +35,14 @@ from typing import Dict, List, Optional
 from launch_free_demos.benchmark import (
     StealMeter, claim_domain_id, cpu_clock_of, cpu_seconds)
 from launch_free_demos.runner import Run, remove_fastdds_leftovers
-from rosidl_buffer_py.bag import BagError, BagReader
+from rosidl_buffer_py.nodes.report import last_report, print_report
+from rosidl_buffer_py.tools.bag import BagError, BagReader
 
 TOPIC = '/bench/record'
-REPORT_PREFIX = 'REPORT '
 
 
 def _report(lines: List[str]) -> dict:
-    found = [line for line in lines if line.startswith(REPORT_PREFIX)]
-    return json.loads(found[-1][len(REPORT_PREFIX):]) if found else {}
+    return last_report(lines) or {}
 
 
 # --- the stock recorder (a plain rclpy node) -----------------------------------------------------
@@ -57,8 +55,8 @@ def stock_recorder(topic: str, directory: str) -> int:
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
 
-    from rosidl_buffer_py.bag import SERIALIZATION_FORMAT, Topic
-    from rosidl_buffer_py.message_definition import full_definition
+    from rosidl_buffer_py.tools.bag import SERIALIZATION_FORMAT, Topic
+    from rosidl_buffer_py.tools.message_definition import full_definition
 
     stop = []
     signal.signal(signal.SIGINT, lambda *_: stop.append(1))
@@ -90,7 +88,7 @@ def stock_recorder(topic: str, directory: str) -> int:
         rclpy.spin_once(node, timeout_sec=0.1)
     writer.finish()
     stream.close()
-    print(REPORT_PREFIX + json.dumps(counts), flush=True)
+    print_report(counts)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
@@ -221,8 +219,8 @@ def writer_costs(directory: Path, width: int, height: int, frames: int = 10) -> 
     import rosidl_buffer_py  # noqa: F401
     from demo_buffer_backend import DemoBuffer
     from rosidl_buffer_py import codec
-    from rosidl_buffer_py.bag import BagWriter, Topic
-    from rosidl_buffer_py.message_definition import full_definition
+    from rosidl_buffer_py.tools.bag import BagWriter, Topic
+    from rosidl_buffer_py.tools.message_definition import full_definition
 
     msg = Image(height=height, width=width, encoding='rgb8', step=width * 3)
     msg.data = DemoBuffer.allocate(width * height * 3)
@@ -286,7 +284,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         ours = work / 'buffer_record'
         rows.append(run_phase('buffer_record (demo backend, zero-copy)',
-                              [sys.executable, '-m', 'rosidl_buffer_py.record', TOPIC,
+                              [sys.executable, '-m', 'rosidl_buffer_py.tools.record', TOPIC,
                                '-o', str(ours)], ours, args, buffer_peers=1))
         print(f'  {rows[-1]}', flush=True)
         shutil.rmtree(ours, ignore_errors=True)

@@ -16,9 +16,9 @@ from std_msgs.msg import String
 
 import rosidl_buffer_py
 from rosidl_buffer_py import codec
-from rosidl_buffer_py.bag import (
+from rosidl_buffer_py.tools.bag import (
     BagError, BagReader, BagWriter, Topic, qos_from_yaml, qos_to_yaml)
-from rosidl_buffer_py.message_definition import (
+from rosidl_buffer_py.tools.message_definition import (
     DefinitionNotFoundError, full_definition, import_message_type, type_hash, type_name)
 
 SHARE = Path(sys.prefix) / 'share'
@@ -139,7 +139,7 @@ def test_large_shared_memory_payloads_go_to_the_disk_page_aligned(tmp_path):
     """A page-aligned payload of at least DIRECT_MIN_BYTES is written with O_DIRECT after a
     private padding record; every reader still sees the same message bytes."""
     from demo_buffer_backend import DemoBuffer
-    from rosidl_buffer_py.bag import DIRECT_ALIGNMENT, DIRECT_MIN_BYTES, PADDING_OPCODE
+    from rosidl_buffer_py.tools.bag import DIRECT_ALIGNMENT, DIRECT_MIN_BYTES, PADDING_OPCODE
     nbytes = DIRECT_MIN_BYTES + 3 * DIRECT_ALIGNMENT + 5  # an unaligned tail too
     bag = BagWriter(tmp_path / 'd')
     bag.add_topic(Topic('/img', 'sensor_msgs/msg/Image', full_definition('sensor_msgs/msg/Image')))
@@ -174,7 +174,7 @@ def test_ros_distro_from_rosbag2s_embedded_metadata(tmp_path):
     """rosbag2 writes the distribution inside its ``rosbag2`` metadata record's
     serialized_metadata (no ROS_DISTRO key): buffer_bag_info shows it."""
     from mcap.writer import Writer
-    from rosidl_buffer_py.bag_info import format_info, info
+    from rosidl_buffer_py.tools.bag_info import format_info, info
     path = tmp_path / 'rosbag2.mcap'
     with open(path, 'wb') as stream:
         writer = Writer(stream)

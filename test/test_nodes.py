@@ -9,7 +9,6 @@ lookup goes exactly as in ``ros2run``. ``pip install`` (a wheel) would put them 
 Then every node is stopped mid-stream with SIGINT and with SIGTERM: exit 0, a REPORT line, no
 traceback, nothing of its own left in /dev/shm.
 """
-import json
 import os
 import shutil
 import signal
@@ -22,8 +21,8 @@ from pathlib import Path
 
 import pytest
 
-from installed import executable
-from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+from harness.installed import executable
+from rosidl_buffer_py.nodes.report import last_report
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE = 'rosidl_buffer_py'
@@ -33,9 +32,9 @@ EXECUTABLES = ['image_publisher', 'image_subscriber', 'legacy_image_publisher',
 
 
 def _report(stdout: str) -> dict:
-    lines = [line for line in stdout.splitlines() if line.startswith(REPORT_PREFIX)]
-    assert lines, f'no REPORT line in:\n{stdout[-2000:]}'
-    return json.loads(lines[-1][len(REPORT_PREFIX):])
+    report = last_report(stdout.splitlines())
+    assert report is not None, f'no REPORT line in:\n{stdout[-2000:]}'
+    return report
 
 
 def _run(command, timeout=60, **kwargs):
@@ -311,7 +310,7 @@ import signal
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from rosidl_buffer_py.nodes import common
+from rosidl_buffer_py.nodes import common, report
 
 
 class Listener(Node):
@@ -333,7 +332,7 @@ class Listener(Node):
         Image.__init__ = interrupted
 
     def finish(self):
-        common.print_report({'role': 'listener', 'received': self.received})
+        report.print_report({'role': 'listener', 'received': self.received})
 
 
 def run(node):
@@ -361,14 +360,14 @@ _HUNG_TEARDOWN = '''
 import time
 import rclpy
 from rclpy.node import Node
-from rosidl_buffer_py.nodes import common
+from rosidl_buffer_py.nodes import common, report
 
 common.TEARDOWN_TIMEOUT_SEC = 1.0
 
 
 class Stuck(Node):
     def finish(self):
-        common.print_report({'role': 'stuck'})
+        report.print_report({'role': 'stuck'})
 
     def destroy_node(self):  # as rmw's participant teardown spinning with the GIL held
         deadline = time.monotonic() + 60

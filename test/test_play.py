@@ -13,8 +13,8 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
-from rosidl_buffer_py.message_definition import full_definition
-from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+from rosidl_buffer_py.tools.message_definition import full_definition
+from rosidl_buffer_py.nodes.report import REPORT_PREFIX
 
 IMAGES, TEXTS, PERIOD_NS = 45, 15, 50_000_000
 
@@ -78,7 +78,7 @@ def test_out_of_order_bag_plays_in_log_time_order_and_on_time(tmp_path):
                                 start_new_session=True)
     try:
         assert listener.stdout.readline().strip() == 'ready'
-        play = subprocess.run([sys.executable, '-m', 'rosidl_buffer_py.play', str(bag),
+        play = subprocess.run([sys.executable, '-m', 'rosidl_buffer_py.tools.play', str(bag),
                                '--wait-for-subscribers', '1', '--linger', '2'],
                               capture_output=True, text=True, env=env, timeout=120)
         time.sleep(0.5)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-import installed
+from harness import installed
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -27,9 +27,9 @@ from sensor_msgs.msg import Image
 import rosidl_buffer_py  # noqa: F401  (msg.data = Buffer support, as in the nodes)
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import codec
-from rosidl_buffer_py.bag import qos_from_yaml
-from rosidl_buffer_py.message_definition import full_definition
-from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+from rosidl_buffer_py.tools.bag import qos_from_yaml
+from rosidl_buffer_py.tools.message_definition import full_definition
+from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
 from rosidl_buffer_py.nodes.frames import pattern
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
@@ -43,9 +43,9 @@ MAX_BAG_SIZE = 60 * 1024
 
 
 def _report(stdout: str) -> dict:
-    lines = [line for line in stdout.splitlines() if line.startswith(REPORT_PREFIX)]
-    assert lines, f'no REPORT line in:\n{stdout[-2000:]}'
-    return json.loads(lines[-1][len(REPORT_PREFIX):])
+    report = last_report(stdout.splitlines())
+    assert report is not None, f'no REPORT line in:\n{stdout[-2000:]}'
+    return report
 
 
 def _start(module: str, *args: str) -> subprocess.Popen:
@@ -83,7 +83,7 @@ def _publisher(run: Run, topic: str, executable: str, backend: str, **extra):
 def recording(tmp_path_factory):
     """Record the mixed graph; SIGINT the recorder while /rec/live still publishes."""
     bag = tmp_path_factory.mktemp('record') / 'bag'
-    recorder = _start('rosidl_buffer_py.record', *FINITE, LIVE, '-o', str(bag),
+    recorder = _start('rosidl_buffer_py.tools.record', *FINITE, LIVE, '-o', str(bag),
                       '--max-bag-size', str(MAX_BAG_SIZE), '--qos-depth', '100')
     try:
         with Run() as run:
@@ -204,12 +204,12 @@ def test_bag_layout_is_rosbag2s(recording):
 
 
 def test_bag_info(recording):
-    code, out, err = _run('rosidl_buffer_py.bag_info', str(recording['bag']))
+    code, out, err = _run('rosidl_buffer_py.tools.bag_info', str(recording['bag']))
     assert code == 0, err
     assert f'Topic: /rec/demo | Type: sensor_msgs/msg/Image | Count: {COUNT} | ' \
            'Serialization Format: cdr' in out
     assert 'Storage id:        mcap' in out and 'bag_0.mcap' in out
-    code, out, err = _run('rosidl_buffer_py.bag_info', str(recording['bag']), '--json')
+    code, out, err = _run('rosidl_buffer_py.tools.bag_info', str(recording['bag']), '--json')
     facts = json.loads(out)
     assert facts['message_count'] == sum(t['count'] for t in facts['topics'])
     assert facts['size'] == sum(p.stat().st_size for p in _files(recording['bag']))
@@ -227,7 +227,7 @@ def test_play_into_buffer_aware_and_plain_subscribers(recording):
         run.start('aware_legacy', 'image_subscriber', topic='/rec/legacy',
                   acceptable_buffer_backends='demo', expected_backend='demo', **subscriber)
         run.start('plain_legacy', 'legacy_image_subscriber', topic='/rec/legacy', **subscriber)
-        code, out, err = _run('rosidl_buffer_py.play', str(recording['bag']),
+        code, out, err = _run('rosidl_buffer_py.tools.play', str(recording['bag']),
                               '--topics', '/rec/demo', '/rec/legacy', '--rate', '2',
                               '--wait-for-subscribers', '2', '--qos-depth', '100',
                               timeout=90)
@@ -253,12 +253,12 @@ def test_bad_inputs_get_one_line_and_status_2(recording, tmp_path):
         truncated.write_bytes(source.read(MAX_BAG_SIZE // 2))
     missing = str(tmp_path / 'missing')
     cases = [
-        ('rosidl_buffer_py.bag_info', missing),
-        ('rosidl_buffer_py.bag_info', str(truncated)),
-        ('rosidl_buffer_py.play', missing),
-        ('rosidl_buffer_py.play', str(truncated)),
-        ('rosidl_buffer_py.play', str(recording['bag']), '--topics', '/no/such/topic'),
-        ('rosidl_buffer_py.record', '-o', str(tmp_path / 'out')),  # no topics, no --all
+        ('rosidl_buffer_py.tools.bag_info', missing),
+        ('rosidl_buffer_py.tools.bag_info', str(truncated)),
+        ('rosidl_buffer_py.tools.play', missing),
+        ('rosidl_buffer_py.tools.play', str(truncated)),
+        ('rosidl_buffer_py.tools.play', str(recording['bag']), '--topics', '/no/such/topic'),
+        ('rosidl_buffer_py.tools.record', '-o', str(tmp_path / 'out')),  # no topics, no --all
     ]
     for module, *args in cases:
         code, out, err = _run(module, *args)
@@ -332,7 +332,7 @@ def test_recorder_started_first_misses_nothing_after_its_first_frame(tmp_path, b
     to seconds on a loaded machine; the recorder's own is measured from the discovery event.)"""
     bag = tmp_path / 'first'
     count = 90
-    recorder = _start('rosidl_buffer_py.record', '/first/image', '-o', str(bag),
+    recorder = _start('rosidl_buffer_py.tools.record', '/first/image', '-o', str(bag),
                       '--qos-depth', '30')
     try:
         with Run() as run:

@@ -26,9 +26,9 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
 from launch_free_demos.runner import Run
-from rosidl_buffer_py.bag import FLUSH_PERIOD_SEC, BagError, BagReader, BagWriter, Topic
-from rosidl_buffer_py.message_definition import full_definition
-from rosidl_buffer_py.reindex import reindex_bag
+from rosidl_buffer_py.tools.bag import FLUSH_PERIOD_SEC, BagError, BagReader, BagWriter, Topic
+from rosidl_buffer_py.tools.message_definition import full_definition
+from rosidl_buffer_py.tools.reindex import reindex_bag
 
 #: Publishes std_msgs/String 'N' (N = 0, 1, ...) at 10 Hz until stopped.
 TALKER = '''
@@ -97,7 +97,7 @@ def _read_with_rosbags(bag: Path) -> Optional[int]:
 
 def test_sigkilled_recorder_then_reindex(tmp_path):
     bag = tmp_path / 'crash'
-    recorder = _start(sys.executable, '-m', 'rosidl_buffer_py.record', '/crash/image',
+    recorder = _start(sys.executable, '-m', 'rosidl_buffer_py.tools.record', '/crash/image',
                       '/crash/text', '-o', str(bag), '--qos-depth', '100')
     talker = _start(sys.executable, '-c', TALKER, '/crash/text')
     try:
@@ -122,7 +122,7 @@ def test_sigkilled_recorder_then_reindex(tmp_path):
     with pytest.raises(BagError, match='buffer_bag_reindex'):
         BagReader(bag)
 
-    code, out, err = _reap(_start(sys.executable, '-m', 'rosidl_buffer_py.reindex', str(bag)))
+    code, out, err = _reap(_start(sys.executable, '-m', 'rosidl_buffer_py.tools.reindex', str(bag)))
     assert code == 0, err
     assert 'recovered' in out and 'metadata.yaml written' in out, out
 
@@ -148,7 +148,7 @@ def test_sigkilled_recorder_then_reindex(tmp_path):
             for t in metadata['topics_with_message_count']} == \
         {topic: len(received) for topic, received in by_topic.items()}
     # a second run changes nothing
-    code, out, _ = _reap(_start(sys.executable, '-m', 'rosidl_buffer_py.reindex', str(bag)))
+    code, out, _ = _reap(_start(sys.executable, '-m', 'rosidl_buffer_py.tools.reindex', str(bag)))
     assert code == 0 and 'complete' in out and 'finished' in out
     assert _messages(bag) == messages
     assert _read_with_rosbags(bag) in (None, len(messages))
@@ -207,7 +207,7 @@ def test_full_disk_leaves_a_readable_bag(tmp_path):
     disk.mkdir()
     # inside the namespace: a 2 MiB tmpfs, the recorder on it, then its bag copied out
     script = ('mount -t tmpfs -o size=2m tmpfs "$1" || exit 97; '
-              '"$2" -m rosidl_buffer_py.record /full/image -o "$1/bag" --duration 30; '
+              '"$2" -m rosidl_buffer_py.tools.record /full/image -o "$1/bag" --duration 30; '
               'status=$?; ls -la "$1/bag" >&2; cp -a "$1/bag" "$3"; exit $status')
     recorder = _start(*unshare, 'sh', '-c', script, 'sh', str(disk), sys.executable,
                       str(out_dir))

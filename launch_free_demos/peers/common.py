@@ -16,7 +16,6 @@ behaves towards the benchmark as image_publisher / image_subscriber do, without 
 No rclpy is imported: a peer costs what its own library costs.
 """
 import argparse
-import json
 import signal
 import struct
 import sys
@@ -27,8 +26,8 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy
 
-#: The benchmark finds the report by this prefix (as rosidl_buffer_py.nodes.common's).
-REPORT_PREFIX = 'REPORT '
+from rosidl_buffer_py.nodes.report import print_report  # the benchmark reads it as a node's
+
 BYTES_PER_PIXEL = {'mono8': 1, 'rgb8': 3, 'bgr8': 3, 'rgba8': 4}
 #: stamp (ns since the epoch), counter, CRC32 of the payload: sent beside each frame.
 FRAME_HEADER = struct.Struct('<QQI')
@@ -218,10 +217,6 @@ class Received:
             'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
             'timed_out': bool(expected) and len(self.seen) < expected,
         }
-
-
-def print_report(report: dict) -> None:
-    print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
 
 
 class Stop:

@@ -1,5 +1,5 @@
-"""What the runnable nodes share: declared parameters with their help, QoS parameters, reports,
-clean shutdown on SIGINT/SIGTERM.
+"""What the runnable nodes share: declared parameters with their help, QoS parameters, clean
+shutdown on SIGINT/SIGTERM (the report line they end with is :mod:`.report`'s).
 
 Each node lists its ROS parameters once, as :class:`Param` entries. From that one table come
 ``--help`` (every parameter with its type, default and meaning), the ``ParameterDescriptor``
@@ -24,8 +24,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 
-#: A report line starts with this, followed by one JSON object (parsed by launch_free_demos).
-REPORT_PREFIX = 'REPORT '
+from rosidl_buffer_py.nodes.report import REPORT_PREFIX
 
 RELIABILITY = {'reliable': ReliabilityPolicy.RELIABLE, 'best_effort': ReliabilityPolicy.BEST_EFFORT}
 
@@ -164,11 +163,6 @@ def handle_command_line(program: str, summary: str, specs: Sequence[Param],
               '--ros-args as -p NAME:=VALUE (see --help)', file=sys.stderr)
         return USAGE_ERROR
     return None
-
-
-def print_report(report: dict) -> None:
-    """Print the node's report as one parseable line on stdout."""
-    print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
 
 
 class _Interrupts:

@@ -15,9 +15,10 @@ import rosidl_buffer_py
 from rosidl_buffer_py.backend import BufferBackend
 from rosidl_buffer_py.image import allocate_image_msg, encoding_info, supported_encodings
 from rosidl_buffer_py.nodes.common import (
-    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, print_report,
-    qos_profile, run_node, with_default)
+    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, qos_profile,
+    run_node, with_default)
 from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
+from rosidl_buffer_py.nodes.report import print_report
 
 SUMMARY = ('Publish verifiable sensor_msgs/Image frames (a counter and a CRC32 in each) from '
            'CPU memory or a buffer backend; image_subscriber checks them.')
@@ -28,7 +29,7 @@ PARAMETERS = (
     Param('backend', 'cpu', 'where frames live: cpu (array.array, as stock rclpy) or a buffer '
           'backend', accepts='cpu or an installed backend that can allocate'),
     Param('fill', 'allocate', 'allocate: fill the backend memory in place; from_cpu: copy a '
-          'CPU frame into it at publish time (demo backend)', choices=('allocate', 'from_cpu')),
+          'CPU frame into it at publish time', choices=('allocate', 'from_cpu')),
     Param('width', 640, 'image width in pixels', minimum=1),
     Param('height', 480, 'image height in rows', minimum=1),
     Param('encoding', 'rgb8', 'sensor_msgs image encoding', accepts='mono8, rgb8, bgr8, rgba8, '
@@ -76,9 +77,6 @@ def check_parameters(p: dict) -> None:
         encoding_info(p['encoding'])
     except ValueError:
         raise bad_parameter('encoding', p['encoding'], supported_encodings()) from None
-    if p['fill'] == 'from_cpu' and p['backend'] not in ('cpu', 'demo'):
-        raise bad_parameter('fill', 'from_cpu', f"allocate with backend {p['backend']!r} "
-                            '(from_cpu is implemented for the demo backend)')
     if p['legacy'] and p['backend'] != 'cpu':
         raise bad_parameter('backend', p['backend'], 'cpu for a legacy publisher')
     if p['phase_sec'] != -1.0 and not (p['phase_sec'] >= 0 and (
@@ -103,6 +101,9 @@ class ImagePublisher(Node):
             rosidl_buffer_py.create_publisher(self, Image, p['topic'], qos)
         template = allocate_image_msg(p['height'], p['width'], p['encoding'])
         self.pixels = pattern(len(template.data))
+        #: the backend of ``fill`` from_cpu, found as any backend is (None for cpu)
+        self.backend = None if p['backend'] == 'cpu' else rosidl_buffer_py.get_backend(
+            p['backend'])
         self.published = 0
 
     def make_frame(self, counter: int) -> Image:
@@ -115,7 +116,7 @@ class ImagePublisher(Node):
             msg.height = p['height']
             frame = self.pixels.copy()
             stamp_frame(msg, counter, frame)
-            msg.data = _from_cpu(p['backend'], frame)
+            msg.data = _from_cpu(self.backend, frame)
             return msg
         msg = allocate_image_msg(p['height'], p['width'], p['encoding'], backend=p['backend'])
         flat = numpy.frombuffer(memoryview(msg.data), dtype=numpy.uint8)  # writable view
@@ -177,11 +178,11 @@ class ImagePublisher(Node):
         print_report(report)
 
 
-def _from_cpu(backend: str, frame: numpy.ndarray):
-    if backend == 'demo':
-        from demo_buffer_backend import DemoBuffer
-        return DemoBuffer.from_cpu(frame)
-    raise ValueError(f"fill 'from_cpu' is implemented for the demo backend, not {backend!r}")
+def _from_cpu(backend: BufferBackend, frame: numpy.ndarray) -> rosidl_buffer_py.Buffer:
+    """A copy of ``frame`` in ``backend``'s memory: one allocation, one memcpy."""
+    buffer = backend.allocate(frame.nbytes)
+    memoryview(buffer).cast('B')[:] = memoryview(frame).cast('B')
+    return buffer
 
 
 def main(args=None) -> int:

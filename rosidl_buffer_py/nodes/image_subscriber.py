@@ -19,9 +19,10 @@ import rosidl_buffer_py
 from rosidl_buffer_py import codec
 from rosidl_buffer_py.image import from_input_msg
 from rosidl_buffer_py.nodes.common import (
-    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, print_report,
-    qos_profile, run_node, with_default)
+    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, qos_profile,
+    run_node, with_default)
 from rosidl_buffer_py.nodes.frames import check_frame, latency_ms
+from rosidl_buffer_py.nodes.report import print_report
 
 DEFAULT_SENTINEL = '__default__'
 

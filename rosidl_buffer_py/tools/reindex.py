@@ -10,7 +10,7 @@ what the damaged tail held, so a bag stopped by a full disk can be finished on t
 Then ``metadata.yaml`` is written (atomically) for the whole bag. Files that are complete are
 only read.
 
-Usage: ``buffer_bag_reindex <bag>``; also ``python -m rosidl_buffer_py.reindex``.
+Usage: ``buffer_bag_reindex <bag>``; also ``python -m rosidl_buffer_py.tools.reindex``.
 """
 import argparse
 import io
@@ -32,7 +32,7 @@ from mcap.records import (
 from mcap.stream_reader import breakup_chunk
 from mcap.writer import MCAP0_MAGIC
 
-from rosidl_buffer_py.bag import (
+from rosidl_buffer_py.tools.bag import (
     BagError, Topic, bag_metadata, chunk_header, message_indexes,
     write_metadata_yaml, _FileInfo)
 

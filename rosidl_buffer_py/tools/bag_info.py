@@ -4,7 +4,7 @@ Files, size, storage, duration, start and end, message count, and per topic its 
 and serialization format. Reads only each file's summary section (no message data), so it is
 instant for any bag size. A bag is a directory (``buffer_record -o``) or one ``.mcap`` file.
 
-Usage: ``buffer_bag_info <bag> [--json]``; also ``python -m rosidl_buffer_py.bag_info``.
+Usage: ``buffer_bag_info <bag> [--json]``; also ``python -m rosidl_buffer_py.tools.bag_info``.
 """
 import argparse
 import datetime
@@ -12,7 +12,7 @@ import json
 import sys
 from typing import List, Optional
 
-from rosidl_buffer_py.bag import BagError, BagReader, STORAGE_ID, format_size
+from rosidl_buffer_py.tools.bag import BagError, BagReader, STORAGE_ID, format_size
 
 __all__ = ['format_info', 'info', 'main']
 

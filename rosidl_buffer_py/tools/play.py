@@ -13,11 +13,10 @@ history of ``--qos-depth``. ``--wait-for-subscribers N`` starts only once every 
 ``N`` subscriptions and every buffer-aware one among them is served on its channel.
 
 Usage: ``buffer_play <bag> [--topics T ...] [--rate R] [--loop] [--backend NAME]
-[--wait-for-subscribers N]``; also ``python -m rosidl_buffer_py.play``.
+[--wait-for-subscribers N]``; also ``python -m rosidl_buffer_py.tools.play``.
 """
 import argparse
 import itertools
-import json
 import signal
 import sys
 import threading
@@ -25,9 +24,10 @@ import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional
 
-from rosidl_buffer_py.bag import BagError, BagReader, qos_from_yaml
-from rosidl_buffer_py.message_definition import import_message_type
-from rosidl_buffer_py.native_output import native_stdout_to_stderr
+from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.tools.bag import BagError, BagReader, qos_from_yaml
+from rosidl_buffer_py.tools.message_definition import import_message_type
+from rosidl_buffer_py.tools.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
@@ -35,7 +35,6 @@ __all__ = ['main']
 SERVED_SETTLE_SECONDS = 0.5
 
 EXIT_USAGE = 2
-REPORT_PREFIX = 'REPORT '
 
 
 class UsageError(Exception):
@@ -308,15 +307,14 @@ def main(argv: Optional[List[str]] = None) -> int:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if player is not None:
-            print(REPORT_PREFIX + json.dumps({
+            print_report({
                 'role': 'player', 'bag': str(bag.path), 'backend': args.backend,
                 'seconds': round(time.monotonic() - started, 3),
                 'topics': {name: {'published': o.published, 'in_backend': o.in_backend,
                                   'buffer_aware': o.buffer_aware,
                                   'first_late_ms': o.first_late_ms,
                                   'max_late_ms': o.max_late_ms}
-                           for name, o in player.outputs.items()}}, sort_keys=True),
-                flush=True)
+                           for name, o in player.outputs.items()}})
         faulthandler.dump_traceback_later(20.0, exit=True)
         executor.shutdown()
         node.destroy_node()

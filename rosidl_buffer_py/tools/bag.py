@@ -47,7 +47,7 @@ from rclpy.duration import Duration
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
-from rosidl_buffer_py.message_definition import MessageDefinition
+from rosidl_buffer_py.tools.message_definition import MessageDefinition
 
 __all__ = [
     'BagError',

@@ -29,12 +29,11 @@ recording and finishes the file after its last complete chunk.
 
 Usage: ``buffer_record [topics ...] [--all] [-o DIR] [--duration S] [--max-bag-size BYTES]
 [--qos-reliability ...] [--qos-durability ...] [--qos-depth N]
-[--qos-profile-overrides-path YAML]``; also ``python -m rosidl_buffer_py.record``.
+[--qos-profile-overrides-path YAML]``; also ``python -m rosidl_buffer_py.tools.record``.
 """
 import argparse
 import collections
 import datetime
-import json
 import re
 import signal
 import sys
@@ -47,11 +46,12 @@ from typing import Dict, List, Optional
 import yaml
 
 from rosidl_buffer_py import _dds, discovery
-from rosidl_buffer_py.bag import (
+from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.tools.bag import (
     FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
-from rosidl_buffer_py.message_definition import (
+from rosidl_buffer_py.tools.message_definition import (
     full_definition, import_message_type, DefinitionNotFoundError)
-from rosidl_buffer_py.native_output import native_stdout_to_stderr
+from rosidl_buffer_py.tools.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
@@ -66,8 +66,6 @@ GRAPH_RETRIES = 200
 DEFAULT_MAX_CACHE_SIZE = 100 * 1024 * 1024
 #: Stop waiting for the writer thread after this long once stopped (it then gets reported).
 DRAIN_TIMEOUT_SEC = 120.0
-#: A line of the final report starts with this, then one JSON object (as the image nodes').
-REPORT_PREFIX = 'REPORT '
 EXIT_USAGE = 2
 
 
@@ -480,11 +478,10 @@ def print_summary(bag: BagWriter, stats: Dict[str, TopicStats], seconds: float,
         print('| ' + ' | '.join(cell.ljust(w) for cell, w in zip(row, widths)) + ' |')
         if index == 0:
             print('|' + '|'.join('-' * (w + 2) for w in widths) + '|')
-    print(REPORT_PREFIX + json.dumps({
+    print_report({
         'role': 'recorder', 'output': str(bag.directory), 'files': [str(f) for f in files],
         'seconds': round(seconds, 3), 'errors': errors,
-        'topics': {name: vars(entry) for name, entry in stats.items()}}, sort_keys=True),
-        flush=True)
+        'topics': {name: vars(entry) for name, entry in stats.items()}})
 
 
 def main(argv: Optional[List[str]] = None) -> int:

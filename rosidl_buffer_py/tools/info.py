@@ -1,7 +1,7 @@
 """buffer_topic_info: ``ros2 topic info -v`` for buffer-aware topics.
 
 ``ros2 run rosidl_buffer_py buffer_topic_info <topic> [--wait S] [--probe] [--json]`` (or
-``python -m rosidl_buffer_py.info``) lists every publisher and subscription of a topic: node,
+``python -m rosidl_buffer_py.tools.info``) lists every publisher and subscription of a topic: node,
 GID (32 hex), QoS, whether it is buffer-aware or legacy, the backends and metadata it advertises
 in USER_DATA (``BUFBE:``), and the per-endpoint descriptor channels
 ``rt/<topic>/_buf/<publisher gid>_<subscription gid>``.
