@@ -16,15 +16,15 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Set
 
-from rosidl_buffer_py.nodes.common import REPORT_PREFIX
+from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
 
 #: Executable name -> module run with ``python -m`` (the same names as the console scripts).
+#: Any other executable is the path of a Python file, run as a script (the tests' probe node).
 NODES = {
     'image_publisher': 'rosidl_buffer_py.nodes.image_publisher',
     'image_subscriber': 'rosidl_buffer_py.nodes.image_subscriber',
     'legacy_image_publisher': 'rosidl_buffer_py.nodes.legacy_image_publisher',
     'legacy_image_subscriber': 'rosidl_buffer_py.nodes.legacy_image_subscriber',
-    'probe_node': 'launch_free_demos.probe_node',
 }
 
 
@@ -159,7 +159,8 @@ class NodeProcess:
     _stdin_lock: threading.Lock = field(default_factory=threading.Lock)
 
     def command(self) -> List[str]:
-        args = [sys.executable, '-m', NODES[self.executable], *self.arguments, '--ros-args']
+        program = ['-m', NODES[self.executable]] if self.executable in NODES else [self.executable]
+        args = [sys.executable, *program, *self.arguments, '--ros-args']
         if self.rename_node:
             args += ['-r', f'__node:={self.label}']
         for name, value in self.parameters.items():
@@ -222,10 +223,8 @@ class NodeProcess:
 
     @property
     def report(self) -> Optional[dict]:
-        for line in reversed(self.output):
-            if line.startswith(REPORT_PREFIX):
-                return json.loads(line[len(REPORT_PREFIX):])
-        return None
+        """The process's report (:mod:`rosidl_buffer_py.nodes.report`), None before it."""
+        return last_report(self.output)
 
 
 def _pump(stream, sink: List[str], label: str, echo: bool,

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from installed import in_dev_venv
+from harness.installed import in_dev_venv
 from launch_free_demos import benchmark
 from launch_free_demos.benchmark import (
     ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,

@@ -9,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from installed import in_dev_venv
+from harness.installed import in_dev_venv
 
 ROOT = Path(__file__).resolve().parent.parent
 

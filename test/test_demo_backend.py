@@ -1,6 +1,6 @@
 """Tests of the ``demo`` shared-memory backend, in one process and across real processes.
 
-Other processes are test/demo_backend_peer.py, driven over JSON lines; every one is reaped.
+Other processes are test/harness/demo_backend_peer.py, driven over JSON lines; every one is reaped.
 Segments are memfds: what a process holds is read from its /proc/<pid>/maps and fd table, and
 nothing of ours may ever appear in /dev/shm.
 """
@@ -22,9 +22,9 @@ from rosidl_buffer_py import Buffer, EndpointInfo, EndpointKind, MAX_DESCRIPTOR_
 from rosidl_buffer_py.backend import EndpointGone
 
 import demo_buffer_backend
-from demo_backend_peer import Peer, memfd_usage
 from demo_buffer_backend import (DemoBackend, DemoBuffer, descriptor, diagnostics, handover,
                                  lifecycle, limits, memory)
+from harness.demo_backend_peer import Peer, memfd_usage
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 

@@ -1,17 +1,17 @@
 """The equivalence suite: each scenario's graph run with stock rclpy endpoints (the oracle) and
 with buffer-aware ones, in real processes over real Fast DDS, side by side in two domains.
 
-A failure lists every difference between the two outcomes (see launch_free_demos/equivalence.py
+A failure lists every difference between the two outcomes (see test/harness/equivalence.py
 for what is compared and the tolerances). One scenario by hand:
-``.venv/bin/python -m launch_free_demos.equivalence <name> [--echo]``.
+``.venv/bin/python test/harness/equivalence.py <name> [--echo]``.
 """
 import subprocess
 import sys
 
 import pytest
 
-from launch_free_demos import equivalence
-from launch_free_demos.equivalence import Scenario, compare, pub, sub, table
+from harness import equivalence
+from harness.equivalence import Scenario, compare, pub, sub, table
 
 SCENARIOS = equivalence.scenarios()
 
@@ -27,12 +27,12 @@ def test_command_line_runs_named_scenarios():
     """README's command, on one scenario, the stock graph against itself (equal whatever
     the buffer-aware endpoints do); --echo shows the probes' signals."""
     done = subprocess.run(
-        [sys.executable, '-m', 'launch_free_demos.equivalence', '--oracle-vs-oracle',
+        [sys.executable, equivalence.__file__, '--oracle-vs-oracle',
          '--echo', 'reliable_pub_first_wait'], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     assert '| reliable_pub_first_wait |' in done.stdout and '| equal |' in done.stdout
     assert '[stock:pubs] SIGNAL go' in done.stdout
-    unknown = subprocess.run([sys.executable, '-m', 'launch_free_demos.equivalence', 'nope'],
+    unknown = subprocess.run([sys.executable, equivalence.__file__, 'nope'],
                              capture_output=True, text=True, timeout=60)
     assert unknown.returncode == 2 and 'reliable_pub_first_wait' in unknown.stderr
 

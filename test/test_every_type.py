@@ -19,7 +19,7 @@ from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String
 
 import rosidl_buffer_py
-from in_process import spin_until
+from harness.in_process import spin_until
 from test_codec_general import installed_message_types
 
 TYPES = installed_message_types()

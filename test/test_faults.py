@@ -9,7 +9,7 @@ warning.
 
 One real graph (image_publisher and three image_subscriber processes over Fast DDS) covers the
 stalled, the never-taking and the healthy subscriber and the publisher crash; the other cases
-are backend-level, with test/demo_backend_peer.py and small scripts as the other processes.
+are backend-level, with test/harness/demo_backend_peer.py and small scripts as the other processes.
 Figures (healthy zero-copy share, the hostile-suite table) are printed: run with -s.
 """
 import json
@@ -24,7 +24,7 @@ import time
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # run as a script: 'graph'
-from demo_backend_peer import Peer  # noqa: E402
+from harness.demo_backend_peer import Peer  # noqa: E402
 from launch_free_demos.runner import Run
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer

@@ -12,9 +12,9 @@ import re
 import subprocess
 import time
 
-from installed import executable
+from harness.installed import executable
 from launch_free_demos.runner import Run
-from launch_free_demos.scenarios import SMALL
+from harness.scenarios import SMALL
 
 INFO = executable('buffer_topic_info')
 HEX32 = re.compile(r'^[0-9a-f]{32}$')

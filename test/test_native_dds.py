@@ -1,6 +1,6 @@
 """The native rmw_fastrtps layer (rosidl_buffer_py._native via rosidl_buffer_py._dds).
 
-Real rclpy nodes on real Fast DDS. The second process is test/native_dds_peer.py; every one is
+Real rclpy nodes on real Fast DDS. The second process is test/harness/native_dds_peer.py; every one is
 reaped. Each test uses its own rclpy Context so rclpy.shutdown() orders can be exercised
 without disturbing other test modules.
 """
@@ -20,10 +20,10 @@ from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 
-from in_process import spin_until
+from harness.in_process import spin_until
 from rosidl_buffer_py import _dds
 
-PEER = os.path.join(os.path.dirname(__file__), 'native_dds_peer.py')
+PEER = os.path.join(os.path.dirname(__file__), 'harness', 'native_dds_peer.py')
 
 pytestmark = pytest.mark.skipif(
     not _dds.is_supported(), reason='the native DDS layer needs rmw_fastrtps_cpp')

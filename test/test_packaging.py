@@ -27,8 +27,7 @@ MODULE_KEYS = {
 #: declared, never installed by ./dev or CI.
 OPTIONAL_TEST_MODULES = {'rosbags': 'test_reindex.py reads repaired bags back with it too'}
 #: Modules of this repository (or made by the tests) that need no dependency.
-OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'installed',
-               'in_process', 'demo_backend_peer',
+OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'harness',
                'rbpy_example_backend', 'test_codec', 'test_codec_general', 'test_packaging',
                'my_backend'}
 

@@ -18,7 +18,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
-from in_process import frame, spin_until
+from harness.in_process import frame, spin_until
 from launch_free_demos.runner import fastdds_files_of, fastdds_leftovers
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from installed import executable, in_dev_venv
+from harness.installed import executable, in_dev_venv
 
 ROOT = Path(__file__).resolve().parent.parent
 README = (ROOT / 'README.md').read_text()
@@ -36,14 +36,14 @@ COVERAGE = {
     # benchmark's peers, test_benchmark runs each peer where it is installed
     '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
     './dev setup': 'here',
-    '.venv/bin/python -m launch_free_demos.scenarios': 'test_transport.py',  # every scenario
-    '.venv/bin/python -m launch_free_demos.equivalence [names] [--echo]': 'test_equivalence.py',
-    '.venv/bin/python -m launch_free_demos.equivalence': 'test_equivalence.py',
+    '.venv/bin/python test/harness/scenarios.py': 'test_transport.py',  # every scenario
+    '.venv/bin/python test/harness/equivalence.py [names] [--echo]': 'test_equivalence.py',
+    '.venv/bin/python test/harness/equivalence.py': 'test_equivalence.py',
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
     'buffer_topic_info <topic> [--json] [--wait S] [--probe]': 'test_info.py',
     'buffer_topic_info --probe': 'test_info.py',
-    '.venv/bin/python test/measure_inspector.py 20': 'here',     # with 1 run instead of 20
+    '.venv/bin/python test/harness/measure_inspector.py 20': 'here',     # with 1 run instead of 20
     'colcon build': 'test_colcon.py',
     'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
     'colcon test-result --verbose': 'test_colcon.py',
@@ -180,7 +180,7 @@ def test_inspector_measurement_command():
 @dev_only
 @pytest.mark.parametrize('name', ['demo_pub_to_legacy_sub'])
 def test_scenarios_command_line(name):
-    out = run(f'.venv/bin/python -m launch_free_demos.scenarios {name}', 120)
+    out = run(f'.venv/bin/python test/harness/scenarios.py {name}', 120)
     assert out.returncode == 0, out.stdout + out.stderr[-2000:]
     assert f'| {name} | PASS |' in out.stdout
 

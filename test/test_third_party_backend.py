@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from launch_free_demos.runner import Run
-from launch_free_demos.scenarios import SMALL
+from harness.scenarios import SMALL
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
 pytestmark = pytest.mark.xdist_group('test_third_party_backend')

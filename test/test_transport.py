@@ -15,9 +15,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
-from in_process import frame, spin_until
+from harness.in_process import frame, spin_until
 from launch_free_demos.runner import Run
-from launch_free_demos.scenarios import SCENARIOS, SMALL
+from harness.scenarios import SCENARIOS, SMALL
 from rosidl_buffer_py import _dds, advertisement, codec
 from rosidl_buffer_py import routes
 from rosidl_buffer_py.nodes.frames import check_frame

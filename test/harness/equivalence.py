@@ -3,7 +3,7 @@
 "Stock rclpy is the oracle": a graph where some endpoints are buffer-aware must be observed as
 the same graph of plain rclpy endpoints. A :class:`Scenario` is a graph (publishers and
 subscriptions, each ``ours`` or ``stock``, their QoS) and a timeline per process, run by
-:mod:`launch_free_demos.probe_node` in real processes over real Fast DDS:
+:mod:`harness.probe_node` in real processes over real Fast DDS:
 
 - the **stock** variant makes every endpoint a plain rclpy one;
 - the **ours** variant makes the ``ours`` endpoints buffer-aware (cpu or demo publishers,
@@ -22,8 +22,8 @@ node returned. Per process: other warnings, steps that timed out or raised, trac
 (:data:`TOLERANCES`, :data:`LENIENT_MISSING`, :data:`STARTUP_RACE_MESSAGES`, incompatible QoS
 warnings).
 
-``python -m launch_free_demos.equivalence [names] [--echo]`` prints one row per scenario, then
-the differences; ``--oracle-vs-oracle`` runs the stock graph twice, which shows what timing
+``.venv/bin/python test/harness/equivalence.py [names] [--echo]`` prints one row per scenario,
+then the differences; ``--oracle-vs-oracle`` runs the stock graph twice, which shows what timing
 alone changes (it should say "equal" everywhere).
 """
 import argparse
@@ -36,11 +36,15 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-from launch_free_demos.domains import claim_domain_ids
-from launch_free_demos.probe_node import SIGNAL_PREFIX
-from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers
+if __package__ in (None, ''):  # run as a file: harness is a package of test/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from harness.probe_node import PROBE_NODE, SIGNAL_PREFIX  # noqa: E402 (after the path fix)
+from launch_free_demos.domains import claim_domain_ids  # noqa: E402
+from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers  # noqa: E402
 
 #: Messages per publishing step and their rate: small, so the matrix fits CI (~2.5 min).
 N = 30
@@ -383,7 +387,7 @@ def run_variant(scenario: Scenario, variant: str, domain_id: int,
     with Run(echo=echo) as run:
         def launch(label: str) -> None:
             run.add(NodeProcess(
-                f'{variant}:{label}', 'probe_node',
+                f'{variant}:{label}', PROBE_NODE,
                 arguments=[json.dumps(probe_spec(scenario, variant, label))],
                 env={'ROS_DOMAIN_ID': str(domain_id)}, on_line=relay, rename_node=False))
 

@@ -2,8 +2,8 @@
 
 Each scenario starts publisher and subscriber node processes, waits for the subscribers'
 reports and checks them: every frame exactly once, checksums right, and the payload backend each
-subscriber must see. ``python -m launch_free_demos.scenarios [NAME ...]`` runs them and prints a
-table; the integration tests run the same scenarios.
+subscriber must see. ``.venv/bin/python test/harness/scenarios.py [NAME ...]`` runs them and
+prints a table; the integration tests run the same scenarios.
 """
 import argparse
 import sys

@@ -1,9 +1,9 @@
 """probe_node: host several publishers and subscriptions, run a timeline, report what was seen.
 
-The equivalence suite (:mod:`launch_free_demos.equivalence`) runs one scenario as two or three
+The equivalence suite (:mod:`harness.equivalence`) runs one scenario as two or three
 probe processes. A probe takes one JSON spec as its first argument::
 
-    python -m launch_free_demos.probe_node '{"variant": "ours", "endpoints": {...}, "steps": [...]}'
+    python test/harness/probe_node.py '{"variant": "ours", "endpoints": {...}, "steps": [...]}'
 
 - ``variant``: ``"stock"`` makes every endpoint a plain rclpy one and never imports this
   package (the oracle); ``"ours"`` makes endpoints whose ``impl`` is ``"ours"`` buffer-aware
@@ -36,6 +36,7 @@ import sys
 import threading
 import time
 import zlib
+from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy
@@ -48,8 +49,11 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import Image
 
-from rosidl_buffer_py.nodes.common import print_report, run_node
+from rosidl_buffer_py.nodes.common import run_node
+from rosidl_buffer_py.nodes.report import print_report
 
+#: What the process runner starts (``NodeProcess(label, PROBE_NODE, ...)``): this file.
+PROBE_NODE = str(Path(__file__).resolve())
 SIGNAL_PREFIX = 'SIGNAL '
 #: Payload bytes per message.
 PAYLOAD_BYTES = 2048

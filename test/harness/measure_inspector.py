@@ -5,8 +5,8 @@ until frames flow, then runs the inspector N times (extra arguments go to it) an
 per run and the count of complete views: all three endpoints with their node names and
 advertisements, and the channel.
 
-    .venv/bin/python test/measure_inspector.py 20
-    .venv/bin/python test/measure_inspector.py 10 --wait 1
+    .venv/bin/python test/harness/measure_inspector.py 20
+    .venv/bin/python test/harness/measure_inspector.py 10 --wait 1
 """
 import json
 import os
@@ -14,10 +14,14 @@ import random
 import subprocess
 import sys
 import time
+from pathlib import Path
 
-from installed import executable
-from launch_free_demos.runner import Run
-from launch_free_demos.scenarios import SMALL
+if __package__ in (None, ''):  # run as a file: harness is a package of test/
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from harness.installed import executable  # noqa: E402 (after the path fix)
+from harness.scenarios import SMALL  # noqa: E402
+from launch_free_demos.runner import Run  # noqa: E402
 
 
 def main(argv) -> int:
@@ -56,5 +60,4 @@ def main(argv) -> int:
 
 
 if __name__ == '__main__':
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     sys.exit(main(sys.argv[1:]))

@@ -19,7 +19,7 @@ import rosidl_buffer_py
 
 PACKAGE = 'rosidl_buffer_py'
 #: The repository (or, under colcon, the source copy the tests run from).
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 #: The venv ``./dev`` makes and runs in.
 DEV_VENV = Path(os.environ.get('ROSIDL_BUFFER_PY_VENV', ROOT / '.venv'))
 
