@@ -1,6 +1,6 @@
 """The benchmark suite runs end to end and writes its table and plot (no timing asserts).
 
-Runs README's ``./dev benchmark`` in its smoke mode (the quick mode's code with the fewest
+Runs README's ``./dev bench`` in its smoke mode (the quick mode's code with the fewest
 frames and sizes that still fill every table) in a subprocess, inside this test session's ROS
 domain (see conftest.py), as CI does. Outside the ./dev venv (under ``colcon
 test``) the same module runs with the interpreter under test, as ``./dev`` would exec it.
@@ -15,10 +15,11 @@ from pathlib import Path
 import pytest
 
 from harness.installed import in_dev_venv
-from launch_free_demos import benchmark
-from launch_free_demos.benchmark import (
+from launch_free_demos.bench import suite as benchmark
+from launch_free_demos.bench.measured import StealMeter
+from launch_free_demos.bench.suite import (
     ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
-    StealMeter, measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
+    measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
 pytestmark = pytest.mark.xdist_group('test_benchmark')
@@ -40,7 +41,7 @@ def table_rows(text: str):
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
     command = [str(ROOT / 'dev'), 'benchmark'] if in_dev_venv() else \
-        [sys.executable, '-m', 'launch_free_demos.benchmark']
+        [sys.executable, '-m', 'launch_free_demos.bench.suite']
     completed = subprocess.run(  # README's command; --smoke: the quick mode's code, fewer frames
         command + ['--smoke', '--out', str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
@@ -72,7 +73,7 @@ def test_peers_table_shows_installed_peers_and_skips_absent_ones(smoke_run):
     saved = (out / 'benchmark.md').read_text()
     assert '## Peers side by side' in saved
     section = saved.split('## Peers side by side', 1)[1].split('\n## ', 1)[0]
-    assert f'Produced by `./dev benchmark --smoke --out {out}`' in section
+    assert f'Produced by `./dev bench --smoke --out {out}`' in section
     rows = {(cells[0], cells[1]): cells for cells in table_rows(section)}
     for payload in MODES['smoke'].payloads:
         for label in PEER_TABLE_OURS:
@@ -146,7 +147,7 @@ def test_a_node_that_ignores_sigint_is_killed_and_reaped():
     stop on SIGINT gets SIGUSR1 (stack dump), then SIGKILL, and is reaped all the same."""
     import signal
 
-    from launch_free_demos.benchmark import MeasuredRun
+    from launch_free_demos.bench.measured import MeasuredRun
     with MeasuredRun() as run:
         node = run.start('frozen', 'image_subscriber', topic='/frozen', timeout_sec=60.0)
         time.sleep(1.0)
@@ -159,10 +160,10 @@ def test_a_node_that_ignores_sigint_is_killed_and_reaped():
 
 
 def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
-    """README's ./dev bench-mixed, small and short: every graph's row, a figure for every
+    """README's ./dev bench mixed, small and short: every graph's row, a figure for every
     process it has (every subscriber checks every frame's counter and CRC32)."""
     command = [str(ROOT / 'dev'), 'bench-mixed'] if in_dev_venv() else \
-        [sys.executable, '-m', 'launch_free_demos.bench_mixed']
+        [sys.executable, '-m', 'launch_free_demos.bench.mixed']
     completed = subprocess.run(
         command + ['--payload', '64x48', '--frames', '1', '--extra', '2', '--rounds', '1'],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
@@ -189,7 +190,7 @@ def test_under_churn_on_a_loaded_machine_steady_subscribers_get_what_stocks_get_
     Buffers, and the publisher writes no CPU copy to a peer that shares its backend (dead
     ones included)."""
     completed = subprocess.run(
-        [sys.executable, '-m', 'launch_free_demos.bench_churn', '--seconds', '4', '--payload',
+        [sys.executable, '-m', 'launch_free_demos.bench.churn', '--seconds', '4', '--payload',
          '640x480', '--come-go', '1', '--kill-every', '1.5', '--load', '2'],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
     assert completed.returncode == 0, completed.stdout + completed.stderr
@@ -205,10 +206,10 @@ def test_under_churn_on_a_loaded_machine_steady_subscribers_get_what_stocks_get_
 
 
 def test_bench_hotpath_times_every_stage_of_every_transport():
-    """README's ./dev bench-hotpath, short: the latency split of each transport, and a median
+    """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""
     command = [str(ROOT / 'dev'), 'bench-hotpath'] if in_dev_venv() else \
-        [sys.executable, '-m', 'launch_free_demos.bench_hotpath']
+        [sys.executable, '-m', 'launch_free_demos.bench.hotpath']
     completed = subprocess.run(command + ['--frames', '8', '--rate', '20'], cwd=ROOT,
                                capture_output=True, text=True, timeout=300,
                                env=dict(os.environ))
@@ -283,7 +284,7 @@ def test_peer_scratch_removes_what_a_run_left_and_keeps_what_is_in_use(tmp_path)
 def test_a_fanout_series_whose_cpu_falls_with_more_subscribers_is_flagged():
     """The issue's figures: stock's publisher CPU per message 62.6 ms with 1 subscriber and 3.7
     ms with 4 is a measurement error; a series that grows (or stays within noise) is not."""
-    from launch_free_demos.benchmark import fanout_implausibility
+    from launch_free_demos.bench.suite import fanout_implausibility
     reason = fanout_implausibility([(1, 62.6), (2, 20.1), (4, 3.7)])
     assert reason == ('CPU per message fell from 62.6 to 20.1 ms from 1 to 2 subscribers: a '
                       'measurement error, not plotted')

@@ -1,4 +1,4 @@
-"""README's ``./dev bench-bringup``, small and short (no timing asserts).
+"""README's ``./dev bench bringup``, small and short (no timing asserts).
 
 Each trial starts a fresh buffer-aware subscriber beside a running demo publisher: its channel
 must come up (a zero-copy frame arrives), and from its first frame on nothing may be lost,
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def test_every_new_subscriber_reaches_zero_copy_with_nothing_lost_on_the_way():
     command = [str(ROOT / 'dev'), 'bench-bringup'] if in_dev_venv() else \
-        [sys.executable, '-m', 'launch_free_demos.bench_bringup']
+        [sys.executable, '-m', 'launch_free_demos.bench.bringup']
     completed = subprocess.run(
         command + ['--payload', '64x48', '--trials', '2', '--after', '3'],
         cwd=ROOT, capture_output=True, text=True, timeout=180, env=dict(os.environ))

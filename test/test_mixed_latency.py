@@ -12,7 +12,7 @@ margin, far below the stalls this guards against. With
 ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT=participant (channels back in shared memory, as before the
 fix) it fails: demo p99 279 ms against 22 ms.
 """
-from launch_free_demos.bench_mixed import run_latency
+from launch_free_demos.bench.mixed import run_latency
 
 
 def test_channel_frames_are_not_held_behind_a_legacy_listeners_frames():

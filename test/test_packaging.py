@@ -136,7 +136,7 @@ def test_bench_requirements_are_optional_and_match_the_benchmark_peers():
     """requirements-bench.txt names exactly the peers' modules; neither ./dev setup, CI nor
     setup.py reads it (./dev's help and README say how to install it), and no package.xml key
     is one of them."""
-    from launch_free_demos.benchmark import PEERS
+    from launch_free_demos.bench.suite import PEERS
     modules = bench_modules()
     assert {t.peer_module: t.pip_name for t in PEERS} == {
         module: re.split(r'[<>=!~\[ ]', requirement)[0] for module, requirement in modules.items()}

@@ -28,10 +28,11 @@ COVERAGE = {
     './dev demo': 'here',
     './dev demo --help': 'here',
     './dev test': 'ci',                                   # .ci/run runs exactly this
-    './dev bench': 'here',
-    './dev bench-transport': 'here',                      # with fewer frames and payloads
-    './dev benchmark --quick': 'test_benchmark.py',  # --smoke: the same code, fewest frames
-    './dev benchmark': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
+    './dev bench foundation': 'here',
+    './dev bench --list': 'here',
+    './dev bench transport': 'here',                      # with fewer frames and payloads
+    './dev bench --quick': 'test_benchmark.py',  # --smoke: the same code, fewest frames
+    './dev bench': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
     # benchmark's peers, test_benchmark runs each peer where it is installed
     '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
@@ -55,10 +56,10 @@ COVERAGE = {
     '.venv/lib/rosidl_buffer_py/buffer_bag_info camera_bag': 'test_record.py',
     '.venv/lib/rosidl_buffer_py/buffer_play camera_bag --rate 2': 'test_record.py',
     'wait': 'test_record.py',
-    './dev bench-record': 'test_record.py',               # 1 s of small frames
-    './dev bench-mixed': 'test_benchmark.py',             # small frames, fewer of them
-    './dev bench-bringup': 'test_bringup.py',             # small frames, 2 trials
-    './dev bench-hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
+    './dev bench record': 'test_record.py',               # 1 s of small frames
+    './dev bench mixed': 'test_benchmark.py',             # small frames, fewer of them
+    './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
+    './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     'colcon test': 'test_colcon.py',
     # "Use it in your own venv": a fresh venv, pip install of a copy of the checkout
     'python3 -m venv myenv': 'test_install.py',
@@ -141,10 +142,14 @@ def test_dev_setup_says_what_it_does_and_shows_pip_only_when_it_fails(tmp_path):
 
 @dev_only
 def test_dev_bench_prints_the_table():
-    bench = run('./dev bench', 300)
+    listed = run('./dev bench --list', 300)
+    assert listed.returncode == 0, listed.stderr[-2000:]
+    for name in ('foundation', 'transport', 'record', 'mixed', 'bringup', 'hotpath', 'churn'):
+        assert f'  {name} ' in listed.stdout, listed.stdout
+    bench = run('./dev bench foundation', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
     assert '| 3840x2160 rgb8 | 24,883,200 |' in bench.stdout
-    transport = run('./dev bench-transport --frames 5 --payloads "1 KiB"', 300)
+    transport = run('./dev bench transport --frames 5 --payloads "1 KiB"', 300)
     assert transport.returncode == 0, transport.stderr[-2000:]
     assert '| 1 KiB |' in transport.stdout
 

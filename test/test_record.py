@@ -302,7 +302,7 @@ def test_readme_recording_example_runs(tmp_path):
 
 
 def test_bench_record_prints_its_table(tmp_path):
-    code, out, err = _run('launch_free_demos.bench_record', '--seconds', '1', '--width', '64',
+    code, out, err = _run('launch_free_demos.bench.record', '--seconds', '1', '--width', '64',
                           '--height', '48', '--dd-mib', '8', '--dir', str(tmp_path),
                           timeout=180)
     assert code == 0, err[-3000:]

@@ -19,7 +19,7 @@ shared-memory Buffer to the kernel. A payload of at least :data:`DIRECT_MIN_BYTE
 page-aligned in memory (a demo backend frame) is written with ``O_DIRECT``: a private padding record
 (opcode :data:`PADDING_OPCODE`, which MCAP readers skip) before its chunk puts it at a page boundary
 of the file, and the disk reads it from shared memory without a copy into the page cache (that copy
-costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench-record``). Other messages,
+costs 20 to 50 ms of CPU per 4K frame under sustained load; ``./dev bench record``). Other messages,
 and file systems without ``O_DIRECT``, go through ``os.pwritev``.
 The mcap library writes every other record (header, schemas, channels, metadata, summary,
 footer); chunks and message indexes are written here, and entered into the library writer's

@@ -6,7 +6,7 @@ verifies every frame's checksum. Prints a markdown table of medians and p90s and
 project targets. With ``--rounds N`` every payload is measured N times, the transports
 interleaved round by round, and each cell is the median over the rounds (run-to-run noise on a
 shared machine is larger than the differences at small payloads). A benchmark: it prints, it
-asserts nothing. ``./dev bench-transport``.
+asserts nothing. ``./dev bench transport``.
 """
 import argparse
 import os

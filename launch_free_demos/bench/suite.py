@@ -1,6 +1,6 @@
 """Benchmark suite: zero-copy images against stock rclpy, side by side, with a plot.
 
-``python -m launch_free_demos.benchmark [--quick | --smoke] [--rounds N] [--out DIR]``
+``python -m launch_free_demos.bench.suite [--quick | --smoke] [--rounds N] [--out DIR]``
 
 Every measurement starts a fresh publisher process and fresh subscriber processes (the project's
 node executables through ``launch_free_demos.runner``) on a topic of its own, under RELIABLE QoS
@@ -10,7 +10,7 @@ with depth 10. Transports:
 - ``rosidl_buffer_py cpu``: image_publisher backend cpu -> image_subscriber accepting cpu;
 - ``demo from_cpu`` / ``demo allocate``: image_publisher backend demo (frame copied into shared
   memory / written in place) -> image_subscriber accepting demo;
-- peers, what a user would pick instead (``launch_free_demos/peers``; optional, from
+- peers, what a user would pick instead (``launch_free_demos/bench/peers``; optional, from
   ``requirements-bench.txt``, skipped with a note when not installed): ``iceoryx2`` (its Python
   bindings: loaned shared-memory samples, WaitSet wake-up) and ``zenoh shm`` (zenoh's Python
   bindings, shared-memory payloads); their nodes send and check the same frames, log the same
@@ -53,10 +53,8 @@ checks are printed as computed ratios: a benchmark reports, it asserts nothing a
 """
 import argparse
 import contextlib
-import ctypes
 import dataclasses
 import datetime
-import fcntl
 import importlib.metadata
 import importlib.util
 import os
@@ -64,7 +62,6 @@ import platform
 import re
 import secrets
 import shutil
-import signal
 import statistics
 import sys
 import tempfile
@@ -75,8 +72,10 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy
 
-from launch_free_demos.runner import (
-    STACK_DUMP_SECONDS, NodeProcess, Run, lock_free, remove_fastdds_leftovers)
+from launch_free_demos.bench.measured import (
+    MeasuredNode, MeasuredRun, StealMeter, claim_domain_id)
+from launch_free_demos.bench.stats import percentiles
+from launch_free_demos.runner import lock_free, remove_fastdds_leftovers
 
 # label, width, height, encoding
 PAYLOADS = [
@@ -103,7 +102,7 @@ class Transport:
     backend: Optional[str] = None  # None: a legacy node, no rosidl_buffer_py parameters
     fill: str = 'allocate'
     accept: Optional[str] = None
-    #: a peer transport (launch_free_demos/peers): the Python module it needs and its pip name
+    #: a peer transport (launch_free_demos/bench/peers): the Python module it needs and its pip name
     peer_module: Optional[str] = None
     pip_name: Optional[str] = None
 
@@ -126,9 +125,6 @@ PEERS = [
               pip_name='iceoryx2'),
     Transport(ZENOH, 'zenoh_peer', 'zenoh_peer', peer_module='zenoh', pip_name='eclipse-zenoh'),
 ]
-#: Executable name -> module of the peer nodes (``python -m``; their own command line).
-PEER_NODES = {'iceoryx2_peer': 'launch_free_demos.peers.iceoryx2_peer',
-              'zenoh_peer': 'launch_free_demos.peers.zenoh_peer'}
 TRANSPORT = {t.label: t for t in TRANSPORTS + PEERS}
 ALL_ROWS = [t.label for t in TRANSPORTS] + [MEMCPY, MEMCPY_IDLE]
 #: Rows of the peers table: stock rclpy, this package (CPU path, demo backend filled in
@@ -157,7 +153,7 @@ class Mode:
     fanout_subscribers: List[int]
     memcpy_repeat: int
     latency_rounds: int = 1      # rounds of the PAIRED transports' latency runs
-    #: payloads of the mixed-graph table (launch_free_demos.bench_mixed): what a legacy
+    #: payloads of the mixed-graph table (launch_free_demos.bench.mixed): what a legacy
     #: listener costs the buffer-aware subscriber beside it and the publisher
     mixed_payloads: List[str] = field(default_factory=list)
     #: payloads of the peers table; those not in ``payloads`` get their own stock and
@@ -177,167 +173,10 @@ MODES = {
                   ['640x480 rgb8'], [1, 2], 10, peer_payloads=[SMALL, '640x480 rgb8']),
 }
 
-LOG_RECEIVED = re.compile(r'\[(\d+\.\d+)\] \[[^\]]*\]: received (\d+) \((\d+) distinct\)')
 SAMPLE_PERIOD = 0.01
 LOG_PERIOD = 0.05       # subscribers' progress log (the CPU window's marks), latency runs
 RATE_LOG_PERIOD = 0.02  # finer for rate runs: the receive rate is fitted from these marks
 DRAIN_SEC = 3.0         # after the publisher exited, subscribers get this long to finish
-
-
-# --- CPU time of another process ------------------------------------------------------------
-
-class _Timespec(ctypes.Structure):
-    _fields_ = [('tv_sec', ctypes.c_long), ('tv_nsec', ctypes.c_long)]
-
-
-try:
-    _LIBC = ctypes.CDLL(None, use_errno=True)
-    _LIBC.clock_getcpuclockid.argtypes = [ctypes.c_int, ctypes.POINTER(ctypes.c_int)]
-    _LIBC.clock_gettime.argtypes = [ctypes.c_int, ctypes.POINTER(_Timespec)]
-except (OSError, AttributeError):  # pragma: no cover - not glibc: /proc ticks instead
-    _LIBC = None
-_CLK_TCK = os.sysconf('SC_CLK_TCK')
-
-
-def cpu_clock_of(pid: int) -> Optional[int]:
-    """The process-wide CPU-time clock of ``pid`` (all its threads), or None."""
-    if _LIBC is None:
-        return None
-    clock = ctypes.c_int()
-    return clock.value if _LIBC.clock_getcpuclockid(pid, ctypes.byref(clock)) == 0 else None
-
-
-def cpu_seconds(pid: int, clock: Optional[int]) -> Optional[float]:
-    """CPU time (user + system) of a live process so far, or None once it is gone."""
-    if clock is not None:
-        ts = _Timespec()
-        if _LIBC.clock_gettime(clock, ctypes.byref(ts)) == 0:
-            return ts.tv_sec + ts.tv_nsec * 1e-9
-        return None
-    try:  # fallback: utime + stime in clock ticks
-        with open(f'/proc/{pid}/stat') as f:
-            fields = f.read().rsplit(')', 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / _CLK_TCK
-    except (OSError, IndexError, ValueError):
-        return None
-
-
-# --- node processes reaped with os.wait4 (their rusage) -------------------------------------
-
-@dataclass
-class MeasuredNode(NodeProcess):
-    """A runner NodeProcess that is reaped with ``os.wait4`` (keeping its rusage), samples its
-    CPU clock and parses the subscriber's progress lines."""
-
-    rusage: Optional[object] = None
-    hwm_kib: Optional[int] = None
-    clock: Optional[int] = None
-    marks: List[Tuple[float, int]] = field(default_factory=list)  # (wall time, distinct)
-    _log_index: int = 0
-
-    def start(self, echo: bool = False) -> None:
-        super().start(echo)
-        self.clock = cpu_clock_of(self.process.pid)
-
-    @property
-    def reaped(self) -> bool:
-        return self.process is None or self.process.returncode is not None
-
-    def cpu(self) -> Optional[float]:
-        return None if self.reaped else cpu_seconds(self.process.pid, self.clock)
-
-    def read_peak_rss(self) -> None:
-        """Note VmHWM (peak resident set) from /proc while the process lives. (Not ru_maxrss:
-        after a vfork + exec it also counts the parent's resident set at the fork.)"""
-        if self.reaped:
-            return
-        try:
-            with open(f'/proc/{self.process.pid}/status') as f:
-                for line in f:
-                    if line.startswith('VmHWM:'):
-                        self.hwm_kib = max(self.hwm_kib or 0, int(line.split()[1]))
-                        return
-        except (OSError, ValueError, IndexError):
-            pass
-
-    def try_reap(self, block: bool = False) -> bool:
-        """Reap the process if it exited (never through Popen: that would lose the rusage)."""
-        if self.reaped:
-            return True
-        try:
-            pid, status, rusage = os.wait4(self.process.pid, 0 if block else os.WNOHANG)
-        except ChildProcessError:  # reaped elsewhere: no rusage
-            self.process.returncode = -1
-            return True
-        if pid == 0:
-            return False
-        self.rusage = rusage
-        self.process.returncode = os.waitstatus_to_exitcode(status)
-        return True
-
-    def _signal(self, sig: int) -> None:
-        if not self.reaped:  # an unreaped pid (even a zombie) is still ours
-            os.kill(self.process.pid, sig)
-
-    def stop(self, grace: float = 5.0) -> None:
-        """SIGINT, then (as NodeProcess.stop) SIGUSR1 for a stack dump and SIGKILL after
-        ``grace`` seconds; always reaps."""
-        if self.process is None:
-            return
-        if not self.try_reap():
-            self._signal(signal.SIGINT)
-            if not self._reaped_within(grace):
-                self.stuck = True
-                self._signal(signal.SIGUSR1)  # the nodes print every thread's stack
-                if not self._reaped_within(STACK_DUMP_SECONDS):
-                    self._signal(signal.SIGKILL)
-                    self.try_reap(block=True)
-        for thread in self._threads:
-            thread.join(5)
-
-    def _reaped_within(self, seconds: float) -> bool:
-        deadline = time.monotonic() + seconds
-        while not self.try_reap() and time.monotonic() < deadline:
-            time.sleep(0.02)
-        return self.reaped
-
-    def kill(self) -> None:
-        self._signal(signal.SIGKILL)
-        self.try_reap(block=True)
-
-    def read_log(self) -> None:
-        lines = self.stderr[self._log_index:]
-        self._log_index += len(lines)
-        for line in lines:
-            match = LOG_RECEIVED.search(line)
-            if match:
-                self.marks.append((float(match.group(1)), int(match.group(3))))
-
-    def distinct_now(self) -> int:
-        return self.marks[-1][1] if self.marks else 0
-
-    @property
-    def peak_rss_mib(self) -> Optional[float]:
-        return self.hwm_kib / 1024 if self.hwm_kib is not None else None
-
-
-@dataclass
-class PeerNode(MeasuredNode):
-    """A peer node (``launch_free_demos/peers``), measured as the ROS nodes are; its command
-    line is its own: ``--name=value`` for every parameter."""
-
-    def command(self) -> List[str]:
-        return [sys.executable, '-m', PEER_NODES[self.executable], f'--label={self.label}',
-                *(f'--{name}={value}' for name, value in self.parameters.items())]
-
-
-class MeasuredRun(Run):
-    def start(self, label: str, executable: str, **parameters) -> MeasuredNode:
-        kind = PeerNode if executable in PEER_NODES else MeasuredNode
-        node = kind(label, executable, dict(parameters))
-        self.nodes[label] = node  # registered first: reaped by __exit__ whatever happens
-        node.start(self.echo)
-        return node
 
 
 # --- peers: what they need, and the files they leave ---------------------------------------
@@ -725,8 +564,7 @@ def measure_memcpy(payload: str, repeat: int, idle: float) -> Dict[str, Dict[str
             start = time.perf_counter()
             func()
             times.append((time.perf_counter() - start) * 1e3)
-        return {q: float(numpy.percentile(times, p)) for q, p in
-                (('p50', 50), ('p90', 90), ('p99', 99), ('max', 100))}
+        return percentiles(times)
 
     def copy():
         numpy.copyto(target, source)
@@ -735,58 +573,8 @@ def measure_memcpy(payload: str, repeat: int, idle: float) -> Dict[str, Dict[str
             'crc32': timed(lambda: zlib.crc32(source), repeat)}
 
 
-# --- CPU steal: time a hypervisor gave this machine's CPUs to other guests ----------------
-
-def _cpu_times() -> Optional[Tuple[int, int]]:
-    """(steal, total) jiffies of all CPUs from /proc/stat, or None where unavailable."""
-    try:
-        with open('/proc/stat') as f:
-            fields = [int(v) for v in f.readline().split()[1:]]
-    except (OSError, ValueError):
-        return None
-    if len(fields) < 8:
-        return None
-    return fields[7], sum(fields[:8])  # user nice system idle iowait irq softirq steal
-
-
-class StealMeter:
-    """The share of CPU time stolen by the hypervisor since the meter was made."""
-
-    def __init__(self) -> None:
-        self._start = _cpu_times()
-
-    def fraction(self) -> Optional[float]:
-        end = _cpu_times()
-        if self._start is None or end is None or end[1] <= self._start[1]:
-            return None
-        return (end[0] - self._start[0]) / (end[1] - self._start[1])
-
-
 def _pct(fraction: Optional[float]) -> str:
     return '—' if fraction is None else f'{100 * fraction:.0f} %'
-
-
-# --- domain isolation (as test/conftest.py does) --------------------------------------------
-
-_domain_lock = None
-
-
-def claim_domain_id() -> None:
-    """Take a ROS_DOMAIN_ID nobody else on the machine holds, unless one is set already."""
-    global _domain_lock
-    if os.environ.get('ROS_DOMAIN_ID'):
-        return
-    for domain_id in numpy.random.default_rng().permutation(numpy.arange(101, 201)):
-        f = open(f'/tmp/rosidl_buffer_py_domain_{domain_id}.lock', 'w')
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            f.close()
-            continue
-        _domain_lock = f  # held until we exit
-        os.environ['ROS_DOMAIN_ID'] = str(domain_id)
-        return
-    raise RuntimeError('no free ROS_DOMAIN_ID in 101..200')
 
 
 # --- report ---------------------------------------------------------------------------------
@@ -977,7 +765,7 @@ def markdown(mode: Mode, lat: Dict, memcpy: Dict, rates: Dict, fanout: Dict,
 def peers_markdown(mode: Mode, payloads: List[str], lat: Dict, memcpy: Dict,
                    versions: Dict[str, Optional[str]], argv: Optional[List[str]]) -> str:
     """The peers table: this package beside what a user would pick instead, same method."""
-    command = ' '.join(['./dev benchmark', *(sys.argv[1:] if argv is None else argv)])
+    command = ' '.join(['./dev bench', *(sys.argv[1:] if argv is None else argv)])
     rounds = (f', the median run (by latency p50) of {mode.latency_rounds} rounds for the '
               f'peers, {" and ".join(PAIRED)}' if mode.latency_rounds > 1 else '')
     out = [f'## Peers side by side\n\nProduced by `{command}`. Every transport runs the same '
@@ -1097,7 +885,7 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    claim_domain_id()
+    own_domain = claim_domain_id()
     began, load_before, steal = time.monotonic(), os.getloadavg(), StealMeter()
     started_at = time.time() - 1.0  # for the Fast DDS files of nodes it had to SIGKILL
 
@@ -1166,7 +954,7 @@ def main(argv=None) -> int:
                 progress(f'fan-out {t:<22} {payload:>15} x{n}: pub CPU '
                          f'{_fmt(r.pub_cpu_ms)} ms/msg, sub CPU {_fmt(r.sub_cpu_ms)} ms/msg')
 
-    from launch_free_demos import bench_mixed  # it builds on this module's MeasuredRun
+    from launch_free_demos.bench import mixed as bench_mixed
     mixed = []
     for payload in mode.mixed_payloads:
         _, width, height, _ = PAYLOAD[payload]
@@ -1183,7 +971,7 @@ def main(argv=None) -> int:
             for (graph, label), v in per_frame.items()))
 
     checks = target_checks(mode, lat, rates, fanout, memcpy, rounds)
-    if _domain_lock is not None:  # a domain of our own: what its dead participants left
+    if own_domain:  # a domain of our own: what its dead participants left
         remove_fastdds_leftovers(started_at, int(os.environ['ROS_DOMAIN_ID']))
     load_after = os.getloadavg()
     header = (f'# rosidl_buffer_py benchmark: zero-copy images against stock rclpy\n\n'

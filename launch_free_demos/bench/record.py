@@ -17,7 +17,7 @@ its write throughput, and the publisher's CPU per frame. A second table times on
 through the writers in this process (chunked ``add_message``, unchunked ``add_message``,
 ``BagWriter.write`` of the codec's parts). Bags are deleted after each phase.
 
-Run: ``./dev bench-record [--seconds 20] [--rate 30] [--width 3840 --height 2160] [--dir D]``.
+Run: ``./dev bench record [--seconds 20] [--rate 30] [--width 3840 --height 2160] [--dir D]``.
 """
 import argparse
 import os
@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional
 
-from launch_free_demos.benchmark import (
+from launch_free_demos.bench.measured import (
     StealMeter, claim_domain_id, cpu_clock_of, cpu_seconds)
 from launch_free_demos.runner import Run, remove_fastdds_leftovers
 from rosidl_buffer_py.nodes.report import last_report, print_report
@@ -291,7 +291,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         os.sync()
         stock = work / 'stock'
         rows.append(run_phase('stock rclpy raw subscription + mcap Writer',
-                              [sys.executable, '-m', 'launch_free_demos.bench_record',
+                              [sys.executable, '-m', 'launch_free_demos.bench.record',
                                '--stock-recorder', TOPIC, str(stock)], stock, args,
                               buffer_peers=0))
         print(f'  {rows[-1]}', flush=True)

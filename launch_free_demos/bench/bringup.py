@@ -14,16 +14,16 @@ duplicated from the first one on, and exits with a report. The bench prints a ta
 max of (b) - (a), CPU frames before the first zero-copy frame, and each trial. It asserts nothing
 about time.
 
-``python -m launch_free_demos.bench_bringup [--payload 1920x1080] [--rate 30] [--trials 20]``
+``python -m launch_free_demos.bench.bringup [--payload 1920x1080] [--rate 30] [--trials 20]``
 """
 import argparse
 import os
-import statistics
 import sys
 import time
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+from launch_free_demos.bench.stats import percentile
 from launch_free_demos.domains import claim_domain_ids
 from launch_free_demos.runner import NodeProcess, Run, remove_fastdds_leftovers
 
@@ -104,7 +104,7 @@ class SubscriberProcess(NodeProcess):
     """This module run with ``--subscriber`` (its command line is not an image node's)."""
 
     def command(self) -> List[str]:
-        return [sys.executable, '-m', 'launch_free_demos.bench_bringup', '--subscriber',
+        return [sys.executable, '-m', 'launch_free_demos.bench.bringup', '--subscriber',
                 *self.arguments,
                 '--ros-args', '-r', f'__node:={self.label}']
 
@@ -201,11 +201,6 @@ def _ms(value: Optional[float]) -> str:
     return '-' if value is None else f'{1000 * value:.0f}'
 
 
-def _percentile(values: List[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, round(q * (len(ordered) - 1))))]
-
-
 def table(results: List[Trial], payload: str, rate: float, stock: bool = False) -> str:
     """The summary and one row per trial, as markdown."""
     bringups = [t.bringup for t in results if t.bringup is not None]
@@ -220,9 +215,9 @@ def table(results: List[Trial], payload: str, rate: float, stock: bool = False) 
     if bringups:
         lines += ['| | p50 | p90 | max |', '|---|---|---|---|',
                   '| match to first zero-copy frame, ms | ' + ' | '.join(
-                      _ms(_percentile(bringups, q)) for q in (0.5, 0.9, 1.0)) + ' |',
+                      _ms(percentile(bringups, q)) for q in (50, 90, 100)) + ' |',
                   '| CPU frames before it | ' + ' | '.join(
-                      f'{_percentile(cpu, q):g}' for q in (0.5, 0.9, 1.0)) + ' |']
+                      f'{percentile(cpu, q):g}' for q in (50, 90, 100)) + ' |']
     lines += ['', '| trial | start to match, ms | match to first frame, ms | '
               'match to zero-copy, ms | CPU frames first | frames | lost | duplicated | '
               'corrupt | rejected | fence timeouts | problem |', '|' + '---|' * 12]

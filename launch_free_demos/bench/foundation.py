@@ -1,11 +1,10 @@
 """Benchmark of the foundation pieces: wire codec and demo shared-memory backend.
 
 Prints a markdown table of median (and p90) times next to one memcpy of the same bytes, the
-physical reference. Run with ``./dev bench`` (or ``python -m launch_free_demos.bench_foundation``).
+physical reference. Run with ``./dev bench foundation`` (or ``python -m launch_free_demos.bench.foundation``).
 A benchmark, not a test: it asserts nothing about time.
 """
 import argparse
-import statistics
 import time
 from typing import Callable, Dict, List
 
@@ -16,6 +15,7 @@ from rosidl_buffer_py.image import allocate_image_msg, from_output_msg
 from sensor_msgs.msg import Image
 
 from demo_buffer_backend import DemoBackend, DemoBuffer
+from launch_free_demos.bench.stats import QUANTILES, percentiles
 
 PAYLOADS = [  # (label, height, width, encoding)
     ('1 KiB', 1, 1024, 'mono8'),
@@ -37,9 +37,8 @@ def measure(func: Callable[[], object], repeat: int) -> List[float]:
 
 
 def summarize(times: List[float]) -> str:
-    ordered = sorted(times)
-    p90 = ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
-    return f'{statistics.median(ordered):.3f} / {p90:.3f}'
+    quantiles = percentiles(times, QUANTILES[:2])
+    return f"{quantiles['p50']:.3f} / {quantiles['p90']:.3f}"
 
 
 def peer(kind: EndpointKind) -> EndpointInfo:

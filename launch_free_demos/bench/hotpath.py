@@ -14,7 +14,7 @@ microsecond each). Prints:
 - one native call of the publish path timed back to back and after ``--rate``'s idle time: the
   factor by which this machine's cold caches multiply everything above.
 
-A benchmark: it prints and asserts nothing. ``./dev bench-hotpath [--frames 60] [--rate 10]``
+A benchmark: it prints and asserts nothing. ``./dev bench hotpath [--frames 60] [--rate 10]``
 """
 import argparse
 import functools

@@ -22,7 +22,7 @@ with ``--frames`` and with ``--frames`` + ``--extra`` frames, and each process's
 by ``--extra``. Every frame is checked (counter and CRC32) by every subscriber. It prints a
 table; it asserts nothing about time.
 
-``python -m launch_free_demos.bench_mixed [--payload 3840x2160] [--rate 10] [--rounds 2]``
+``python -m launch_free_demos.bench.mixed [--payload 3840x2160] [--rate 10] [--rounds 2]``
 """
 import argparse
 import os
@@ -31,7 +31,7 @@ import sys
 import time
 from typing import Dict, List, Tuple
 
-from launch_free_demos.benchmark import MeasuredRun
+from launch_free_demos.bench.measured import MeasuredRun
 
 GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
     # label -> [(node label, executable, parameters)]: subscribers first, the publisher last

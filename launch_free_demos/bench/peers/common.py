@@ -26,6 +26,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy
 
+from launch_free_demos.bench.stats import percentiles
 from rosidl_buffer_py.nodes.report import print_report  # the benchmark reads it as a node's
 
 BYTES_PER_PIXEL = {'mono8': 1, 'rgb8': 3, 'bgr8': 3, 'rgba8': 4}
@@ -159,12 +160,6 @@ def publish_frames(args: argparse.Namespace, stop: 'Stop', matched: Callable[[],
     return 0
 
 
-def _percentiles(values: List[float]) -> Dict[str, float]:
-    data = numpy.array(values) if values else numpy.zeros(1)
-    return {name: round(float(numpy.percentile(data, q)), 3)
-            for name, q in (('p50', 50), ('p90', 90), ('p99', 99), ('max', 100))}
-
-
 @dataclass
 class Received:
     """What a peer subscriber saw; :meth:`report` in image_subscriber's terms."""
@@ -214,7 +209,8 @@ class Received:
             'duplicates': self.duplicates, 'gaps': len(missing), 'missing': missing[:20],
             'checksum_failures': self.checksum_failures,
             'backends': self.backends,
-            'latency_ms': _percentiles(self.latencies), 'view_ms': _percentiles(self.view_ms),
+            'latency_ms': percentiles(self.latencies or [0.0], digits=3),
+            'view_ms': percentiles(self.view_ms or [0.0], digits=3),
             'timed_out': bool(expected) and len(self.seen) < expected,
         }
 

@@ -1,6 +1,6 @@
 """iceoryx2_peer: the benchmark's frames over iceoryx2's Python bindings (a peer transport).
 
-``python -m launch_free_demos.peers.iceoryx2_peer --role publisher|subscriber --topic NAME
+``python -m launch_free_demos.bench.peers.iceoryx2_peer --role publisher|subscriber --topic NAME
 --shm_prefix PREFIX --root_path DIR [image_publisher / image_subscriber parameters]``
 
 A publish-subscribe service of ``Slice[c_uint8]`` named after ``topic``, with a user header
@@ -20,7 +20,7 @@ import time
 import iceoryx2 as iox2
 import numpy
 
-from launch_free_demos.peers.common import (
+from launch_free_demos.bench.peers.common import (
     Received, Stop, frame_header, latency_ms, parse_parameters, payload_shape, payload_size,
     pixels, print_report, publish_frames, write_frame)
 

@@ -15,7 +15,7 @@ channels to peers that share the frame's backend (``cpu_copies_to_buffer_capable
 backend declined to describe the frame for them). It asserts
 nothing about time.
 
-``python -m launch_free_demos.bench_churn [--seconds 20] [--payload 1920x1080] [--load 2]``
+``python -m launch_free_demos.bench.churn [--seconds 20] [--payload 1920x1080] [--load 2]``
 """
 import argparse
 import multiprocessing
@@ -85,7 +85,7 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
 
 
 def main(argv: List[str] = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m launch_free_demos.bench_churn',
+    parser = argparse.ArgumentParser(prog='python -m launch_free_demos.bench.churn',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--seconds', type=float, default=20.0)
     parser.add_argument('--payload', default='1920x1080', help='WIDTHxHEIGHT rgb8')

@@ -1,6 +1,6 @@
 """zenoh_peer: the benchmark's frames over zenoh's Python bindings with shared memory (a peer).
 
-``python -m launch_free_demos.peers.zenoh_peer --role publisher|subscriber --topic KEY
+``python -m launch_free_demos.bench.peers.zenoh_peer --role publisher|subscriber --topic KEY
 --root_path DIR [image_publisher / image_subscriber parameters]``
 
 Two zenoh peers, linked by a Unix socket in ``root_path`` (the publisher listens, subscribers
@@ -23,7 +23,7 @@ import numpy
 import zenoh
 import zenoh.shm
 
-from launch_free_demos.peers.common import (
+from launch_free_demos.bench.peers.common import (
     Received, Stop, frame_header, latency_ms, parse_parameters, payload_shape, payload_size,
     pixels, print_report, publish_frames, write_frame)
 
