@@ -13,8 +13,8 @@ import subprocess
 import time
 
 from harness.installed import executable
-from launch_free_demos.runner import Run
 from harness.scenarios import SMALL
+from launch_free_demos.runner import Run
 
 INFO = executable('buffer_topic_info')
 HEX32 = re.compile(r'^[0-9a-f]{32}$')

@@ -66,6 +66,14 @@ def test_pip_install_checkout_into_a_fresh_venv(tmp_path):
     assert check.stdout.strip() == '0.1.0'
     package = next((tmp_path / 'v' / 'lib').glob('python3*/site-packages/rosidl_buffer_py'))
     assert (package / 'py.typed').is_file()
+    # the wheel ships the library, its tools and nodes, the demos and benchmarks and the demo
+    # backend; never the test harness
+    site = package.parent
+    for shipped in ('rosidl_buffer_py/tools/record.py', 'rosidl_buffer_py/nodes/report.py',
+                    'launch_free_demos/image_demo.py', 'launch_free_demos/bench/suite.py',
+                    'launch_free_demos/bench/peers/common.py', 'demo_buffer_backend/pool.py'):
+        assert (site / shipped).is_file(), shipped
+    assert not (site / 'harness').exists() and not (site / 'test').exists()
     # the executables are on the venv's PATH
     info = subprocess.run([str(bin_dir / 'buffer_bag_info'), '--help'], capture_output=True,
                           text=True, timeout=60)

@@ -114,7 +114,7 @@ def test_every_imported_module_is_declared():
     tests' imports are exec or test dependencies; setup.py's are build dependencies. Only the
     benchmark's peer nodes import the optional modules of requirements-bench.txt."""
     keys = package_xml_keys()
-    peers = ROOT / 'launch_free_demos' / 'peers'
+    peers = ROOT / 'launch_free_demos' / 'bench' / 'peers'
     package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos')
                for p in (ROOT / d).rglob('*.py') if peers not in p.parents]
     tests = list((ROOT / 'test').rglob('*.py'))

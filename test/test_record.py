@@ -16,8 +16,6 @@ import time
 from pathlib import Path
 
 import pytest
-
-from harness import installed
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -25,12 +23,13 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 
 import rosidl_buffer_py  # noqa: F401  (msg.data = Buffer support, as in the nodes)
+from harness import installed
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import codec
+from rosidl_buffer_py.nodes.frames import pattern
+from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
 from rosidl_buffer_py.tools.bag import qos_from_yaml
 from rosidl_buffer_py.tools.message_definition import full_definition
-from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
-from rosidl_buffer_py.nodes.frames import pattern
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
 pytestmark = pytest.mark.xdist_group('test_record')

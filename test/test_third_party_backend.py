@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from launch_free_demos.runner import Run
 from harness.scenarios import SMALL
+from launch_free_demos.runner import Run
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
 pytestmark = pytest.mark.xdist_group('test_third_party_backend')

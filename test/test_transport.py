@@ -16,8 +16,8 @@ from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
 from harness.in_process import frame, spin_until
-from launch_free_demos.runner import Run
 from harness.scenarios import SCENARIOS, SMALL
+from launch_free_demos.runner import Run
 from rosidl_buffer_py import _dds, advertisement, codec
 from rosidl_buffer_py import routes
 from rosidl_buffer_py.nodes.frames import check_frame
