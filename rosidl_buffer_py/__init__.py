@@ -11,6 +11,9 @@ The pieces, each in its own module:
 - :mod:`.advertisement`, :mod:`.discovery`, :mod:`.channel`: who supports which backend, and
   the per-endpoint channels;
 - :mod:`.publisher`, :mod:`.subscription`: :func:`create_publisher`, :func:`create_subscription`.
+
+Beside the library, and built on it (it imports neither): :mod:`.tools`, the command-line tools
+(recorder, player, bag repair, topic inspector), and :mod:`.nodes`, the runnable image nodes.
 """
 #: The package's version (package.xml's <version>, which setup.py reads too).
 __version__ = '0.1.0'

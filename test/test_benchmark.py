@@ -40,7 +40,7 @@ def table_rows(text: str):
 @pytest.fixture(scope='module')
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
-    command = [str(ROOT / 'dev'), 'benchmark'] if in_dev_venv() else \
+    command = [str(ROOT / 'dev'), 'bench'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.suite']
     completed = subprocess.run(  # README's command; --smoke: the quick mode's code, fewer frames
         command + ['--smoke', '--out', str(out)],
@@ -162,7 +162,7 @@ def test_a_node_that_ignores_sigint_is_killed_and_reaped():
 def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
     """README's ./dev bench mixed, small and short: every graph's row, a figure for every
     process it has (every subscriber checks every frame's counter and CRC32)."""
-    command = [str(ROOT / 'dev'), 'bench-mixed'] if in_dev_venv() else \
+    command = [str(ROOT / 'dev'), 'bench', 'mixed'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.mixed']
     completed = subprocess.run(
         command + ['--payload', '64x48', '--frames', '1', '--extra', '2', '--rounds', '1'],
@@ -208,7 +208,7 @@ def test_under_churn_on_a_loaded_machine_steady_subscribers_get_what_stocks_get_
 def test_bench_hotpath_times_every_stage_of_every_transport():
     """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""
-    command = [str(ROOT / 'dev'), 'bench-hotpath'] if in_dev_venv() else \
+    command = [str(ROOT / 'dev'), 'bench', 'hotpath'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.hotpath']
     completed = subprocess.run(command + ['--frames', '8', '--rate', '20'], cwd=ROOT,
                                capture_output=True, text=True, timeout=300,

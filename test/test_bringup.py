@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_every_new_subscriber_reaches_zero_copy_with_nothing_lost_on_the_way():
-    command = [str(ROOT / 'dev'), 'bench-bringup'] if in_dev_venv() else \
+    command = [str(ROOT / 'dev'), 'bench', 'bringup'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.bringup']
     completed = subprocess.run(
         command + ['--payload', '64x48', '--trials', '2', '--after', '3'],

@@ -1,6 +1,6 @@
 """The buffer-aware transport over real Fast DDS: real rclpy nodes, real processes.
 
-The multi-process matrix is launch_free_demos.scenarios (the same scenarios users run); the
+The multi-process matrix is harness.scenarios (the same scenarios users run); the
 edges that need finer control (restarts, SIGKILL, a second participant, one process) are here.
 Every frame carries a counter and a checksum that the subscriber verifies.
 """
