@@ -16,6 +16,7 @@ behaves towards the benchmark as image_publisher / image_subscriber do, without 
 No rclpy is imported: a peer costs what its own library costs.
 """
 import argparse
+import json
 import signal
 import struct
 import sys
@@ -27,7 +28,10 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
 import numpy
 
 from launch_free_demos.bench.stats import percentiles
-from rosidl_buffer_py.nodes.report import print_report  # the benchmark reads it as a node's
+
+#: The report line of rosidl_buffer_py.nodes.report (the benchmark reads a peer's as a node's),
+#: written out here: importing that package would import rclpy, which a peer must not pay.
+REPORT_PREFIX = 'REPORT '
 
 BYTES_PER_PIXEL = {'mono8': 1, 'rgb8': 3, 'bgr8': 3, 'rgba8': 4}
 #: stamp (ns since the epoch), counter, CRC32 of the payload: sent beside each frame.
@@ -226,3 +230,8 @@ class Stop:
 
     def _set(self, *_) -> None:
         self.requested = True
+
+
+def print_report(report: dict) -> None:
+    """Print the peer's report line (see :data:`REPORT_PREFIX`)."""
+    print(REPORT_PREFIX + json.dumps(report, sort_keys=True), flush=True)
