@@ -12,7 +12,7 @@ BENCHMARKS = {
     'mixed': ('mixed', 'CPU per frame beside a legacy listener (demo publisher, 4K, 10 Hz)'),
     'bringup': ('bringup', "a new subscriber's wait for zero-copy (demo publisher, 1080p, 30 Hz)"),
     'hotpath': ('hotpath', "one message's time, stage by stage, on both sides"),
-    'churn': ('churn', 'subscribers joining and leaving under load: what the others see'),
+    'churn': ('churn', 'subscribers coming and going: what the steady ones get, ours vs stock'),
 }
 SUITE = ('suite', 'the full suite, table and plot (default; --quick for a shorter one)')
 
