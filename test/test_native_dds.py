@@ -1,7 +1,7 @@
 """The native rmw_fastrtps layer (rosidl_buffer_py._native via rosidl_buffer_py._dds).
 
-Real rclpy nodes on real Fast DDS. The second process is test/harness/native_dds_peer.py; every one is
-reaped. Each test uses its own rclpy Context so rclpy.shutdown() orders can be exercised
+Real rclpy nodes on real Fast DDS. The second process is test/harness/native_dds_peer.py; every
+one is reaped. Each test uses its own rclpy Context so rclpy.shutdown() orders can be exercised
 without disturbing other test modules.
 """
 import hashlib

@@ -1,7 +1,8 @@
 """Benchmark of the foundation pieces: wire codec and demo shared-memory backend.
 
 Prints a markdown table of median (and p90) times next to one memcpy of the same bytes, the
-physical reference. Run with ``./dev bench foundation`` (or ``python -m launch_free_demos.bench.foundation``).
+physical reference. Run with ``./dev bench foundation`` (or
+``python -m launch_free_demos.bench.foundation``).
 A benchmark, not a test: it asserts nothing about time.
 """
 import argparse

@@ -9,7 +9,8 @@ One run, three phases on the same file system (``--dir``, default the system tem
    MCAP layout (unchunked, ``ros2`` profile, same schema and channel metadata);
 3. ``dd`` writes as many bytes as phase 1 did through the page cache, then ``--dd-mib`` (2 GiB)
    with ``conv=fdatasync`` (what the disk sustains) and with ``oflag=direct bs=24M`` (how
-   ``buffer_record`` writes large shared-memory frames: O_DIRECT, see :mod:`rosidl_buffer_py.tools.bag`).
+   ``buffer_record`` writes large shared-memory frames: O_DIRECT, see
+   :mod:`rosidl_buffer_py.tools.bag`).
 
 Per recorder: frames published and written, frames lost, the recorder's CPU time per written
 frame (its process CPU clock from the moment it is subscribed to the moment it is stopped),

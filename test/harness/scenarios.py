@@ -188,7 +188,8 @@ def _matrix() -> Dict[str, Scenario]:
         s.append(Scenario(f'accept_{pub_backend}_pub_sub_{label}',
                           f'{pub_backend} publisher, subscriber accepts {accept!r}',
                           [Pub('pub', pub_backend)], [Sub('sub', seen, accept)]))
-    s.append(Scenario('demo_from_cpu', 'demo publisher copying each CPU frame into demo memory (fill from_cpu)',
+    s.append(Scenario('demo_from_cpu',
+                      'demo publisher copying each CPU frame into demo memory (fill from_cpu)',
                       [Pub('pub', 'demo', fill='from_cpu')], [Sub('sub', 'demo', 'demo')]))
     s.append(Scenario('mixed_graph', 'demo publisher; demo-accepting, CPU-only and plain rclpy '
                       'subscribers at once', [Pub('pub', 'demo')],
