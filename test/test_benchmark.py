@@ -18,7 +18,7 @@ from harness.installed import in_dev_venv
 from launch_free_demos.bench import suite as benchmark
 from launch_free_demos.bench.measured import StealMeter
 from launch_free_demos.bench.suite import (
-    ALL_ROWS, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
+    ALL_ROWS, BIG, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
     measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
 
 #: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
@@ -63,6 +63,22 @@ def test_markdown_has_every_transport_row_for_every_payload(smoke_run):
             assert {str(n) for n in MODES['smoke'].fanout_subscribers} <= counts
     assert '## Target checks' in saved
     assert 'latency CPU path / stock' in saved
+
+
+def test_mixed_graph_latency_table_and_its_targets(smoke_run):
+    """Issue #19's timing targets in the suite: the demo subscriber alone, beside a plain one,
+    and the stock graph, at each payload of the mode, with the two target checks."""
+    saved = (smoke_run[0] / 'benchmark.md').read_text()
+    assert '## Mixed graph latency' in saved
+    latency = saved.split('## Mixed graph latency')[1]
+    graphs = [cells[0] for cells in table_rows(latency)]
+    assert graphs[:4] == ['graph', 'pure', 'mixed', 'stock mixed'], latency
+    for payload in MODES['smoke'].mixed_latency_payloads:
+        assert f'mixed graph at {payload}: demo p99 beside a plain subscriber / alone' in saved
+        assert f"mixed graph at {payload}: demo p99 / the plain subscriber's p99" in saved
+    full = MODES['full']
+    assert full.mixed_latency_payloads == ['640x480 rgb8', '1920x1080 rgb8', BIG]
+    assert full.churn_seconds > 0
 
 
 def test_peers_table_shows_installed_peers_and_skips_absent_ones(smoke_run):

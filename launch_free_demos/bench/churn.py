@@ -21,7 +21,7 @@ import argparse
 import multiprocessing
 import sys
 import time
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 from launch_free_demos.runner import NodeProcess, Run
 
@@ -84,6 +84,22 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
     return result
 
 
+def table(rows: List[Tuple[str, Dict[str, object]]], payload: str, rate: float, seconds: float,
+          come_go: float, kill_every: float, load: int) -> str:
+    """A markdown table, a row per graph run (see :func:`run_graph`), with its caption."""
+    lines = [f'churn: {payload} rgb8 at {rate:g} Hz for {seconds:g} s, a subscriber coming and '
+             f'going every {come_go:g} s, one SIGKILLed every {kill_every:g} s, {load} busy '
+             'processes',
+             '| graph | published | steady demo (of them zero-copy) | steady cpu | steady plain '
+             '| CPU copies to backend-capable peers |',
+             '|---|---|---|---|---|---|']
+    for graph, r in rows:
+        zero_copy = f' ({r["zero_copy"]})' if graph == 'ours' else ''
+        lines.append(f'| {graph} | {r["published"]} | {r["demo"]}{zero_copy} | {r["cpu"]} | '
+                     f'{r["plain"]} | {r["cpu_to_capable"] if graph == "ours" else "-"} |')
+    return '\n'.join(lines)
+
+
 def main(argv: List[str] = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m launch_free_demos.bench.churn',
                                      description=__doc__.split('\n\n')[0])
@@ -112,16 +128,8 @@ def main(argv: List[str] = None) -> int:
         stop.set()
         for process in busy:
             process.join(5)
-    print(f'churn: {args.payload} rgb8 at {args.rate:g} Hz for {args.seconds:g} s, a subscriber '
-          f'coming and going every {args.come_go:g} s, one SIGKILLed every {args.kill_every:g} s, '
-          f'{args.load} busy processes')
-    print('| graph | published | steady demo (of them zero-copy) | steady cpu | steady plain '
-          '| CPU copies to backend-capable peers |')
-    print('|---|---|---|---|---|---|---|')
-    for graph, r in rows:
-        zero_copy = f' ({r["zero_copy"]})' if graph == 'ours' else ''
-        print(f'| {graph} | {r["published"]} | {r["demo"]}{zero_copy} | {r["cpu"]} | '
-              f'{r["plain"]} | {r["cpu_to_capable"] if graph == "ours" else "-"} |')
+    print(table(rows, args.payload, args.rate, args.seconds, args.come_go, args.kill_every,
+                args.load))
     return 0
 
 

@@ -156,6 +156,12 @@ class Mode:
     #: payloads of the mixed-graph table (launch_free_demos.bench.mixed): what a legacy
     #: listener costs the buffer-aware subscriber beside it and the publisher
     mixed_payloads: List[str] = field(default_factory=list)
+    #: payloads of the mixed-graph latency table (a demo subscriber alone, beside a plain one,
+    #: and the same graph of stock endpoints) at MIXED_LATENCY_RATE, and its frames per run
+    mixed_latency_payloads: List[str] = field(default_factory=list)
+    mixed_latency_frames: int = 300
+    #: seconds of the churn benchmark (launch_free_demos.bench.churn) at 1080p; 0: not run
+    churn_seconds: float = 0.0
     #: payloads of the peers table; those not in ``payloads`` get their own stock and
     #: rosidl_buffer_py runs, only when a peer is installed
     peer_payloads: List[str] = field(default_factory=list)
@@ -166,12 +172,20 @@ MODES = {
     'full': Mode('full', [p[0] for p in PAYLOADS], 30, 5.0, [p[0] for p in PAYLOADS],
                  [10.0, 30.0, 60.0, 120.0, 240.0], 2.0, ['1920x1080 rgb8', BIG], [1, 2, 4, 8],
                  50, latency_rounds=5, mixed_payloads=['1920x1080 rgb8', BIG],
-                 peer_payloads=PEER_PAYLOADS),
+                 mixed_latency_payloads=['640x480 rgb8', '1920x1080 rgb8', BIG],
+                 churn_seconds=20.0, peer_payloads=PEER_PAYLOADS),
     'quick': Mode('quick', [SMALL, '1920x1080 rgb8', BIG], 8, 5.0, [BIG], [30.0, 60.0], 1.0,
-                  [BIG], [1, 4], 20, peer_payloads=PEER_PAYLOADS),
+                  [BIG], [1, 4], 20, mixed_latency_payloads=['640x480 rgb8'],
+                  mixed_latency_frames=90, peer_payloads=PEER_PAYLOADS),
     'smoke': Mode('smoke', [SMALL, '640x480 rgb8'], 5, 5.0, ['640x480 rgb8'], [30.0], 1.0,
-                  ['640x480 rgb8'], [1, 2], 10, peer_payloads=[SMALL, '640x480 rgb8']),
+                  ['640x480 rgb8'], [1, 2], 10, mixed_latency_payloads=['640x480 rgb8'],
+                  mixed_latency_frames=15, peer_payloads=[SMALL, '640x480 rgb8']),
 }
+
+#: Hz of the mixed-graph latency runs (a camera's rate: issue #19's target graph)
+MIXED_LATENCY_RATE = 30.0
+#: graphs of the mixed-graph latency table (see launch_free_demos.bench.mixed)
+MIXED_LATENCY_GRAPHS = ['pure', 'mixed', 'stock mixed']
 
 SAMPLE_PERIOD = 0.01
 LOG_PERIOD = 0.05       # subscribers' progress log (the CPU window's marks), latency runs
@@ -688,6 +702,26 @@ def target_checks(mode: Mode, lat: Dict, rates: Dict, fanout: Dict, memcpy: Dict
     return checks
 
 
+def mixed_latency_checks(latencies: Dict[str, Dict[str, List[Dict[str, dict]]]]) -> List[Tuple]:
+    """Issue #19's timing targets per payload, as (check, value, target, met) rows: beside a
+    plain subscriber, the demo subscriber's p99 is at most twice its p99 alone, and never
+    above the plain subscriber's p99 (medians over the runs)."""
+    checks = []
+    for payload, runs in latencies.items():
+        def p99s(graph, label):
+            return [run[label]['p99'] for run in runs.get(graph, []) if run.get(label)]
+        pure, mixed, plain = (p99s('pure', 'demo_sub'), p99s('mixed', 'demo_sub'),
+                              p99s('mixed', 'plain_sub'))
+        if not (pure and mixed and plain):
+            continue
+        pure, mixed, plain = (statistics.median(v) for v in (pure, mixed, plain))
+        checks.append((f'mixed graph at {payload}: demo p99 beside a plain subscriber / alone',
+                       mixed / pure, '<= 2', mixed / pure <= 2))
+        checks.append((f'mixed graph at {payload}: demo p99 / the plain subscriber\'s p99 '
+                       'beside it', mixed / plain, '<= 1', mixed <= plain))
+    return checks
+
+
 def markdown(mode: Mode, lat: Dict, memcpy: Dict, rates: Dict, fanout: Dict,
              checks: List[Tuple], header: str) -> str:
     out = [header, '']
@@ -970,7 +1004,35 @@ def main(argv=None) -> int:
             f'{graph} {label} {statistics.median(v):.2f} ms'
             for (graph, label), v in per_frame.items()))
 
+    latencies: Dict[str, Dict[str, List[Dict[str, dict]]]] = {}
+    latency_tables = []
+    for payload in mode.mixed_latency_payloads:
+        _, width, height, _ = PAYLOAD[payload]
+        results = latencies[payload] = {}
+        for graph in MIXED_LATENCY_GRAPHS:
+            try:
+                run = bench_mixed.run_latency(
+                    graph, width, height, mode.mixed_latency_frames, MIXED_LATENCY_RATE, 10,
+                    next_topic('mixed_latency'))
+            except RuntimeError as exc:
+                progress(f'mixed latency {graph} {payload}: not measured ({str(exc)[:300]})')
+                continue
+            results.setdefault(graph, []).append(run)
+            progress(f'mixed latency {graph:<12} {payload:>15}: ' + ', '.join(
+                f'{label} p99 {r["p99"]:.1f} ms' for label, r in run.items()))
+        latency_tables.append(bench_mixed.latency_table(
+            results, MIXED_LATENCY_GRAPHS, payload.split()[0], MIXED_LATENCY_RATE,
+            mode.mixed_latency_frames, 10))
+    churn_table = None
+    if mode.churn_seconds:
+        from launch_free_demos.bench import churn as bench_churn
+        rows = [(graph, bench_churn.run_graph(graph == 'ours', mode.churn_seconds, 1920, 1080,
+                                              30.0, 2.0, 3.0)) for graph in ('stock', 'ours')]
+        churn_table = bench_churn.table(rows, '1920x1080', 30.0, mode.churn_seconds, 2.0, 3.0, 0)
+        progress('churn: ' + '; '.join(f'{graph} {row}' for graph, row in rows))
+
     checks = target_checks(mode, lat, rates, fanout, memcpy, rounds)
+    checks += mixed_latency_checks(latencies)
     if own_domain:  # a domain of our own: what its dead participants left
         remove_fastdds_leftovers(started_at, int(os.environ['ROS_DOMAIN_ID']))
     load_after = os.getloadavg()
@@ -987,6 +1049,12 @@ def main(argv=None) -> int:
     if mixed:
         text += ('\n\n## Mixed graph: a legacy listener beside a buffer-aware subscriber\n\n'
                  + '\n\n'.join(mixed) + '\n')
+    if latency_tables:
+        text += ('\n\n## Mixed graph latency: a zero-copy subscriber alone, beside a plain '
+                 'one, and the same graph of stock endpoints\n\n'
+                 + '\n\n'.join(latency_tables) + '\n')
+    if churn_table:
+        text += '\n\n## Subscriber churn, ours against stock\n\n' + churn_table + '\n'
     png = os.path.join(args.out, 'benchmark.png')
     plot(png, mode, lat, memcpy, fanout, installed_peers)
     with open(os.path.join(args.out, 'benchmark.md'), 'w') as f:
