@@ -1,9 +1,10 @@
-"""Every command README.md shows is run: here, by another named test, or by CI itself; every
-Python program it shows is run here exactly as printed.
+"""Every command README.md and docs/*.md show is run: here, by another named test, or by CI
+itself; every Python program they show is run here exactly as printed; every relative link
+between them (and CHANGELOG.md) leads to a file, and a heading, that exist.
 
-A command added to README without a place in COVERAGE fails the first test, and so does a
-``python`` block without a test below (each block starts with ``# <name>.py``), so the README
-cannot rot silently.
+A command added to a document without a place in COVERAGE fails the first test, and so does a
+``python`` block without a test below (each block starts with ``# <name>.py``, a name unique
+across the documents), so the documentation cannot rot silently.
 """
 import json
 import os
@@ -18,36 +19,51 @@ from pathlib import Path
 
 import pytest
 
-from harness.installed import executable, in_dev_venv
+from installed import executable, in_dev_venv
 
 ROOT = Path(__file__).resolve().parent.parent
-README = (ROOT / 'README.md').read_text()
+#: The documents whose commands and programs are run: README.md, then docs/*.md.
+DOCUMENTS = {path.relative_to(ROOT).as_posix(): path.read_text()
+             for path in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]}
+#: The documents whose links are checked: those, and the changelog.
+LINKED = [*DOCUMENTS, 'CHANGELOG.md']
 
-#: README command -> where it runs: 'here' (below), a test file that runs it, or 'ci'.
+#: Document command -> where it runs: 'here' (below), a test file that runs it, or 'ci'.
 COVERAGE = {
     './dev demo': 'here',
     './dev demo --help': 'here',
     './dev test': 'ci',                                   # .ci/run runs exactly this
-    './dev bench foundation': 'here',
-    './dev bench --list': 'here',
-    './dev bench transport': 'here',                      # with fewer frames and payloads
+    './dev setup': 'here',
+    # README's quick start: the pair of programs, run here as printed
+    '.venv/bin/python viewer.py &': 'here',
+    '.venv/bin/python camera.py': 'here',
+    # the benchmarks (docs/benchmarks.md): each run small and short by the test named
+    './dev bench [NAME]': 'test_benchmark.py',          # each NAME below
+    './dev bench': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (20 min)
     './dev bench --quick': 'test_benchmark.py',  # --smoke: the same code, fewest frames
-    './dev bench': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (12 min)
+    './dev bench foundation': 'here',
+    './dev bench transport': 'here',                      # with fewer frames and payloads
+    './dev bench transport --payloads "1 KiB" --frames 60 --rate 5 --rounds 8': 'here',  # fewer
+    './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
+    './dev bench mixed': 'test_benchmark.py',             # small frames, fewer of them
+    # run_latency, the measurement this command prints per run, on the mixed graph
+    './dev bench mixed --latency --graphs pure,mixed --payload 640x480 --rate 30 --frames 600':
+        'test_mixed_latency.py',
+    './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
+    './dev bench record': 'test_record.py',               # 1 s of small frames
+    './dev bench churn': 'test_benchmark.py',             # 2 s of small frames
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
     # benchmark's peers, test_benchmark runs each peer where it is installed
     '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
-    './dev setup': 'here',
+    '.venv/bin/python test/measure_inspector.py 20': 'here',     # with 1 run instead of 20
+    # the harnesses (docs/development.md)
     '.venv/bin/python test/harness/scenarios.py': 'test_transport.py',  # every scenario
     '.venv/bin/python test/harness/equivalence.py [names] [--echo]': 'test_equivalence.py',
-    '.venv/bin/python test/harness/equivalence.py': 'test_equivalence.py',
+    # the user guide's nodes and tools
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
     'buffer_topic_info <topic> [--json] [--wait S] [--probe]': 'test_info.py',
     'buffer_topic_info --probe': 'test_info.py',
-    '.venv/bin/python test/harness/measure_inspector.py 20': 'here',     # with 1 run instead of 20
-    'colcon build': 'test_colcon.py',
-    'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
-    'colcon test-result --verbose': 'test_colcon.py',
     # the recording example, run as one script
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p '
     'topic:=/camera/image -p count:=90 -p wait_for_subscribers:=1 &': 'test_record.py',
@@ -56,46 +72,77 @@ COVERAGE = {
     '.venv/lib/rosidl_buffer_py/buffer_bag_info camera_bag': 'test_record.py',
     '.venv/lib/rosidl_buffer_py/buffer_play camera_bag --rate 2': 'test_record.py',
     'wait': 'test_record.py',
-    './dev bench record': 'test_record.py',               # 1 s of small frames
-    './dev bench mixed': 'test_benchmark.py',             # small frames, fewer of them
-    './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
-    './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
+    'buffer_bag_info camera_bag': 'test_record.py',
+    'buffer_record [topics ...] [--all]': 'test_record.py',
+    'buffer_bag_info <bag> [--json]': 'test_record.py',
+    'buffer_play <bag>': 'test_play.py',
+    'buffer_bag_reindex <bag>': 'test_reindex.py',
+    'colcon build': 'test_colcon.py',
     'colcon test': 'test_colcon.py',
-    # "Use it in your own venv": a fresh venv, pip install of a copy of the checkout
+    'colcon test --packages-select rosidl_buffer_py': 'test_colcon.py',
+    'colcon test-result --verbose': 'test_colcon.py',
+    # "Your own venv": a fresh venv, pip install of a copy of the checkout
     'python3 -m venv myenv': 'test_install.py',
     'myenv/bin/pip install /path/to/rosidl_buffer_py': 'test_install.py',
     'myenv/bin/buffer_bag_info --help': 'test_install.py',
 }
 
+#: How an inline command starts (a path alone, without a space, is not a command).
+COMMAND_STARTS = ('./dev ', '.venv/', 'buffer_', 'colcon ', 'myenv/', 'python -m', 'python3 ')
 
-def readme_commands():
+
+def _without_code_blocks(text):
+    return re.sub(r'^```.*?^```', '', text, flags=re.S | re.M)
+
+
+def documented_commands():
+    """Every command of the documents: bash blocks line by line, and inline commands."""
     commands = set()
-    for block in re.findall(r'```bash\n(.*?)```', README, re.S):
-        for line in block.splitlines():
-            line = line.split('#', 1)[0].strip()
-            if line:
-                commands.add(line)
-    for inline in re.findall(r'`([^`\n]+)`', README):
-        inline = inline.strip()
-        if inline.startswith(('./dev ', '.venv/', 'buffer_topic_info', 'colcon ')) and \
-                ' ' in inline:  # a path alone is not a command
-            commands.add(inline)
+    for text in DOCUMENTS.values():
+        for block in re.findall(r'```bash\n(.*?)```', text, re.S):
+            for line in block.splitlines():
+                line = line.split('#', 1)[0].strip()
+                if line:
+                    commands.add(line)
+        for inline in re.findall(r'`([^`\n]+)`', _without_code_blocks(text)):
+            inline = inline.strip()
+            if inline.startswith(COMMAND_STARTS) and ' ' in inline:
+                commands.add(inline)
     return commands
 
 
-#: The README's commands that only make sense in the ./dev checkout (under `colcon test` the
+#: The documents' commands that only make sense in the ./dev checkout (under `colcon test` the
 #: source copy has no .venv; those are run by ./dev test).
 dev_only = pytest.mark.skipif(not in_dev_venv(), reason='not running in the ./dev venv')
 
 
 def python_snippets():
-    """README's ``python`` blocks by the file name on their first line."""
+    """The documents' ``python`` blocks by the file name on their first line."""
     snippets = {}
-    for block in re.findall(r'```python\n(.*?)```', README, re.S):
-        match = re.match(r'# (\w+\.py)', block)
-        assert match, f'a README python block does not start with "# <name>.py": {block[:80]!r}'
-        snippets[match.group(1)] = block
+    for document, text in DOCUMENTS.items():
+        for block in re.findall(r'```python\n(.*?)```', text, re.S):
+            match = re.match(r'# (\w+\.py)', block)
+            assert match, f'a python block of {document} does not start with "# <name>.py": ' \
+                f'{block[:80]!r}'
+            assert match.group(1) not in snippets, f'two programs named {match.group(1)}'
+            snippets[match.group(1)] = block
     return snippets
+
+
+def heading_anchors(text):
+    """The anchors GitHub gives a markdown text's headings."""
+    anchors, seen = set(), {}
+    for heading in re.findall(r'^#{1,6} +(.+?) *$', _without_code_blocks(text), re.M):
+        slug = re.sub(r'[^\w\- ]', '', heading.lower()).replace(' ', '-')
+        anchors.add(f'{slug}-{seen[slug]}' if slug in seen else slug)
+        seen[slug] = seen.get(slug, 0) + 1
+    return anchors
+
+
+def relative_links(text):
+    """The targets of a markdown text's links that are not URLs (code blocks excluded)."""
+    targets = re.findall(r'\[[^\]]*\]\(([^)\s]+)\)', _without_code_blocks(text))
+    return [t for t in targets if not re.match(r'[a-z][a-z0-9+.-]*:', t)]
 
 
 def run(command, timeout):
@@ -103,12 +150,47 @@ def run(command, timeout):
                           timeout=timeout)
 
 
-def test_every_readme_command_has_a_place_that_runs_it():
-    missing = readme_commands() - set(COVERAGE)
-    assert not missing, f'README commands no test runs: {sorted(missing)}'
+def test_every_documented_command_has_a_place_that_runs_it():
+    commands = documented_commands()
+    missing = commands - set(COVERAGE)
+    assert not missing, f'commands in README.md or docs/ that no test runs: {sorted(missing)}'
+    stale = set(COVERAGE) - commands
+    assert not stale, f'COVERAGE names commands no document shows any more: {sorted(stale)}'
     for command, where in COVERAGE.items():
         if where.endswith('.py'):
             assert (ROOT / 'test' / where).is_file(), (command, where)
+
+
+def test_every_relative_link_leads_to_a_file_and_heading_that_exist():
+    broken = []
+    for document in LINKED:
+        source = ROOT / document
+        for target in relative_links(source.read_text()):
+            path, _, anchor = target.partition('#')
+            destination = (source.parent / path).resolve() if path else source
+            if not destination.exists():
+                broken.append((document, target, 'no such file'))
+            elif anchor and (destination.suffix != '.md' or
+                             anchor not in heading_anchors(destination.read_text())):
+                broken.append((document, target, 'no such heading'))
+    assert not broken, broken
+
+
+def test_readme_links_every_document_of_docs():
+    linked = {(ROOT / path.partition('#')[0]).resolve()
+              for path in relative_links(DOCUMENTS['README.md'])}
+    unlinked = {path.name for path in (ROOT / 'docs').glob('*.md')} - \
+        {path.name for path in linked if path.parent == ROOT / 'docs'}
+    assert not unlinked, unlinked
+    assert ROOT / 'CHANGELOG.md' in linked
+
+
+def test_link_checker_finds_what_github_names():
+    text = '# Where a message\'s time goes (`./dev bench hotpath`)\n## Limits\n## Limits\n' \
+        '```\n# not a heading\n```\n[a](x.md#y) [b](https://e.org/z) [c](#limits-1)\n'
+    assert heading_anchors(text) == {'where-a-messages-time-goes-dev-bench-hotpath', 'limits',
+                                     'limits-1'}
+    assert relative_links(text) == ['x.md#y', '#limits-1']
 
 
 @dev_only
@@ -142,14 +224,14 @@ def test_dev_setup_says_what_it_does_and_shows_pip_only_when_it_fails(tmp_path):
 
 @dev_only
 def test_dev_bench_prints_the_table():
-    listed = run('./dev bench --list', 300)
-    assert listed.returncode == 0, listed.stderr[-2000:]
-    for name in ('foundation', 'transport', 'record', 'mixed', 'bringup', 'hotpath', 'churn'):
-        assert f'  {name} ' in listed.stdout, listed.stdout
     bench = run('./dev bench foundation', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
     assert '| 3840x2160 rgb8 | 24,883,200 |' in bench.stdout
-    transport = run('./dev bench transport --frames 5 --payloads "1 KiB"', 300)
+    # the documented rounds command, with fewer frames and rounds (./dev bench transport alone
+    # is the same code with every payload, one round)
+    [command] = [c for c in COVERAGE if c.startswith('./dev bench transport --')]
+    transport = run(command.replace('--frames 60', '--frames 5').replace('--rounds 8',
+                                                                         '--rounds 2'), 300)
     assert transport.returncode == 0, transport.stderr[-2000:]
     assert '| 1 KiB |' in transport.stdout
 
@@ -190,7 +272,7 @@ def test_scenarios_command_line(name):
     assert f'| {name} | PASS |' in out.stdout
 
 
-#: Each README program and the test that runs it as printed.
+#: Each program of the documents and the test that runs it as printed.
 SNIPPET_TESTS = {
     'camera.py': 'test_camera_and_viewer_exchange_zero_copy_frames',  # and the one below
     'viewer.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
@@ -199,7 +281,7 @@ SNIPPET_TESTS = {
 }
 
 
-def test_every_readme_program_is_run_by_a_test():
+def test_every_documented_program_is_run_by_a_test():
     assert set(python_snippets()) == set(SNIPPET_TESTS)
     for test in SNIPPET_TESTS.values():
         assert callable(globals()[test]), test
@@ -232,8 +314,8 @@ def _communicate_all(processes, timeout):
 
 
 def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
-    """The Publishing and Subscribing programs as a pair: all 30 4K frames arrive as demo
-    Buffers (nothing on the main topic)."""
+    """README's quick start programs as a pair: all 30 4K frames arrive as demo Buffers
+    (nothing on the main topic)."""
     camera = _write_snippet(tmp_path, 'camera.py')
     viewer = _write_snippet(tmp_path, 'viewer.py')
     processes = [_popen([sys.executable, str(viewer)], cwd=tmp_path),
@@ -279,7 +361,7 @@ def test_backend_guide_module_serves_the_nodes_and_leaves_nothing(tmp_path):
     site = tmp_path / 'site'
     site.mkdir()
     _write_snippet(site, 'my_backend.py')
-    [toml] = re.findall(r'```toml\n(.*?)```', README, re.S)
+    [toml] = re.findall(r'```toml\n(.*?)```', DOCUMENTS['docs/backends.md'], re.S)
     entry_points = tomllib.loads(toml)['project']['entry-points']
     dist_info = site / 'my_backend-0.1.dist-info'
     dist_info.mkdir()
