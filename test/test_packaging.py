@@ -134,8 +134,8 @@ def test_every_imported_module_is_declared():
 
 def test_bench_requirements_are_optional_and_match_the_benchmark_peers():
     """requirements-bench.txt names exactly the peers' modules; neither ./dev setup, CI nor
-    setup.py reads it (./dev's help and README say how to install it), and no package.xml key
-    is one of them."""
+    setup.py reads it (./dev's help and docs/benchmarks.md say how to install it), and no
+    package.xml key is one of them."""
     from launch_free_demos.bench.suite import PEERS
     modules = bench_modules()
     assert {t.peer_module: t.pip_name for t in PEERS} == {
@@ -148,7 +148,7 @@ def test_bench_requirements_are_optional_and_match_the_benchmark_peers():
         assert 'requirements-bench' not in text, name
     assert 'requirements-bench.txt' in dev.split('set -euo', 1)[0]  # ./dev's help says how
     assert not set(modules) & set().union(*package_xml_keys().values())
-    assert 'pip install -r requirements-bench.txt' in (ROOT / 'README.md').read_text()
+    assert 'pip install -r requirements-bench.txt' in (ROOT / 'docs' / 'benchmarks.md').read_text()
 
 
 def test_python_requires_matches_what_dev_requires():

@@ -268,16 +268,17 @@ def test_bad_inputs_get_one_line_and_status_2(recording, tmp_path):
     assert not (tmp_path / 'out').exists()
 
 
-def _readme_block(title: str) -> str:
-    readme = (Path(__file__).resolve().parent.parent / 'README.md').read_text()
-    section = readme.split(title, 1)[1]
+def _guide_block(title: str) -> str:
+    """The first bash block of the user guide's section ``title``."""
+    guide = (Path(__file__).resolve().parent.parent / 'docs' / 'user-guide.md').read_text()
+    section = guide.split(f'\n{title}\n', 1)[1]
     return section.split('```bash\n', 1)[1].split('```', 1)[0]
 
 
-def test_readme_recording_example_runs(tmp_path):
-    """The README's worked example, verbatim, as one script in an empty directory."""
-    block = _readme_block('### Recording and playback')
-    # the README's .venv paths, pointing where the package under test was installed (the
+def test_user_guide_recording_example_runs(tmp_path):
+    """The user guide's worked example, verbatim, as one script in an empty directory."""
+    block = _guide_block('## Recording and playback')
+    # the guide's .venv paths, pointing where the package under test was installed (the
     # ./dev venv, or a colcon install space with the interpreter's bin/)
     venv = tmp_path / '.venv'
     (venv / 'lib').mkdir(parents=True)
