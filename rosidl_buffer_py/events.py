@@ -95,7 +95,8 @@ _noted = False
 
 
 def _note_stock_peers_may_count_twice() -> None:
-    """Say once per process what differs from stock about incompatible QoS (see README)."""
+    """Say once per process what differs from stock about incompatible QoS (see
+    docs/guarantees.md)."""
     global _noted
     if not _noted:
         _noted = True
