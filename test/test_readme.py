@@ -51,7 +51,7 @@ COVERAGE = {
         'test_mixed_latency.py',
     './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
     './dev bench record': 'test_record.py',               # 1 s of small frames
-    './dev bench churn': 'test_benchmark.py',             # 2 s of small frames
+    './dev bench churn': 'test_benchmark.py',             # 4 s of 640x480, 2 busy processes
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
     # benchmark's peers, test_benchmark runs each peer where it is installed
     '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
