@@ -185,6 +185,18 @@ def test_readme_links_every_document_of_docs():
     assert ROOT / 'CHANGELOG.md' in linked
 
 
+def test_every_test_the_documents_name_exists():
+    """docs/guarantees.md names the test behind each guarantee as `file::test`: each one is a
+    test function of that file."""
+    named = [(document, file, test) for document, text in DOCUMENTS.items()
+             for file, test in re.findall(r'`(test_\w+\.py)::(test_\w+)`', text)]
+    assert len(named) > 20, named  # the guarantees name their tests
+    missing = [(document, f'{file}::{test}') for document, file, test in named
+               if not (ROOT / 'test' / file).is_file() or
+               not re.search(rf'^def {test}\(', (ROOT / 'test' / file).read_text(), re.M)]
+    assert not missing, missing
+
+
 def test_link_checker_finds_what_github_names():
     text = '# Where a message\'s time goes (`./dev bench hotpath`)\n## Limits\n## Limits\n' \
         '```\n# not a heading\n```\n[a](x.md#y) [b](https://e.org/z) [c](#limits-1)\n'
