@@ -1,6 +1,7 @@
 """Every command README.md and docs/*.md show is run: here, by another named test, or by CI
 itself; every Python program they show is run here exactly as printed; every relative link
-between them (and CHANGELOG.md) leads to a file, and a heading, that exist.
+between them (and CHANGELOG.md) leads to a file, and a heading, that exist; every test they
+name (``file::test``) exists.
 
 A command added to a document without a place in COVERAGE fails the first test, and so does a
 ``python`` block without a test below (each block starts with ``# <name>.py``, a name unique
