@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from installed import executable, in_dev_venv
+from harness.installed import executable, in_dev_venv
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The documents whose commands and programs are run: README.md, then docs/*.md.
@@ -42,6 +42,7 @@ COVERAGE = {
     './dev bench [NAME]': 'test_benchmark.py',          # each NAME below
     './dev bench': 'test_benchmark.py',  # full mode: the quick mode's code, more sizes (20 min)
     './dev bench --quick': 'test_benchmark.py',  # --smoke: the same code, fewest frames
+    './dev bench --list': 'here',
     './dev bench foundation': 'here',
     './dev bench transport': 'here',                      # with fewer frames and payloads
     './dev bench transport --payloads "1 KiB" --frames 60 --rate 5 --rounds 8': 'here',  # fewer
@@ -56,7 +57,7 @@ COVERAGE = {
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the
     # benchmark's peers, test_benchmark runs each peer where it is installed
     '.venv/bin/pip install -r requirements-bench.txt': 'test_packaging.py',
-    '.venv/bin/python test/measure_inspector.py 20': 'here',     # with 1 run instead of 20
+    '.venv/bin/python test/harness/measure_inspector.py 20': 'here',     # with 1 run instead of 20
     # the harnesses (docs/development.md)
     '.venv/bin/python test/harness/scenarios.py': 'test_transport.py',  # every scenario
     '.venv/bin/python test/harness/equivalence.py [names] [--echo]': 'test_equivalence.py',
@@ -237,6 +238,10 @@ def test_dev_setup_says_what_it_does_and_shows_pip_only_when_it_fails(tmp_path):
 
 @dev_only
 def test_dev_bench_prints_the_table():
+    listed = run('./dev bench --list', 300)
+    assert listed.returncode == 0, listed.stderr[-2000:]
+    for name in ('foundation', 'transport', 'record', 'mixed', 'bringup', 'hotpath', 'churn'):
+        assert f'  {name} ' in listed.stdout, listed.stdout
     bench = run('./dev bench foundation', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
     assert '| 3840x2160 rgb8 | 24,883,200 |' in bench.stdout
