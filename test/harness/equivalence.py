@@ -681,7 +681,7 @@ def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[st
         sn, on = s['events'].get(key, 0), o['events'].get(key, 0)
         tolerance = TOLERANCES.get(kind, lambda stock: 0)(sn)
         if kind == 'incompatible_qos' and scenario.endpoints[eid]['impl'] == 'stock':
-            # The documented difference (README, "What stays as with stock rclpy"): a
+            # The documented difference (docs/guarantees.md, "What differs from stock"): a
             # buffer-aware endpoint publishes its advertisement in USER_DATA right after
             # creation, and again once when it finds a new buffer-aware peer whose QoS matches
             # its own (here: the BEST_EFFORT subscription); each is a discovery event on which
