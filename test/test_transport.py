@@ -17,6 +17,7 @@ from sensor_msgs.msg import Image
 import rosidl_buffer_py
 from harness.in_process import frame, spin_until
 from harness.scenarios import SCENARIOS, SMALL
+from launch_free_demos.domains import fresh_domain
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import _dds, advertisement, codec
 from rosidl_buffer_py import routes
@@ -32,14 +33,17 @@ RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # burs
 def test_scenario(name):
     """Every named scenario; ``subscriber_killed`` also checks that the publisher dropped the
     dead subscriber's channel (its report at exit lists no peer) once its lease expired."""
-    result = SCENARIOS[name].run(timeout=40.0)
+    with fresh_domain():
+        result = SCENARIOS[name].run(timeout=40.0)
     if not result.ok and NO_DDS_MATCH in result.diagnostics:
-        # Plain DDS discovery never matched the main topic (seen once in about 150 scenario
-        # runs: a subscriber process stuck at start-up, root cause open). Nothing of the
-        # transport ran; run the scenario once more, visibly. Every other failure is final.
+        # Plain DDS discovery never matched the main topic (seen in about 1 of 150 scenario
+        # runs, and twice in a row in one domain of a parallel run; root cause open). Nothing
+        # of the transport ran; run the scenario once more, visibly, in another fresh domain.
+        # Every other failure is final.
         warnings.warn(f'scenario {name}: no DDS match on the main topic, re-run once:\n'
                       + '\n'.join(result.failures) + '\n' + result.diagnostics)
-        result = SCENARIOS[name].run(timeout=40.0)
+        with fresh_domain():
+            result = SCENARIOS[name].run(timeout=40.0)
     assert result.ok, '\n'.join(result.failures) + '\n' + result.diagnostics
 
 
