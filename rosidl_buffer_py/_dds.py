@@ -1,43 +1,28 @@
 """Typed facade over the rmw_fastrtps layer of ``rosidl_buffer_py._native``.
 
-Thin on purpose: it infers endpoint kinds, imports message type support, turns rclpy QoS
-profiles into the rmw enum values and names the fields of discovery events. Every function
-accepts rclpy objects (Node, Publisher, Subscription, GuardCondition), their ``.handle`` or a
-raw pointer int; see ``src/native/README.md`` for lifetimes and threading.
+What Python adds to the native layer, and only that: the ABI guard (:func:`check_abi`, run at
+import) and whether the layer may be used (:func:`is_supported`), endpoint kinds inferred from
+rclpy objects, message type support imported on first use, rclpy QoS profiles turned into the
+rmw enum values of channels, and named fields for discovery events. Everything else is called
+on ``_native`` directly: ``rosidl_buffer_py/_native.pyi`` types and documents every native
+function and class, and ``src/native/README.md`` says how they behave (lifetimes, threading).
 
-Everything raises :class:`UnsupportedRmwError` when the entity is not rmw_fastrtps_cpp's
+Native calls raise :class:`UnsupportedRmwError` when the entity is not rmw_fastrtps_cpp's
 (callers then fall back to plain rclpy) and :class:`DdsError` when a middleware call fails.
 """
 import os
 import re
+import threading
 from pathlib import Path
-from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 from rosidl_buffer_py import _native
 
 DdsError = _native.DdsError
 UnsupportedRmwError = _native.UnsupportedRmwError
-#: ``ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)``:
-#: ``.publish(data, source_timestamp: Optional[int] = None) -> None``,
-#: ``.matched_count() -> int``, ``.matched_gids() -> List[bytes]``,
-#: ``.wait_for_all_acked(timeout_sec: float) -> bool``, ``.destroy()``,
-#: ``.gid``, ``.topic_name``, ``.valid``.
-ChannelPublisher = _native.ChannelPublisher
-#: ``ChannelSubscription(node, type_support, topic_name, ..., guard_condition=None)``:
-#: ``.take() -> Optional[TakenMessage]``,
-#: ``.take_message(msg_class, max_size=-1) -> Optional[TakenMessage]``
-#: (the message deserialized in C when it can be, see :func:`take_message_with_gid`),
-#: ``.matched_count() -> int``, ``.destroy()``, ``.gid``, ``.topic_name``, ``.valid``,
-#: ``.on_udp`` (its DataReader listens on UDP only, not on the participant's shared memory:
-#: see src/native/README.md, "Channel transport").
-ChannelSubscription = _native.ChannelSubscription
 
 #: The rmw implementation the native layer works with.
 RMW_IMPLEMENTATION: str = _native.RMW_IMPLEMENTATION
-
-#: (CDR bytes incl. encapsulation header, or a deserialized message; publisher GID; message info
-#: dict)
-TakenMessage = Tuple[Any, bytes, dict]
 
 
 class EndpointEvent(NamedTuple):
@@ -163,6 +148,25 @@ def unsupported_reason() -> Optional[str]:
     return None
 
 
+def warn_unsupported(what: str, topic: str) -> None:
+    """Say once per process why buffer-aware endpoints are plain rclpy pub/sub (CPU only): another
+    middleware, or rmw_fastrtps libraries other than those the extension was built against
+    (:func:`check_abi` has already logged which)."""
+    import rclpy
+    rmw = rclpy.get_rmw_implementation_identifier()
+    with _warned_lock:
+        if rmw in _warned_rmw:
+            return
+        _warned_rmw.add(rmw)
+    if rmw == RMW_IMPLEMENTATION:
+        return  # the ABI check warned once, naming the versions
+    from rclpy.logging import get_logger
+    get_logger('rosidl_buffer_py').warning(
+        f'{rmw} is not supported by rosidl_buffer_py (needs {RMW_IMPLEMENTATION}): the {what} '
+        f'on {topic} and every other one use plain rclpy pub/sub on the main topic, CPU bytes '
+        'only')
+
+
 def is_supported() -> bool:
     """Whether the rmw implementation rclpy loaded is the one this layer supports, in the
     versions it was built against (else create_publisher/create_subscription are plain rclpy)."""
@@ -171,6 +175,8 @@ def is_supported() -> bool:
 
 
 _warned_abi: set = set()
+_warned_rmw: set = set()
+_warned_lock = threading.Lock()
 _abi = check_abi()
 
 
@@ -212,114 +218,6 @@ def set_user_data(endpoint: Any, data: bytes, kind: Optional[str] = None) -> Non
     _native.set_user_data(endpoint, kind or endpoint_kind(endpoint), bytes(data))
 
 
-def take_serialized_with_gid(subscription: Any) -> Optional[TakenMessage]:
-    """Take one serialized message from an rclpy subscription, with its publisher's GID."""
-    return _native.take_serialized_with_gid(subscription)
-
-
-def take_message_with_gid(subscription: Any, msg_type: Any,
-                          max_size: int = -1) -> Optional[TakenMessage]:
-    """Take one message from an rclpy subscription, deserialized in C as rclpy's take does.
-
-    The first item is a ``msg_type`` instance, or the CDR ``bytes`` when they do not deserialize
-    with the type's own type support (a descriptor payload or malformed data: hand them to
-    :func:`rosidl_buffer_py.codec.decode`) or are longer than ``max_size`` (when >= 0). No
-    Python-level CDR work for ordinary messages.
-    """
-    return _native.take_message_with_gid(subscription, msg_type, max_size)
-
-
-def peek_untaken(subscription: Any) -> Optional[Tuple[bytes, int]]:
-    """``(publisher_gid, source_timestamp)`` of the next unread sample of an rclpy subscription,
-    from its DDS sample info: nothing is taken or copied. None when there is none."""
-    return _native.peek_untaken(subscription)
-
-
-def discard_untaken(subscription: Any) -> Optional[Tuple[bytes, int]]:
-    """Take the next unread sample without copying its payload (a duplicate to drop); its key,
-    or None when there was none."""
-    return _native.discard_untaken(subscription)
-
-
-def write_message(msg: Any, source_timestamp: int, targets: List[Any]) -> None:
-    """Write a ROS message to channel publishers and/or rclpy publishers of its type.
-
-    The message is converted to its C struct once, as rclpy's ``publish`` does, and rmw
-    serializes it into each target's DDS payload with ``source_timestamp`` (ns since the epoch).
-    ``targets``: :class:`ChannelPublisher` objects and rclpy publishers (or their handles).
-    """
-    _native.write_message(msg, source_timestamp, targets)
-
-
-def publish_serialized(publisher: Any, data: Any, source_timestamp: int) -> None:
-    """Write serialized CDR on the DataWriter behind an rclpy publisher, with its source timestamp.
-
-    ``data`` is CDR with its 4-byte encapsulation header (what ``serialize_message`` gives), in
-    any C-contiguous buffer (not copied in Python; do not mutate it during the call).
-    ``source_timestamp`` is ns since the epoch (0 <= t < 2**31 s); subscribers' takes report
-    exactly it in ``info['source_timestamp']``.
-    """
-    _native.publish_serialized(publisher, data, source_timestamp)
-
-
-def exclude_from_next_write(publisher: Any, reader_gids: Sequence[bytes]) -> bool:
-    """Keep the next sample written on an rclpy publisher's DataWriter from ``reader_gids``.
-
-    Writer side: Fast DDS sends those matched readers a GAP instead of the sample, so they
-    neither receive nor copy its payload (a reliable reader counts nothing as lost). Call right
-    before the write; calling again before it replaces the set. The filter chains to Fast DDS's
-    own (content-filtered readers keep working). False when this DataWriter cannot filter (its
-    private layout did not check out): nothing is excluded then.
-    """
-    return _native.exclude_from_next_write(publisher, reader_gids)
-
-
-def remove_write_exclusions(publisher: Any) -> None:
-    """Take :func:`exclude_from_next_write`'s filter off the publisher's DataWriter again."""
-    _native.remove_write_exclusions(publisher)
-
-
-def matched_subscription_gids(publisher: Any) -> List[bytes]:
-    """16-byte GIDs of the subscriptions currently matched with an rclpy publisher.
-
-    Same format as :func:`endpoint_gid` and ``get_subscriptions_info_by_topic()``'s
-    ``endpoint_gid``; the set ``publisher.get_subscription_count()`` counts.
-    """
-    return _native.matched_subscription_gids(publisher)
-
-
-def set_new_message_wakeup(subscription: Any, guard_condition: Any) -> None:
-    """Trigger an rclpy GuardCondition whenever a new message reaches ``subscription``.
-
-    ``subscription`` is an rclpy Subscription, a raw ``rclpy._rclpy_pybind11.Subscription``
-    (e.g. not added to any node), or a pointer int. rmw triggers it right away when messages
-    are already unread, and only on status changes after that: the woken code must take until
-    nothing is left. Replaces an earlier wakeup of the same subscription. Pins both the
-    subscription and the guard condition (rclpy defers destroying them) until
-    :func:`clear_new_message_wakeup`, which must be called before letting them go.
-    """
-    _native.set_new_message_wakeup(subscription, guard_condition)
-
-
-def clear_new_message_wakeup(subscription: Any) -> None:
-    """Stop the wakeup and unpin; when it returns the guard condition is never triggered by it.
-
-    A no-op when none is set. Works after rclpy was asked to destroy the subscription (the
-    deferred destruction then happens here).
-    """
-    _native.clear_new_message_wakeup(subscription)
-
-
-def install_discovery(node: Any) -> bool:
-    """Install the discovery tap on the node's participant; call right after node creation."""
-    return _native.install_discovery(node)
-
-
-def uninstall_discovery(node: Any) -> bool:
-    """Give rmw its own participant listener back."""
-    return _native.uninstall_discovery(node)
-
-
 def drain_discovery_events(node: Any) -> List[EndpointEvent]:
     """Queued endpoint events of the node's participant (single consumer per participant)."""
     return [EndpointEvent(*e) for e in _native.drain_discovery_events(node)]
@@ -328,21 +226,6 @@ def drain_discovery_events(node: Any) -> List[EndpointEvent]:
 def list_known_endpoints(node: Any) -> List[EndpointEvent]:
     """Alive endpoints seen since the tap was installed, with their latest USER_DATA."""
     return [EndpointEvent(*e) for e in _native.list_known_endpoints(node)]
-
-
-def add_discovery_wakeup(node: Any, guard_condition: Any) -> bool:
-    """Trigger an rclpy GuardCondition on every discovery event (pinned until removed)."""
-    return _native.add_discovery_wakeup(node, guard_condition)
-
-
-def remove_discovery_wakeup(guard_condition: Any) -> bool:
-    """Stop triggering the guard condition and unpin it."""
-    return _native.remove_discovery_wakeup(guard_condition)
-
-
-def discovery_stats(node: Any) -> dict:
-    """installed, queued, known, wakeups, dropped, recorded."""
-    return _native.discovery_stats(node)
 
 
 def _qos_args(qos: Any) -> dict:
@@ -354,13 +237,13 @@ def _qos_args(qos: Any) -> dict:
 
 
 def create_channel_publisher(node: Any, msg_type: Any, topic_name: str,
-                             qos: Any) -> ChannelPublisher:
+                             qos: Any) -> _native.ChannelPublisher:
     """A publisher below rcl on the full DDS topic name ``topic_name`` (volatile)."""
-    return ChannelPublisher(node, type_support(msg_type), topic_name, **_qos_args(qos))
+    return _native.ChannelPublisher(node, type_support(msg_type), topic_name, **_qos_args(qos))
 
 
 def create_channel_subscription(node: Any, msg_type: Any, topic_name: str, qos: Any,
-                                guard_condition: Any = None) -> ChannelSubscription:
+                                guard_condition: Any = None) -> _native.ChannelSubscription:
     """A subscription below rcl; new data triggers ``guard_condition``."""
-    return ChannelSubscription(node, type_support(msg_type), topic_name,
+    return _native.ChannelSubscription(node, type_support(msg_type), topic_name,
                                guard_condition=guard_condition, **_qos_args(qos))

@@ -1,7 +1,7 @@
 """Discovery of buffer-aware endpoints, per DDS participant (one per rclpy Context).
 
-The native tap (``_dds.install_discovery``) records every DataWriter/DataReader discovery event of
-the participant, local endpoints included. :class:`ParticipantDiscovery` turns them into
+The native tap (``_native.install_discovery``) records every DataWriter/DataReader discovery
+event of the participant, local endpoints included. :class:`ParticipantDiscovery` turns them into
 :class:`PeerEndpoint` records (``BUFBE:`` advertisement parsed) and dispatches them, by DDS topic,
 to the buffer-aware publishers and subscriptions that watch that topic. Processing happens in
 Python threads only (publish(), executor callbacks), never in DDS threads.
@@ -9,7 +9,7 @@ Python threads only (publish(), executor callbacks), never in DDS threads.
 Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. So a
 buffer-aware endpoint re-announces its USER_DATA once when it first finds a new remote
 buffer-aware peer whose QoS matches its own (that peer may have missed it), and again while a
-peer's channel stays unmatched (see ``BufferEndpoint._reannounce_if_unmatched``); the peer sees
+peer's channel stays unmatched (see :mod:`rosidl_buffer_py.reannounce`); the peer sees
 it as a 'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
 matching at every peer, and stock endpoints with incompatible QoS report it again.
 """
@@ -20,7 +20,7 @@ from typing import Dict, List, Mapping, Optional
 
 from rclpy.logging import get_logger
 
-from rosidl_buffer_py import _dds, advertisement
+from rosidl_buffer_py import _dds, _native, advertisement
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import is_channel_topic
 
@@ -58,7 +58,8 @@ class _Watch:
 class ParticipantDiscovery:
     """Endpoints of one participant's view of the DDS graph, dispatched to watchers by topic.
 
-    A watcher implements ``_on_peer(peer: PeerEndpoint)`` and ``_on_peer_gone(gid: bytes)``.
+    A watcher (a :class:`~rosidl_buffer_py.peers.PeerTable`) implements
+    ``_on_peer(peer: PeerEndpoint)`` and ``_on_peer_gone(gid: bytes)``.
     """
 
     def __init__(self, node) -> None:
@@ -66,7 +67,7 @@ class ParticipantDiscovery:
         self._nodes: 'weakref.WeakSet' = weakref.WeakSet()
         self._endpoints: Dict[bytes, PeerEndpoint] = {}
         self._watches: Dict[str, _Watch] = {}
-        self._installed = _dds.install_discovery(node) or True
+        self._installed = _native.install_discovery(node) or True
         self._nodes.add(node)
         for event in _dds.list_known_endpoints(node):
             self._apply(event)
@@ -97,11 +98,11 @@ class ParticipantDiscovery:
 
     def add_wakeup(self, node, guard_condition) -> None:
         """Trigger ``guard_condition`` whenever a discovery event arrives."""
-        _dds.add_discovery_wakeup(node, guard_condition)
+        _native.add_discovery_wakeup(node, guard_condition)
 
     def remove_wakeup(self, guard_condition) -> None:
         try:
-            _dds.remove_discovery_wakeup(guard_condition)
+            _native.remove_discovery_wakeup(guard_condition)
         except Exception as exc:  # the participant may already be gone at shutdown
             _logger.debug(f'remove_discovery_wakeup: {exc}')
 

@@ -9,7 +9,7 @@ subscription there: a descriptor when the backend accepts the peer, CPU bytes ot
 topic is written while some matched subscription is not served by a channel, and always for a
 TRANSIENT_LOCAL publisher (its DataWriter keeps the history late joiners get). A main-topic
 sample is kept from the subscriptions a channel serves (writer side: Fast DDS sends them a GAP
-instead of the payload, see :func:`rosidl_buffer_py._dds.exclude_from_next_write`).
+instead of the payload, see :func:`rosidl_buffer_py._native.exclude_from_next_write`).
 
 Each message has one designated route per subscription, which the route protocol decides
 (:mod:`rosidl_buffer_py.routes`: one :class:`~rosidl_buffer_py.routes.Route` per buffer-aware
@@ -35,17 +35,17 @@ from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
-from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, _native, advertisement, codec, control, discovery, routes
 from rosidl_buffer_py.backend import EndpointGone, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
-from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.channel import channel_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
-from rosidl_buffer_py.transport import (
-    BufferEndpoint, incompatible_qos_once_per_peer, reliable_subscription,
-    track_endpoint, warn_unsupported_rmw)
+from rosidl_buffer_py.diagnostics import PublisherStatistics, SubscriptionPeer
+from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
+from rosidl_buffer_py.qos import incompatible_qos_once_per_peer, reliable_subscription
 
 
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
@@ -61,7 +61,7 @@ class _SubscriptionPeer:
     backends: Dict[str, str]
     route: routes.Route
     compatible: Set[str] = field(default_factory=set)
-    channel: Optional['_dds.ChannelPublisher'] = None
+    channel: Optional['_native.ChannelPublisher'] = None
     channel_topic: str = ''
     created_at: float = 0.0
     sent_descriptor: int = 0
@@ -129,13 +129,17 @@ class _Encoder:
         return data
 
 
-class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
+class Publisher(rclpy.publisher.Publisher):
     """Publish messages of any type whose ``uint8[]`` fields may hold :class:`Buffer` objects.
 
     Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
     whose ``uint8[]`` fields (at any depth) hold CPU data (``array.array``, ``bytes``, ...) or
     Buffers (for example ``DemoBuffer``), or already serialized CDR ``bytes``. A type without
     ``uint8[]`` fields makes a stock publisher (no channels, no advertisement).
+
+    Its buffer-aware subscriptions are a :class:`~rosidl_buffer_py.peers.PeerTable` it owns (it
+    is the table's :class:`~rosidl_buffer_py.peers.PeerOwner`); their routes are a
+    :class:`~rosidl_buffer_py.routes.RouteTable`.
     """
 
     def __init__(self, publisher_impl, msg_type, topic: str, qos_profile: QoSProfile, *,
@@ -157,15 +161,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if self._transport:
             event_callbacks = incompatible_qos_once_per_peer(
                 event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
-                _dds.endpoint_gid(publisher_impl, 'publisher'), topic)
+                _native.endpoint_gid(publisher_impl, 'publisher'), topic)
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
-        self._peer_kind = EndpointKind.SUBSCRIPTION
         self._node = node
         #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
         self._logger = node.get_logger().get_child('rosidl_buffer_py')
         self._lock = threading.RLock()
-        self._peers: Dict[bytes, _SubscriptionPeer] = {}
+        self._peers: Optional[PeerTable[_SubscriptionPeer]] = None
         self._last_timestamp = 0
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
@@ -181,11 +184,10 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._route_timer = None
         self._peers_added = 0
         self._peers_removed = 0
-        self._destroyed = False
         self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
         if not self._transport:
             if self._paths:
-                warn_unsupported_rmw('publisher', self._topic_name)
+                _dds.warn_unsupported('publisher', self._topic_name)
             return
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
         #: joiners receive (as CPU bytes; their channels serve them from then on).
@@ -196,7 +198,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
                                           callback_group)
                           if deadline_callback else None)
-        self._gid = _dds.endpoint_gid(self)
+        self._gid = _native.endpoint_gid(self, 'publisher')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.PUBLISHER,
                                   node.get_name(), node.get_namespace())
         self._backends = get_installed_backends()
@@ -207,20 +209,17 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         #: RELIABLE KEEP_LAST channels can acknowledge probes (see routes.Route)
         self._handshake = (qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT and
                            qos_profile.history != HistoryPolicy.KEEP_ALL)
-        self._user_data = advertisement.append(_dds.get_user_data(self), advertised)
-        self._discovery = discovery.for_node(node)
+        self._user_data = advertisement.append(
+            _native.get_user_data(self, 'publisher'), advertised)
+        self._peers = PeerTable(
+            self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
+            topic_name=self._topic_name, gid=self._gid, backends=self._backends,
+            logger=self._logger)
         self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
-        self._discovery_guard = node.create_guard_condition(self._discovery.process,
-                                                            callback_group)
-        self._discovery.add_wakeup(node, self._discovery_guard)
-        self._start_reannounce_timer(node, callback_group)
         self._polled_at = 0.0
-        track_endpoint(self)
-        with self._lock:
-            for peer in self._discovery.watch(dds_topic(self._topic_name), self):
-                self._on_peer(peer)
+        self._peers.open()
 
     # rclpy.publisher.Publisher surface ------------------------------------------------------
 
@@ -241,7 +240,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if not self._transport:
             return True
         with self._lock:
-            channels = [p.channel for p in self._peers.values() if p.channel is not None]
+            channels = [p.channel for p in self._peers if p.channel is not None]
         for channel in channels:
             left = -1.0 if deadline is None else max(0.0, deadline - time.monotonic())
             try:
@@ -254,7 +253,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
     def destroy(self) -> None:
         """Destroy the channels, then the publisher (``Node.destroy_publisher`` calls this)."""
         if self._transport:
-            self._teardown()
+            self._peers.close()
         super().destroy()
 
     def publish(self, msg) -> None:
@@ -279,14 +278,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             super().publish(bytes(serialized) if serialized is not None else msg)
             return
         now = time.monotonic()
-        if now - self._polled_at >= DISCOVERY_POLL_SECONDS and not self._spinning(now):
+        if (now - self._polled_at >= DISCOVERY_POLL_SECONDS and
+                not self._peers.reannouncer.spinning(now)):
             self._polled_at = now
-            self._discovery.process()
-            self._reannounce_if_unmatched()
+            self._peers.poll()
         encoder = _Encoder(msg, serialized, [] if serialized is not None else
                            self._buffers_of(msg), self._single)
         with self._lock:
-            if self._destroyed:
+            if self._peers.closed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
             planned = self._current_plan()
             timestamp = self._next_timestamp()
@@ -322,7 +321,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
             if main:
                 self._exclude_from_main(withheld)
             if targets:
-                _dds.write_message(encoder.msg, timestamp, targets)
+                _native.write_message(encoder.msg, timestamp, targets)
             for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
@@ -357,12 +356,12 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         if encoder.host_buffer:
             # a Buffer in host memory: converted to C through its buffer protocol and
             # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
-            _dds.write_message(encoder.msg, timestamp, cpu_targets)
+            _native.write_message(encoder.msg, timestamp, cpu_targets)
             return changed
         data = encoder.cpu_bytes()
         for target in cpu_targets:
             if target is self:
-                _dds.publish_serialized(self, data, timestamp)
+                _native.publish_serialized(self, data, timestamp)
             else:
                 target.publish(data, timestamp)
         return changed
@@ -376,7 +375,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         """
         if self._exclusions is False or not (withheld or self._excluding):
             return
-        self._exclusions = _dds.exclude_from_next_write(self, withheld)
+        self._exclusions = _native.exclude_from_next_write(self, withheld)
         self._excluding = bool(withheld) and self._exclusions
         if self._excluding:
             self._withheld += len(withheld)
@@ -398,14 +397,14 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
         return (self.get_subscription_count(),
                 tuple(-1 if peer.channel is None else peer.channel.matched_count()
-                      for peer in self._peers.values()))
+                      for peer in self._peers))
 
     def _plan(self) -> _Planned:
         """Feed the route table what DDS says now (matched channels, acknowledged samples),
         write the probes it asks for, and cache its plan. Under the lock."""
         now = time.monotonic()
         signature = self._route_signature()
-        for peer, matched in zip(self._peers.values(), signature[1]):
+        for peer, matched in zip(self._peers, signature[1]):
             route = peer.route
             route.channel_matched(matched > 0, now)
             if route.awaits_acknowledgment and peer.channel.wait_for_all_acked(0.0):
@@ -417,7 +416,7 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 timestamp = self._last_timestamp or time.time_ns()
                 for _ in range(probes):
                     peer.channel.publish(control.PROBE_BYTES, timestamp)
-        plan = self._table.plan(now, _dds.matched_subscription_gids(self))
+        plan = self._table.plan(now, _native.matched_subscription_gids(self))
         peers = tuple(self._peers[gid] for gid in plan.channel)
         self._planned = _Planned(plan, peers, signature)
         self._arm_route_timer(plan.recheck_at - now < routes.RECHECK_SECONDS)
@@ -437,40 +436,43 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
 
     def _on_route_timer(self) -> None:
         with self._lock:
-            if not self._destroyed:
+            if not self._peers.closed:
                 self._plan()
 
     # diagnostics ----------------------------------------------------------------------------
 
-    def buffer_peers(self) -> List[dict]:
+    def buffer_peers(self) -> List[SubscriptionPeer]:
         """The buffer-aware subscriptions this publisher serves, and how."""
-        names = self._peer_node_names()
+        if self._peers is None:
+            return []
+        names = self._peers.node_names()
         with self._lock:
-            return [{
-                'gid': peer.info.gid_hex,
-                'node': names.get(peer.info.gid, ''),
-                'advertised_backends': dict(peer.backends),
-                'compatible_backends': sorted(peer.compatible),
-                'channel_topic': peer.channel_topic,
-                'channel_matched': bool(peer.channel and peer.channel.matched_count()),
-                'channel_serving': peer.route.on_channel,
-                'route_state': peer.route.state.value,
-                'backend_in_use': peer.backend_in_use,
-                'sent_as_descriptor': peer.sent_descriptor,
-                'sent_as_cpu': peer.sent_cpu,
-            } for peer in self._peers.values()]
+            return [SubscriptionPeer(
+                gid=peer.info.gid_hex,
+                node=names.get(peer.info.gid, ''),
+                advertised_backends=dict(peer.backends),
+                compatible_backends=sorted(peer.compatible),
+                channel_topic=peer.channel_topic,
+                channel_matched=bool(peer.channel and peer.channel.matched_count()),
+                channel_serving=peer.route.on_channel,
+                route_state=peer.route.state.value,
+                backend_in_use=peer.backend_in_use,
+                sent_as_descriptor=peer.sent_descriptor,
+                sent_as_cpu=peer.sent_cpu,
+            ) for peer in self._peers]
 
-    def statistics(self) -> dict:
+    def statistics(self) -> PublisherStatistics:
         """Counters: messages written on the main topic, and per-peer counts."""
         with self._lock:
-            return {'gid': self._gid.hex() if self._transport else None,
-                    'buffer_aware': self._transport,
-                    'advertised_backends': dict(getattr(self, '_advertised', {})),
-                    'sent_on_main_topic': self._sent_main,
-                    'main_topic_withheld': self._withheld,
-                    'cpu_copies_to_buffer_capable_peers': self._cpu_to_capable,
-                    'peers_added': self._peers_added, 'peers_removed': self._peers_removed,
-                    'peers': self.buffer_peers()}
+            return PublisherStatistics(
+                gid=self._gid.hex() if self._transport else None,
+                buffer_aware=self._transport,
+                advertised_backends=dict(getattr(self, '_advertised', {})),
+                sent_on_main_topic=self._sent_main,
+                main_topic_withheld=self._withheld,
+                cpu_copies_to_buffer_capable_peers=self._cpu_to_capable,
+                peers_added=self._peers_added, peers_removed=self._peers_removed,
+                peers=self.buffer_peers())
 
     # internals ------------------------------------------------------------------------------
 
@@ -510,23 +512,20 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
                 described.append((path, vendor, descriptor))
         return tuple(described)
 
+    # the PeerOwner protocol (rosidl_buffer_py.peers), under the lock ------------------------
+
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _dds.set_user_data(self, self._user_data)
+        _native.set_user_data(self, 'publisher', self._user_data)
 
     def _release(self) -> None:
         if self._exclusions:
             try:  # before rclpy destroys the DataWriter the filter sits on
-                _dds.remove_write_exclusions(self)
+                _native.remove_write_exclusions(self)
             except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
                 self._logger.debug(f'removing the main-topic exclusions: {exc}')
-        super()._release()
-
-    def _node_entities(self) -> list:
-        entities = [self._reannounce_timer, self._route_timer, self._discovery_guard]
-        if self._deadline is not None:
-            entities.append(self._deadline.timer)
-        return entities
+        destroy_node_entities(self._node, [
+            self._route_timer, self._deadline and self._deadline.timer], self._logger)
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         # backends account per channel: which local publisher serves this peer
@@ -541,28 +540,20 @@ class Publisher(rclpy.publisher.Publisher, BufferEndpoint):
         self._peers_added += 1
         return record
 
-    def _on_peer(self, peer) -> None:
-        # any subscription of our topic coming or changing, legacy ones too, may change routes
-        if peer.kind is self._peer_kind:
-            with self._lock:
-                self._planned = None
-        super()._on_peer(peer)
-
-    def _on_peer_gone(self, gid: bytes) -> None:
-        with self._lock:
-            self._planned = None
-            self._table.remove(gid)
-        super()._on_peer_gone(gid)
+    def _peer_gone(self, gid: bytes) -> None:
+        # any subscription of our topic going, legacy ones too, may change routes
+        self._planned = None
+        self._peers.drop(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
-        record.compatible = compatible  # (_on_peer already dropped the plan)
+        record.compatible = compatible
+        self._planned = None
         self._arm_route_timer(True)  # its route advances on the executor, publishing or not
 
-    def _forget_peer(self, gid: bytes) -> None:
-        if gid in self._peers:
-            self._peers_removed += 1
-            self._table.remove(gid)
-            self._planned = None
+    def _forget_peer(self, record: _SubscriptionPeer) -> None:
+        self._peers_removed += 1
+        self._table.remove(record.info.gid)
+        self._planned = None
 
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,

@@ -41,17 +41,17 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
 
-from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, _native, advertisement, codec, control, discovery, routes
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
-from rosidl_buffer_py.channel import channel_topic, dds_topic
+from rosidl_buffer_py.channel import channel_topic
 from rosidl_buffer_py.routes import Verdict
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
-from rosidl_buffer_py.transport import (
-    BufferEndpoint, incompatible_qos_once_per_peer, track_endpoint,
-    warn_unsupported_rmw)
+from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
+from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
+from rosidl_buffer_py.qos import incompatible_qos_once_per_peer
 
 
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
@@ -82,7 +82,7 @@ class _PublisherPeer:
 
     info: EndpointInfo
     backends: Dict[str, str]
-    channel: Optional['_dds.ChannelSubscription'] = None
+    channel: Optional['_native.ChannelSubscription'] = None
     channel_topic: str = ''
     created_at: float = 0.0
     received_descriptor: int = 0
@@ -114,25 +114,27 @@ class _MainTopicReader(_rclpy.Subscription):
         return None if owner is None else owner._next()
 
 
-class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
+class Subscription(rclpy.subscription.Subscription):
     """Receive messages whose ``uint8[]`` payload may arrive as a backend Buffer.
 
     Create it with :func:`rosidl_buffer_py.create_subscription`. The callback gets ``(msg)`` or
     ``(msg, message_info)`` like rclpy's; ``msg.<payload>`` is ``array.array('B')`` for CPU data and
     a Buffer of an accepted backend for descriptor data.
+
+    Its buffer-aware publishers are a :class:`~rosidl_buffer_py.peers.PeerTable` it owns (it is
+    the table's :class:`~rosidl_buffer_py.peers.PeerOwner`); per publisher, a
+    :class:`~rosidl_buffer_py.routes.Stream` decides what is delivered.
     """
 
     def __init__(self, node, msg_type, topic: str, callback: Callable, qos_profile: QoSProfile,
                  callback_group, event_callbacks: SubscriptionEventCallbacks,
                  acceptable_buffer_backends: Optional[str]) -> None:
         enable_buffer_fields(msg_type)
-        self._peer_kind = EndpointKind.PUBLISHER
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         self._node = node
         #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
         self._logger = node.get_logger().get_child('rosidl_buffer_py')
         self._lock = threading.RLock()
-        self._peers: Dict[bytes, _PublisherPeer] = {}
         #: one stream per publisher: the route protocol's subscription side
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
             reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
@@ -141,9 +143,8 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         #: the peers with a channel (and departed ones with samples left), polled in turn
         self._channels: List[_PublisherPeer] = []
         self._suspects: Set[bytes] = set()  # publishers whose data C could not deserialize
-        self._destroyed = False
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
-        self._discovery = discovery.for_node(node)
+        discovery.for_node(node)
         deadline_callback = None
         if event_callbacks.deadline and finite(qos_profile.deadline):
             deadline_callback = event_callbacks.deadline  # counted over every route
@@ -156,7 +157,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         reader._owner = lambda: None
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
-            _dds.endpoint_gid(reader, 'subscription'), topic)
+            _native.endpoint_gid(reader, 'subscription'), topic)
         try:
             super().__init__(reader, msg_type, topic, callback, callback_group, qos_profile,
                              False, event_callbacks=event_callbacks)
@@ -164,7 +165,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             reader.destroy_when_not_in_use()
             raise
         self._topic_name = reader.get_topic_name()
-        self._gid = _dds.endpoint_gid(reader, 'subscription')
+        self._gid = _native.endpoint_gid(reader, 'subscription')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.SUBSCRIPTION,
                                   node.get_name(), node.get_namespace())
         backends = get_installed_backends()
@@ -172,7 +173,11 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._advertised = {name: backend.get_backend_metadata()
                             for name, backend in sorted(self._backends.items())}
         self._user_data = advertisement.append(
-            _dds.get_user_data(reader, 'subscription'), self._advertised)
+            _native.get_user_data(reader, 'subscription'), self._advertised)
+        self._peers: PeerTable[_PublisherPeer] = PeerTable(
+            self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
+            topic_name=self._topic_name, gid=self._gid, backends=self._backends,
+            logger=self._logger)
         self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
@@ -182,17 +187,10 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         self._fence_timer = None
         self._channel_guard = node.create_guard_condition(self._deliver_available,
                                                           callback_group)
-        # discovery wakes its own guard: data wake-ups do not poll discovery
-        self._discovery_guard = node.create_guard_condition(self._discovery.process,
-                                                            callback_group)
-        self._discovery.add_wakeup(node, self._discovery_guard)
-        self._start_reannounce_timer(node, callback_group)
-        track_endpoint(self)
-        with self._lock:
-            for peer in self._discovery.watch(dds_topic(self._topic_name), self):
-                self._on_peer(peer)
+        # discovery wakes its own guard (the table's): data wake-ups do not poll discovery
+        self._peers.open()
         owner = self
-        reader._owner = lambda: owner if not owner._destroyed else None
+        reader._owner = lambda: owner if not owner._peers.closed else None
 
     # rclpy.subscription.Subscription surface ------------------------------------------------
 
@@ -209,44 +207,44 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
     def destroy(self) -> None:
         """Destroy the channels, then the subscription (``Node.destroy_subscription`` calls
         this)."""
-        self._teardown()
+        self._peers.close()
         super().destroy()
 
     # diagnostics ----------------------------------------------------------------------------
 
-    def buffer_peers(self) -> List[dict]:
+    def buffer_peers(self) -> List[PublisherPeer]:
         """The buffer-aware publishers serving this subscription, and how."""
-        names = self._peer_node_names()
+        names = self._peers.node_names()
         with self._lock:
-            return [{
-                'gid': peer.info.gid_hex,
-                'node': names.get(peer.info.gid, ''),
-                'advertised_backends': dict(peer.backends),
-                'channel_topic': peer.channel_topic,
-                'backend_in_use': peer.backend_in_use,
-                'received_as_descriptor': peer.received_descriptor,
-                'received_as_cpu': peer.received_cpu,
-            } for peer in self._peers.values()]
+            return [PublisherPeer(
+                gid=peer.info.gid_hex,
+                node=names.get(peer.info.gid, ''),
+                advertised_backends=dict(peer.backends),
+                channel_topic=peer.channel_topic,
+                backend_in_use=peer.backend_in_use,
+                received_as_descriptor=peer.received_descriptor,
+                received_as_cpu=peer.received_cpu,
+            ) for peer in self._peers]
 
-    def statistics(self) -> dict:
+    def statistics(self) -> SubscriptionStatistics:
         """Counters: delivered, duplicates dropped, rejected descriptors, by route."""
         with self._lock:
-            return {'gid': self._gid.hex(),
-                    'buffer_aware': True,
-                    'advertised_backends': dict(self._advertised),
-                    **{key: self._counts[key] for key in (
-                        'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
-                        'rejected', 'fences')},
-                    **dict(zip(('fence_timeouts', 'fenced_lost'),
-                               self._streams.fence_counts())),
-                    'peers': self.buffer_peers()}
+            fence_timeouts, fenced_lost = self._streams.fence_counts()
+            return SubscriptionStatistics(
+                gid=self._gid.hex(), buffer_aware=True,
+                advertised_backends=dict(self._advertised),
+                **{key: self._counts[key] for key in (
+                    'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
+                    'rejected', 'fences')},
+                fence_timeouts=fence_timeouts, fenced_lost=fenced_lost,
+                peers=self.buffer_peers())
 
     # the delivery path ----------------------------------------------------------------------
 
     def _next(self) -> Optional[Tuple[object, dict]]:
         """The next message to deliver, with its message info, or None when none is left."""
         with self._lock:
-            while not self._destroyed:
+            while not self._peers.closed:
                 found = self._next_from_channels()
                 if found is not None:
                     msg, taken = found
@@ -274,7 +272,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
         While some publisher serves us on its channel, its main-topic copies (written for
         legacy subscribers; its DataWriter keeps most from us, see
-        ``_dds.exclude_from_next_write``) are duplicates: their key (publisher GID, source
+        ``_native.exclude_from_next_write``) are duplicates: their key (publisher GID, source
         timestamp) is read from the DDS sample info and they are discarded without copying
         their payload.
 
@@ -287,21 +285,21 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
         key = None
         streams = self._streams.streams
         while self._suspects or self._streams.any_switched:
-            key = _dds.peek_untaken(self.handle)
+            key = _native.peek_untaken(self.handle)
             if key is None:
                 return None
             stream = streams.get(key[0])
             if stream is None or not stream.duplicate(key[1]):
                 break
             stream.passed_by(key[1])
-            if _dds.discard_untaken(self.handle) is not None:
+            if _native.discard_untaken(self.handle) is not None:
                 self._counts['from_main_topic'] += 1
                 self._counts['duplicates_dropped'] += 1
             key = None
         if key is not None and key[0] in self._suspects:
-            taken = _dds.take_serialized_with_gid(self.handle)
+            taken = _native.take_serialized_with_gid(self.handle)
         else:
-            taken = _dds.take_message_with_gid(self.handle, self.msg_type,
+            taken = _native.take_message_with_gid(self.handle, self.msg_type,
                                                C_DESERIALIZE_MAX_BYTES)
             if taken is not None and type(taken[0]) is not self.msg_type and \
                     len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
@@ -331,7 +329,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             taken = None
             if stream.holding:
                 if main_drained is None:  # a fence may time out only if nothing can come
-                    main_drained = _dds.peek_untaken(self.handle) is None
+                    main_drained = _native.peek_untaken(self.handle) is None
                 taken = stream.release(now, main_drained)
                 msg = None if taken is None else self._decode(taken, peer)
             if taken is None:
@@ -424,7 +422,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
 
     def _wake(self) -> None:
         with self._lock:
-            if not self._destroyed:
+            if not self._peers.closed:
                 self._channel_guard.trigger()
 
     def _reject(self, taken: _Taken, why: str) -> None:
@@ -470,11 +468,11 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
             self._reject(taken, f'{type(exc).__name__}: {exc}')
             return None
 
-    # peers ----------------------------------------------------------------------------------
+    # the PeerOwner protocol (rosidl_buffer_py.peers), under the lock ------------------------
 
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _dds.set_user_data(self.handle, self._user_data, 'subscription')
+        _native.set_user_data(self.handle, 'subscription', self._user_data)
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
         record = _PublisherPeer(info=info, backends=backends)
@@ -495,7 +493,7 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
     def _poll_channels(self) -> None:
         """The channels ``_next`` takes from, in turn: the peers' and the departed peers' with
         samples left."""
-        self._channels = [p for p in self._peers.values() if p.channel is not None] + [
+        self._channels = [p for p in self._peers if p.channel is not None] + [
             p for p in self._channels if p.departed is not None]
 
     def _retire_departed(self) -> None:
@@ -507,46 +505,42 @@ class Subscription(rclpy.subscription.Subscription, BufferEndpoint):
                 self._streams.pop(peer.info.gid)
             self._channels = [p for p in self._channels if all(p is not d for d in done)]
 
-    def _on_peer_gone(self, gid: bytes) -> None:
+    def _peer_gone(self, gid: bytes) -> None:
         """A publisher went away: what its channel had delivered to our reader stays
         deliverable, in order (as a stock reader keeps the samples of a writer that left).
         Descriptors are resolved now, before the backend forgets the publisher."""
-        with self._lock:
-            self._suspects.discard(gid)
-            peer = self._peers.get(gid)
-            left = collections.deque()
-            while peer is not None and peer.channel is not None:
-                taken = peer.take()
-                if taken is None:
-                    break
-                if type(taken.raw) is not self.msg_type and not control.is_control(taken.raw):
-                    msg = self._decode(taken, peer)
-                    if msg is None:
-                        continue
-                    taken = taken._replace(raw=msg)
-                left.append(taken)
-            super()._on_peer_gone(gid)
-            if peer is not None and (left or self._streams[gid].holding):
-                peer.departed = left
-                self._channels.append(peer)
-                self._wake()
-            elif not self._streams[gid].holding:
-                self._streams.pop(gid)
+        self._suspects.discard(gid)
+        peer = self._peers.get(gid)
+        left = collections.deque()
+        while peer is not None and peer.channel is not None:
+            taken = peer.take()
+            if taken is None:
+                break
+            if type(taken.raw) is not self.msg_type and not control.is_control(taken.raw):
+                msg = self._decode(taken, peer)
+                if msg is None:
+                    continue
+                taken = taken._replace(raw=msg)
+            left.append(taken)
+        self._peers.drop(gid)
+        if peer is not None and (left or self._streams[gid].holding):
+            peer.departed = left
+            self._channels.append(peer)
+            self._wake()
+        elif not self._streams[gid].holding:
+            self._streams.pop(gid)
 
-    def _forget_peer(self, gid: bytes) -> None:
+    def _forget_peer(self, record: _PublisherPeer) -> None:
         # its channel goes: its next messages (if any) come on the main topic again
-        stream = self._streams.streams.get(gid)
+        stream = self._streams.streams.get(record.info.gid)
         if stream is not None:
             stream.channel_lost()
-        self._channels = [p for p in self._channels if p.info.gid != gid]
+        self._channels = [p for p in self._channels if p.info.gid != record.info.gid]
 
-    def _node_entities(self) -> list:
-        entities = [self._reannounce_timer, self._discovery_guard, self._channel_guard]
-        if self._fence_timer is not None:
-            entities.append(self._fence_timer)
-        if self._deadline is not None:
-            entities.append(self._deadline.timer)
-        return entities
+    def _release(self) -> None:
+        destroy_node_entities(self._node, [
+            self._channel_guard, self._fence_timer, self._deadline and self._deadline.timer],
+            self._logger)
 
 
 def create_subscription(node, msg_type, topic: str, callback: Callable,
@@ -595,7 +589,7 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
         node._validate_topic_or_service_name(topic)  # rclpy's error for a bad name
         raise
     if cls is _PlainSubscription and codec.buffer_paths(msg_type):
-        warn_unsupported_rmw('subscription', sub.topic_name)
+        _dds.warn_unsupported('subscription', sub.topic_name)
     # registered as Node.create_subscription registers its own
     callback_group.add_entity(sub)
     node._subscriptions.append(sub)
@@ -626,8 +620,8 @@ class _PlainSubscription(rclpy.subscription.Subscription):
         with self.handle:
             return self.handle.get_topic_name()
 
-    def buffer_peers(self) -> List[dict]:
+    def buffer_peers(self) -> List[PublisherPeer]:
         return []
 
-    def statistics(self) -> dict:
-        return {'gid': None, 'buffer_aware': False, 'advertised_backends': {}, 'peers': []}
+    def statistics(self) -> SubscriptionStatistics:
+        return SubscriptionStatistics(gid=None, buffer_aware=False, advertised_backends={})

@@ -33,7 +33,7 @@ _MISMATCH = textwrap.dedent('''
         pub.publish(UInt8MultiArray(data=b'abc'))
         rclpy.spin_once(node, timeout_sec=0.1)
     try:
-        _dds.matched_subscription_gids(pub.handle)
+        _native.matched_subscription_gids(pub.handle)
         refused = None
     except _dds.DdsError as exc:
         refused = str(exc)

@@ -21,7 +21,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 
 from harness.in_process import spin_until
-from rosidl_buffer_py import _dds
+from rosidl_buffer_py import _dds, _native
 
 PEER = os.path.join(os.path.dirname(__file__), 'harness', 'native_dds_peer.py')
 
@@ -124,12 +124,12 @@ def test_gid_matches_graph(ctx):
 def test_user_data_round_trip_and_local_discovery(ctx):
     """Local endpoints DO reach the participant listener (local=True), QoS changes too."""
     node = _node(ctx, 'ud_node')
-    assert _dds.install_discovery(node) is True
-    assert _dds.install_discovery(node) is False  # once per participant
+    assert _native.install_discovery(node) is True
+    assert _native.install_discovery(node) is False  # once per participant
     woken = []
     gc = node.create_guard_condition(lambda: woken.append(1))
-    assert _dds.add_discovery_wakeup(node, gc) is True
-    assert _dds.add_discovery_wakeup(node, gc) is False
+    assert _native.add_discovery_wakeup(node, gc) is True
+    assert _native.add_discovery_wakeup(node, gc) is False
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
 
@@ -163,13 +163,13 @@ def test_user_data_round_trip_and_local_discovery(ctx):
     node.destroy_publisher(pub)
     assert _wait(lambda: mine() or any(e.status == 'removed' for e in events))
     assert not [e for e in _dds.list_known_endpoints(node) if e.gid == gid]
-    stats = _dds.discovery_stats(node)
+    stats = _native.discovery_stats(node)
     assert stats['installed'] and stats['wakeups'] == 1 and stats['dropped'] == 0
 
-    assert _dds.remove_discovery_wakeup(gc) is True
-    assert _dds.remove_discovery_wakeup(gc) is False
-    assert _dds.uninstall_discovery(node) is True
-    assert _dds.discovery_stats(node) == {'installed': False}
+    assert _native.remove_discovery_wakeup(gc) is True
+    assert _native.remove_discovery_wakeup(gc) is False
+    assert _native.uninstall_discovery(node) is True
+    assert _native.discovery_stats(node) == {'installed': False}
     executor.shutdown()
     node.destroy_node()
 
@@ -339,12 +339,12 @@ def test_take_serialized_with_gid_of_plain_publisher(ctx):
     pub = node.create_publisher(Image, topic, 10)
     sub = node.create_subscription(Image, topic, lambda m: None, 10, raw=True)
     assert _wait(lambda: pub.get_subscription_count() == 1)
-    assert _dds.take_serialized_with_gid(sub) is None
+    assert _native.take_serialized_with_gid(sub) is None
     msg = _image(300, seed=3)
     pub.publish(msg)
     pub.publish(serialize_message(_image(5)))  # pre-serialized, as the wrappers will do
-    first = _wait(lambda: _dds.take_serialized_with_gid(sub))
-    second = _wait(lambda: _dds.take_serialized_with_gid(sub.handle))  # raw handle works too
+    first = _wait(lambda: _native.take_serialized_with_gid(sub))
+    second = _wait(lambda: _native.take_serialized_with_gid(sub.handle))  # raw handle works too
     assert first[0] == serialize_message(msg)
     assert second[0] == serialize_message(_image(5))
     assert first[1] == second[1] == _dds.endpoint_gid(pub)
@@ -387,7 +387,7 @@ def test_publish_serialized_source_timestamp(ctx):
         assert _wait(lambda: pub.get_subscription_count() == 2, timeout=15)
         for i, (data, stamp) in enumerate(zip(payloads, STAMPS)):
             buf = (data, bytearray(data), memoryview(data))[i % 3]  # any buffer, no copy
-            _dds.publish_serialized(pub, buf, stamp)
+            _native.publish_serialized(pub, buf, stamp)
         pub.publish(_image(7))  # rmw's own path still stamps "now"
         result = peer.expect('RESULT ')
         assert peer.proc.wait(timeout=15) == 0
@@ -402,11 +402,11 @@ def test_publish_serialized_source_timestamp(ctx):
     assert all(_near_now(r['received_timestamp']) for r in got)
     gid = _dds.endpoint_gid(pub)
     for data, stamp in zip(payloads, STAMPS):
-        taken = _wait(lambda: _dds.take_serialized_with_gid(local))
+        taken = _wait(lambda: _native.take_serialized_with_gid(local))
         assert taken[0] == data and taken[1] == gid
         assert taken[2]['source_timestamp'] == stamp
         assert _near_now(taken[2]['received_timestamp'])
-    assert _near_now(_wait(lambda: _dds.take_serialized_with_gid(local))[2]['source_timestamp'])
+    assert _near_now(_wait(lambda: _native.take_serialized_with_gid(local))[2]['source_timestamp'])
     node.destroy_node()
 
 
@@ -418,20 +418,20 @@ def test_publish_serialized_errors(ctx):
     data = serialize_message(_image(4))
     for bad in (-1, (2**31 - 1) * 10**9, 2**64):
         with pytest.raises(ValueError, match='source_timestamp'):
-            _dds.publish_serialized(pub, data, bad)
+            _native.publish_serialized(pub, data, bad)
     for bad in (None, 1.5, True):
         with pytest.raises(TypeError, match='source_timestamp'):
-            _dds.publish_serialized(pub, data, bad)
+            _native.publish_serialized(pub, data, bad)
     with pytest.raises(ValueError, match='too short'):
-        _dds.publish_serialized(pub, b'\0\1', 1)
+        _native.publish_serialized(pub, b'\0\1', 1)
     with pytest.raises(TypeError, match='Publisher'):
-        _dds.publish_serialized(sub, data, 1)
+        _native.publish_serialized(sub, data, 1)
     with pytest.raises(TypeError, match='Publisher'):
-        _dds.matched_subscription_gids(sub)
+        _native.matched_subscription_gids(sub)
     with pytest.raises(TypeError, match='Subscription'):
-        _dds.set_new_message_wakeup(pub, node.create_guard_condition(lambda: None))
+        _native.set_new_message_wakeup(pub, node.create_guard_condition(lambda: None))
     with pytest.raises(TypeError, match='GuardCondition'):
-        _dds.set_new_message_wakeup(sub, pub)
+        _native.set_new_message_wakeup(sub, pub)
     chan = _dds.create_channel_publisher(node, Image, 'rt/err/_buf/3_4', QoSProfile(depth=1))
     with pytest.raises(ValueError, match='source_timestamp'):
         chan.publish(data, source_timestamp=-5)
@@ -443,7 +443,7 @@ def test_publish_serialized_errors(ctx):
         chan.matched_gids()
     node.destroy_publisher(pub)
     with pytest.raises(Exception):  # rclpy refuses to hand out a destroyed handle
-        _dds.publish_serialized(pub, data, 1)
+        _native.publish_serialized(pub, data, 1)
     node.destroy_node()
 
 
@@ -507,7 +507,7 @@ def test_write_message_and_take_message(ctx):
         assert _wait(lambda: main.get_subscription_count() == 2 and chan.matched_count() == 1,
                      timeout=15)
         for msg, stamp in zip(messages, STAMPS):
-            _dds.write_message(msg, stamp, [chan, main])
+            _native.write_message(msg, stamp, [chan, main])
         result = peer.expect('RESULT ')
         assert peer.proc.wait(timeout=15) == 0
     finally:
@@ -521,11 +521,11 @@ def test_write_message_and_take_message(ctx):
         taken = _wait(lambda: chan_sub.take_message(Image))
         assert type(taken[0]) is Image and taken[0] == msg
         assert taken[1] == chan.gid and taken[2]['source_timestamp'] == stamp
-        taken = _wait(lambda: _dds.take_message_with_gid(local, Image))
+        taken = _wait(lambda: _native.take_message_with_gid(local, Image))
         assert type(taken[0]) is Image and taken[0] == msg
         assert taken[1] == _dds.endpoint_gid(main) and taken[2]['source_timestamp'] == stamp
     assert chan_sub.take_message(Image) is None
-    assert _dds.take_message_with_gid(local, Image) is None
+    assert _native.take_message_with_gid(local, Image) is None
     node.destroy_node()
 
 
@@ -546,7 +546,7 @@ def test_take_message_hands_back_what_does_not_deserialize(ctx):
     for data in samples:
         pub.publish(data)
         chan.publish(data, source_timestamp=1)
-    for take in (lambda: _dds.take_message_with_gid(sub, Image),
+    for take in (lambda: _native.take_message_with_gid(sub, Image),
                  lambda: chan_sub.take_message(Image)):
         results = [_wait(take)[0] for _ in samples]
         assert results[:3] == samples[:3]
@@ -554,12 +554,12 @@ def test_take_message_hands_back_what_does_not_deserialize(ctx):
     # max_size: longer samples come back as bytes, shorter ones as messages
     pub.publish(good)
     chan.publish(good, source_timestamp=2)
-    for take in (lambda size: _dds.take_message_with_gid(sub, Image, size),
+    for take in (lambda size: _native.take_message_with_gid(sub, Image, size),
                  lambda size: chan_sub.take_message(Image, max_size=size)):
         assert _wait(lambda: take(len(good) - 1))[0] == good
     pub.publish(good)
     chan.publish(good, source_timestamp=3)
-    for take in (lambda: _dds.take_message_with_gid(sub, Image, len(good)),
+    for take in (lambda: _native.take_message_with_gid(sub, Image, len(good)),
                  lambda: chan_sub.take_message(Image, len(good))):
         assert _wait(take)[0] == _image(12, seed=4)
     node.destroy_node()
@@ -573,21 +573,21 @@ def test_write_message_errors(ctx):
     chan = _dds.create_channel_publisher(node, Image, 'rt/err/_buf/5_6', QoSProfile(depth=1))
     msg = _image(4)
     with pytest.raises(TypeError, match='does not publish'):
-        _dds.write_message(String(data='x'), 1, [chan])
+        _native.write_message(String(data='x'), 1, [chan])
     with pytest.raises(TypeError, match='does not publish'):
-        _dds.write_message(String(data='x'), 1, [pub])
+        _native.write_message(String(data='x'), 1, [pub])
     with pytest.raises(TypeError, match='Publisher'):
-        _dds.write_message(msg, 1, [sub])
+        _native.write_message(msg, 1, [sub])
     with pytest.raises(ValueError, match='source_timestamp'):
-        _dds.write_message(msg, -1, [pub])
+        _native.write_message(msg, -1, [pub])
     with pytest.raises(TypeError, match='not a generated ROS message class'):
-        _dds.write_message(object(), 1, [pub])
+        _native.write_message(object(), 1, [pub])
     with pytest.raises(TypeError, match='not a generated ROS message class'):
-        _dds.take_message_with_gid(sub, dict)
-    _dds.write_message(msg, 1, [])  # nothing to write to
+        _native.take_message_with_gid(sub, dict)
+    _native.write_message(msg, 1, [])  # nothing to write to
     chan.destroy()
     with pytest.raises(_dds.DdsError, match='destroyed'):
-        _dds.write_message(msg, 1, [pub, chan])
+        _native.write_message(msg, 1, [pub, chan])
     node.destroy_node()
 
 
@@ -598,16 +598,16 @@ def test_matched_subscription_gids(ctx):
     topic = '/' + _unique('matched')
     node = _node(ctx, 'matched')
     pub = node.create_publisher(Image, topic, 10)
-    assert _dds.matched_subscription_gids(pub) == []
+    assert _native.matched_subscription_gids(pub) == []
     local = node.create_subscription(Image, topic, lambda m: None, 10)
     # a best-effort publisher's incompatible reliable reader would not match: only compatible
     peer = Peer('plain_sub', topic)
     try:
         remote = bytes.fromhex(peer.expect('READY ')['gid'])
         expected = {_dds.endpoint_gid(local), remote}
-        assert _wait(lambda: set(_dds.matched_subscription_gids(pub)) == expected, timeout=15)
-        assert len(_dds.matched_subscription_gids(pub.handle)) == 2  # raw handle
-        assert _dds.matched_subscription_gids(pub.handle.pointer)  # pointer int
+        assert _wait(lambda: set(_native.matched_subscription_gids(pub)) == expected, timeout=15)
+        assert len(_native.matched_subscription_gids(pub.handle)) == 2  # raw handle
+        assert _native.matched_subscription_gids(pub.handle.pointer)  # pointer int
         graph = {bytes(i.endpoint_gid) for i in node.get_subscriptions_info_by_topic(topic)}
         assert graph == expected
         assert pub.get_subscription_count() == 2
@@ -618,11 +618,11 @@ def test_matched_subscription_gids(ctx):
         peer.close()
     # a clean exit unmatches at once (no lease expiry)
     t0 = time.monotonic()
-    assert _wait(lambda: _dds.matched_subscription_gids(pub) == [_dds.endpoint_gid(local)],
+    assert _wait(lambda: _native.matched_subscription_gids(pub) == [_dds.endpoint_gid(local)],
                  timeout=5)
     assert time.monotonic() - t0 < 5
     node.destroy_subscription(local)
-    assert _wait(lambda: _dds.matched_subscription_gids(pub) == [])
+    assert _wait(lambda: _native.matched_subscription_gids(pub) == [])
     node.destroy_node()
 
 
@@ -644,20 +644,20 @@ def test_exclude_from_next_write_keeps_a_sample_from_the_named_readers(ctx, reli
     executor.add_node(node)
     assert spin_until(executor, lambda: pub.get_subscription_count() == 2)
     for i in range(10):
-        assert _dds.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)] if i % 2 else [])
+        assert _native.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)] if i % 2 else [])
         pub.publish(String(data=str(i)))
     assert spin_until(executor, lambda: len(got['b']) == 10)
     executor.spin_once(timeout_sec=0.2)
     assert got == {'a': [str(i) for i in range(0, 10, 2)], 'b': [str(i) for i in range(10)]}
-    assert _dds.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)])
-    _dds.remove_write_exclusions(pub)  # the registration goes with the filter
-    _dds.remove_write_exclusions(pub)  # nothing left to remove
+    assert _native.exclude_from_next_write(pub, [_dds.endpoint_gid(sub_a)])
+    _native.remove_write_exclusions(pub)  # the registration goes with the filter
+    _native.remove_write_exclusions(pub)  # nothing left to remove
     pub.publish(String(data='after'))
     assert spin_until(executor, lambda: got['a'][-1:] == got['b'][-1:] == ['after'])
     with pytest.raises(ValueError, match=r'reader_gids\[0\] must be 16 bytes'):
-        _dds.exclude_from_next_write(pub, [b'short'])
+        _native.exclude_from_next_write(pub, [b'short'])
     with pytest.raises(TypeError):
-        _dds.exclude_from_next_write(sub_a, [])  # not a publisher
+        _native.exclude_from_next_write(sub_a, [])  # not a publisher
     executor.shutdown()
     node.destroy_node()
 
@@ -677,7 +677,7 @@ def _raw_subscription(node, topic, depth=10):
 def _drain(sub):
     out = []
     while True:
-        taken = _dds.take_serialized_with_gid(sub)
+        taken = _native.take_serialized_with_gid(sub)
         if taken is None:
             return out
         out.append(taken)
@@ -700,7 +700,7 @@ def test_new_message_wakeup_cross_process(ctx):
             executor.spin_once(timeout_sec=0.01)
         woken.clear()
 
-    _dds.set_new_message_wakeup(sub, gc)
+    _native.set_new_message_wakeup(sub, gc)
     peer = Peer('pub_on_demand', topic)
     try:
         peer_gid = bytes.fromhex(peer.expect('READY ')['gid'])
@@ -717,8 +717,8 @@ def test_new_message_wakeup_cross_process(ctx):
         assert len(_wait(lambda: _drain(sub))) == 1
 
         # clear is a barrier: a message arrives (we take it) and nothing wakes
-        _dds.clear_new_message_wakeup(sub)
-        _dds.clear_new_message_wakeup(sub)  # no-op
+        _native.clear_new_message_wakeup(sub)
+        _native.clear_new_message_wakeup(sub)  # no-op
         settle()
         peer.send('pub 3')
         assert len(_wait(lambda: _drain(sub))) == 1
@@ -729,14 +729,14 @@ def test_new_message_wakeup_cross_process(ctx):
         # set again, replacing with a second guard condition: only that one wakes
         woken2 = []
         gc2 = node.create_guard_condition(lambda: woken2.append(1))
-        _dds.set_new_message_wakeup(sub.pointer, gc)  # pointer int works too
-        _dds.set_new_message_wakeup(sub, gc2.handle)  # replaces (and unpins) gc
+        _native.set_new_message_wakeup(sub.pointer, gc)  # pointer int works too
+        _native.set_new_message_wakeup(sub, gc2.handle)  # replaces (and unpins) gc
         settle()
         peer.send('pub 4')
         assert spin_until(lambda: woken2)
         assert not woken
         assert len(_wait(lambda: _drain(sub))) == 1
-        _dds.clear_new_message_wakeup(sub)
+        _native.clear_new_message_wakeup(sub)
         node.destroy_guard_condition(gc2)  # unpinned: destroyed right away
         peer.send('quit')
         assert peer.expect('RESULT ') == {'sent': 4}
@@ -763,10 +763,10 @@ def test_new_message_wakeup_with_unread_messages(ctx):
     executor.add_node(node)
     _wait(lambda: executor.spin_once(timeout_sec=0.05) or False, timeout=0.2)
     assert not woken
-    _dds.set_new_message_wakeup(sub, gc)
+    _native.set_new_message_wakeup(sub, gc)
     assert _wait(lambda: executor.spin_once(timeout_sec=0.05) or woken)
     assert len(_drain(sub)) == 2
-    _dds.clear_new_message_wakeup(sub)
+    _native.clear_new_message_wakeup(sub)
     executor.shutdown()
     sub.destroy_when_not_in_use()
     node.destroy_node()
@@ -782,7 +782,7 @@ def test_new_message_wakeup_destroy_orders(ctx, first):
     sub = node.create_subscription(Image, topic, lambda m: None, 10, raw=True)
     pub = pub_node.create_publisher(Image, topic, 10)
     assert _wait(lambda: pub.get_subscription_count() == 1)
-    _dds.set_new_message_wakeup(sub, gc)
+    _native.set_new_message_wakeup(sub, gc)
     sub_pointer = sub.handle.pointer
     if first == 'subscription':
         node.destroy_subscription(sub)
@@ -794,14 +794,14 @@ def test_new_message_wakeup_destroy_orders(ctx, first):
         ctx.shutdown()
     # Messages still arrive and trigger the (still alive) guard condition. Write through the
     # DataWriter: it works after rclpy.shutdown() too.
-    _dds.publish_serialized(pub.handle.pointer, serialize_message(_image(4)), 42)
-    taken = _wait(lambda: _dds.take_serialized_with_gid(sub_pointer))
+    _native.publish_serialized(pub.handle.pointer, serialize_message(_image(4)), 42)
+    taken = _wait(lambda: _native.take_serialized_with_gid(sub_pointer))
     assert taken[2]['source_timestamp'] == 42
-    _dds.clear_new_message_wakeup(sub)  # works after destroy was requested
+    _native.clear_new_message_wakeup(sub)  # works after destroy was requested
     if first in ('subscription', 'node'):
         with pytest.raises(Exception):  # the deferred destroy happened in clear
             _dds.endpoint_gid(sub)
-    _dds.clear_new_message_wakeup(sub.handle)  # nothing set (or destroyed): no-op
+    _native.clear_new_message_wakeup(sub.handle)  # nothing set (or destroyed): no-op
     node.destroy_node()
     pub_node.destroy_node()
 
@@ -816,12 +816,12 @@ def test_node_destroyed_before_channels(ctx):
     pub = _dds.create_channel_publisher(node, Image, topic, QoSProfile(depth=5))
     sub = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=5),
                                            guard_condition=gc)
-    _dds.add_discovery_wakeup(node, gc)
+    _native.add_discovery_wakeup(node, gc)
     node.destroy_node()  # deferred by the pins: channels keep working
     assert _wait(lambda: pub.matched_count() == 1)
     pub.publish(serialize_message(_image(8)))
     assert _wait(sub.take)[1] == pub.gid
-    assert _dds.remove_discovery_wakeup(gc) is True  # after destroy was requested
+    assert _native.remove_discovery_wakeup(gc) is True  # after destroy was requested
     sub.destroy()
     sub.destroy()  # idempotent
     pub.destroy()
@@ -831,7 +831,7 @@ def test_node_destroyed_before_channels(ctx):
     with pytest.raises(_dds.DdsError):
         sub.take()
     with pytest.raises(Exception):  # the rcl node is gone now
-        _dds.install_discovery(node.handle)
+        _native.install_discovery(node.handle)
 
 
 def test_shutdown_before_channels(ctx):
@@ -841,11 +841,11 @@ def test_shutdown_before_channels(ctx):
     pub = _dds.create_channel_publisher(node, Image, topic, QoSProfile(depth=5))
     sub = _dds.create_channel_subscription(node, Image, topic, QoSProfile(depth=5),
                                            guard_condition=gc)
-    _dds.add_discovery_wakeup(node, gc)
+    _native.add_discovery_wakeup(node, gc)
     ctx.shutdown()
     sub.destroy()
     pub.destroy()
-    _dds.remove_discovery_wakeup(gc)
+    _native.remove_discovery_wakeup(gc)
     node.destroy_node()
 
 
@@ -885,9 +885,9 @@ def test_errors(ctx):
     with pytest.raises(TypeError, match='cannot tell the kind'):
         _dds.endpoint_gid(object())
     with pytest.raises(TypeError, match='_TYPE_SUPPORT'):
-        _dds.ChannelPublisher(node, object(), 'rt/x')
+        _native.ChannelPublisher(node, object(), 'rt/x')
     with pytest.raises(ValueError, match='QoS'):
-        _dds.ChannelPublisher(node, _dds.type_support(Image), 'rt/x', reliability=7)
+        _native.ChannelPublisher(node, _dds.type_support(Image), 'rt/x', reliability=7)
     chan = _dds.create_channel_publisher(node, Image, 'rt/err/_buf/1_2', QoSProfile(depth=1))
     with pytest.raises(ValueError, match='too short'):
         chan.publish(b'')

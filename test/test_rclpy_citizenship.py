@@ -79,7 +79,7 @@ def test_destroy_node_and_shutdown_in_any_order(order):
     else:
         rclpy.shutdown(context=ctx)
         node.destroy_node()
-    assert pub._destroyed and sub._destroyed
+    assert pub._peers.closed and sub._peers.closed
     assert not list(node.publishers) and not list(node.subscriptions)
 
 

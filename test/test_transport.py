@@ -19,7 +19,7 @@ from harness.in_process import frame, spin_until
 from harness.scenarios import SCENARIOS, SMALL
 from launch_free_demos.domains import fresh_domain
 from launch_free_demos.runner import Run
-from rosidl_buffer_py import _dds, advertisement, codec
+from rosidl_buffer_py import _dds, _native, advertisement, codec
 from rosidl_buffer_py import routes
 from rosidl_buffer_py.nodes.frames import check_frame
 
@@ -158,7 +158,7 @@ def test_second_participant_reads_user_data_and_stock_typehash(context):
             topic, 1, backend='demo', wait_for_subscribers=1, wait_timeout_sec=20.0,
             linger_sec=0.0))
         node = rclpy.create_node('observer', context=context)
-        _dds.install_discovery(node)
+        _native.install_discovery(node)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         seen = {}
@@ -320,9 +320,9 @@ def test_an_endpoint_without_buffer_aware_peers_never_wakes_its_executor(context
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     assert spin_until(executor, lambda: sub.get_publisher_count() == 1)
-    assert sub._reannounce_timer is None and not list(node.timers), list(node.timers)
+    assert sub._peers.reannouncer.timer is None and not list(node.timers), list(node.timers)
     pub = rosidl_buffer_py.create_publisher(node, Image, '/no_timer', RELIABLE)
-    assert spin_until(executor, lambda: sub._reannounce_timer is not None)
+    assert spin_until(executor, lambda: sub._peers.reannouncer.timer is not None)
     node.destroy_publisher(plain)
     node.destroy_publisher(pub)
     node.destroy_node()
@@ -340,15 +340,16 @@ def test_reannounce_timer_retires_while_every_channel_is_matched(context):
     executor.add_node(node)
     assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
     for endpoint in (pub, sub):  # the first tick after the match retires each one's timer
-        assert spin_until(executor, lambda: endpoint._reannounce_timer.is_canceled())
-        assert endpoint._spinning(time.monotonic())  # no publish-time discovery polling
+        assert spin_until(executor, lambda: endpoint._peers.reannouncer.timer.is_canceled())
+        # no publish-time discovery polling
+        assert endpoint._peers.reannouncer.spinning(time.monotonic())
     got_second = []
     rosidl_buffer_py.create_subscription(
         node, Image, '/retire_image', lambda m: got_second.append(check_frame(m).counter),
         RELIABLE)
     assert spin_until(executor, lambda: len(pub.buffer_peers()) == 2)
-    assert not pub._reannounce_timer.is_canceled()  # re-armed for the new channel
-    assert spin_until(executor, lambda: pub._reannounce_timer.is_canceled())
+    assert not pub._peers.reannouncer.timer.is_canceled()  # re-armed for the new channel
+    assert spin_until(executor, lambda: pub._peers.reannouncer.timer.is_canceled())
     assert all(p['channel_matched'] for p in pub.buffer_peers())
     for counter in range(3):
         pub.publish(frame(counter, 'cpu'))
@@ -416,7 +417,7 @@ def test_malformed_descriptors_are_rejected_counted_and_survived(context, capfd)
 def test_other_rmw_falls_back_to_plain_rclpy(context, monkeypatch, capfd):
     """Under another rmw the wrappers are plain rclpy pub/sub on the main topic, one warning."""
     monkeypatch.setattr(rclpy, 'get_rmw_implementation_identifier', lambda: 'rmw_other_cpp')
-    monkeypatch.setattr(rosidl_buffer_py.transport, '_warned', set())
+    monkeypatch.setattr(_dds, '_warned_rmw', set())
     node = rclpy.create_node('fallback', context=context)
     got = []
     sub = rosidl_buffer_py.create_subscription(node, Image, '/fallback_image', got.append, 10,

@@ -95,7 +95,7 @@ def run_subscriber(topic: str, after: int, timeout: float, stock: bool = False) 
             print_report({'started': started, 'created': self.created_at,
                           'subscribed': self.subscribed_at, 'matched': self.matched_at,
                           'frames': self.frames,
-                          'statistics': {} if stock else self.subscription.statistics()})
+                          'statistics': {} if stock else self.subscription.statistics().as_dict()})
 
     return run_node(BringupSubscriber, lambda node: node.run(), program='bench_bringup')
 

@@ -157,7 +157,7 @@ def run_publisher_here(transport: str, width: int, frames: int, rate: float,
 def _ready(pub, transport: str) -> bool:
     if transport == 'stock rclpy':
         return pub.get_subscription_count() > 0
-    return any(peer['channel_serving'] for peer in pub.buffer_peers())
+    return any(peer.channel_serving for peer in pub.buffer_peers())
 
 
 def run_subscriber_here(transport: str, width: int, frames: int, rate: float,

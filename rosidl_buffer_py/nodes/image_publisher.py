@@ -127,7 +127,7 @@ class ImagePublisher(Node):
     def served_buffer_peers(self) -> int:
         if not hasattr(self.publisher, 'buffer_peers'):
             return 0
-        return sum(1 for peer in self.publisher.buffer_peers() if peer['channel_serving'])
+        return sum(1 for peer in self.publisher.buffer_peers() if peer.channel_serving)
 
     def run(self) -> None:
         p = self.params
@@ -174,7 +174,7 @@ class ImagePublisher(Node):
         report = {'role': 'publisher', 'node': self.get_name(), 'published': self.published,
                   'params': self.params}
         if hasattr(self.publisher, 'statistics'):
-            report['statistics'] = self.publisher.statistics()
+            report['statistics'] = self.publisher.statistics().as_dict()
         print_report(report)
 
 

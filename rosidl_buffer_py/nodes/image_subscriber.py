@@ -221,7 +221,7 @@ class ImageSubscriber(Node):
             'stopped_by': self.stopped_by or 'signal',
         }
         if hasattr(self.subscription, 'statistics'):
-            report['statistics'] = self.subscription.statistics()
+            report['statistics'] = self.subscription.statistics().as_dict()
         return report
 
     def log_summary(self) -> None:

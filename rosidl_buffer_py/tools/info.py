@@ -7,7 +7,7 @@ in USER_DATA (``BUFBE:``), and the per-endpoint descriptor channels
 ``rt/<topic>/_buf/<publisher gid>_<subscription gid>``.
 
 How it learns the advertisements: a normal rclpy node installs the discovery tap
-(``_dds.install_discovery``) right after it is created, then listens for ``--wait`` seconds
+(``_native.install_discovery``) right after it is created, then listens for ``--wait`` seconds
 (default 3: a new Fast DDS participant can need up to one announcement period, about 3 s, to
 discover a running one). When what it heard by then is visibly incomplete (nothing yet, a
 channel names an endpoint not seen yet, an endpoint is known to DDS but not yet to the ROS graph
@@ -128,7 +128,7 @@ def _missing(node, topic: str, tapped: bool, own: set) -> List[str]:
     endpoint itself (the graph says ``_NODE_NAME_UNKNOWN_`` meanwhile). A gap in any of these
     means discovery is still under way; so does a topic with no endpoint at all yet.
     """
-    from rosidl_buffer_py import _dds
+    from rosidl_buffer_py import _dds, _native
     infos = [i for i in node.get_publishers_info_by_topic(topic) +
              node.get_subscriptions_info_by_topic(topic) if _gid_hex(i.endpoint_gid) not in own]
     graph = {_gid_hex(i.endpoint_gid) for i in infos}
@@ -183,7 +183,7 @@ def _second_look(topic: str, gids: set) -> list:
     context), tapped at once, discovers the graph again; it is rarely unlucky twice. Listens at
     most ``DEFAULT_WAIT_SECONDS`` (a discovery announcement period).
     """
-    from rosidl_buffer_py import _dds
+    from rosidl_buffer_py import _dds, _native
     context = rclpy.Context()
     rclpy.init(context=context, args=[])
     try:
@@ -192,7 +192,7 @@ def _second_look(topic: str, gids: set) -> list:
             start_parameter_services=False,
             parameter_overrides=[Parameter('start_type_description_service', value=False)])
         try:
-            _dds.install_discovery(node)
+            _native.install_discovery(node)
             main = dds_topic(topic)
             deadline = time.monotonic() + DEFAULT_WAIT_SECONDS
             while True:
@@ -209,7 +209,7 @@ def _second_look(topic: str, gids: set) -> list:
 
 def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> dict:
     """Collect what the graph and the discovery tap know about ``topic`` (fully qualified)."""
-    from rosidl_buffer_py import _dds
+    from rosidl_buffer_py import _dds, _native
     time.sleep(wait)
     probes = []
     notes = []
@@ -387,10 +387,10 @@ def main(argv=None) -> int:
             f'_buffer_topic_info_{os.getpid()}', enable_rosout=False,
             start_parameter_services=False,
             parameter_overrides=[Parameter('start_type_description_service', value=False)])
-        from rosidl_buffer_py import _dds
+        from rosidl_buffer_py import _dds, _native
         tapped = _dds.is_supported()
         if tapped:
-            _dds.install_discovery(node)
+            _native.install_discovery(node)
         topic = node.resolve_topic_name(options.topic)
         result = inspect_topic(node, topic, options.wait, options.probe, tapped)
     except KeyboardInterrupt:

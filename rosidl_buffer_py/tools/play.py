@@ -183,7 +183,7 @@ class Player:
                     lacking.append(f'{name}: {publisher.get_subscription_count()} of {needed} '
                                    'subscriptions')
                 elif output.buffer_aware and not all(
-                        peer['channel_serving'] for peer in publisher.buffer_peers()):
+                        peer.channel_serving for peer in publisher.buffer_peers()):
                     lacking.append(f'{name}: a buffer-aware subscription not served yet')
             return lacking
 

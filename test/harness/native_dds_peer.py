@@ -24,7 +24,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Image
 
-from rosidl_buffer_py import _dds
+from rosidl_buffer_py import _dds, _native
 
 
 def say(line: str) -> None:
@@ -33,10 +33,10 @@ def say(line: str) -> None:
 
 def watch(topic: str, marker: str) -> int:
     node = rclpy.create_node('native_dds_watch')
-    _dds.install_discovery(node)  # right after creating the node: nothing is missed
+    _native.install_discovery(node)  # right after creating the node: nothing is missed
     woken = []
     gc = node.create_guard_condition(lambda: woken.append(1))
-    _dds.add_discovery_wakeup(node, gc)
+    _native.add_discovery_wakeup(node, gc)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     say('READY')
@@ -75,7 +75,7 @@ def watch(topic: str, marker: str) -> int:
         'woken': len(woken) > 0,
         'statuses': sorted({e.status for e in events if e.gid == found.gid}),
     }
-    _dds.remove_discovery_wakeup(gc)
+    _native.remove_discovery_wakeup(gc)
     executor.shutdown()
     node.destroy_node()
     say('RESULT ' + json.dumps(result))
@@ -121,7 +121,7 @@ def channel_sub(topic: str, count: int) -> int:
 def linger() -> int:
     node = rclpy.create_node('native_dds_linger')
     gc = node.create_guard_condition(lambda: None)
-    _dds.add_discovery_wakeup(node, gc)
+    _native.add_discovery_wakeup(node, gc)
     pub = _dds.create_channel_publisher(
         node, Image, 'rt/linger/_buf/0a_0b', rclpy.qos.QoSProfile(depth=1))
     sub = _dds.create_channel_subscription(
@@ -130,10 +130,10 @@ def linger() -> int:
     _dds.type_support(Image)
     raw_sub = rclpy._rclpy_pybind11.Subscription(
         node.handle, Image, '/linger_raw', rclpy.qos.QoSProfile(depth=1).get_c_qos_profile())
-    _dds.set_new_message_wakeup(raw_sub, gc)
+    _native.set_new_message_wakeup(raw_sub, gc)
     raw_pub = node.create_publisher(Image, '/linger_raw', 1)
     pub.publish(rclpy.serialization.serialize_message(Image(width=1)))
-    _dds.publish_serialized(raw_pub, rclpy.serialization.serialize_message(Image(width=2)), 1)
+    _native.publish_serialized(raw_pub, rclpy.serialization.serialize_message(Image(width=2)), 1)
     time.sleep(0.2)
     # keep references in a module global so they die during interpreter finalization
     globals()['_keep'] = (node, gc, pub, sub, raw_sub, raw_pub)

@@ -1,0 +1,236 @@
+"""The peers of a buffer-aware endpoint: the buffer-aware endpoints of the opposite kind on its
+topic, each with a channel.
+
+A :class:`PeerTable` is owned by one endpoint (publisher or subscription). It watches the
+endpoint's topic in :mod:`rosidl_buffer_py.discovery`, keeps one record per buffer-aware peer,
+asks the backends which of them can serve each peer, re-announces the endpoint while a peer's
+channel stays unmatched (:class:`~rosidl_buffer_py.reannounce.Reannouncer`) and destroys the
+channels at teardown (at interpreter exit at the latest, see :mod:`rosidl_buffer_py.teardown`).
+What it needs from its owner is the :class:`PeerOwner` protocol; what the owner keeps per peer
+(routes, streams, counters) stays in the owner's records (:class:`PeerRecord`).
+"""
+import threading
+import time
+from typing import Dict, Generic, Iterator, List, Mapping, Optional, Protocol, Set, TypeVar
+
+from rosidl_buffer_py import discovery, teardown
+from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
+from rosidl_buffer_py.channel import dds_topic
+from rosidl_buffer_py.cpu_backend import CPU_BACKEND
+from rosidl_buffer_py.qos import incompatible_peers
+from rosidl_buffer_py.reannounce import Reannouncer
+
+
+class PeerRecord(Protocol):
+    """What the table reads and sets on an owner's per-peer record."""
+
+    info: EndpointInfo
+    backends: Dict[str, str]   #: the peer's advertisement (backend -> metadata)
+    channel: Optional[object]  #: its ChannelPublisher/ChannelSubscription (``destroy()``)
+    created_at: float          #: set by the table (time.monotonic()) when the record is added
+
+
+R = TypeVar('R', bound=PeerRecord)
+
+
+class PeerOwner(Protocol[R]):
+    """What a :class:`PeerTable` needs from the endpoint that owns it.
+
+    Every hook is called with the table's lock held (the owner's lock, shared), on the thread
+    that processes discovery (the executor's, or ``publish()``'s when the node is not spun).
+    """
+
+    def _announce(self) -> None:
+        """(Re-)set the endpoint's USER_DATA: peers discover, or re-discover, it."""
+
+    def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
+        """A new buffer-aware peer: create its record and its channel."""
+
+    def _update_peer(self, record: R, compatible: Set[str]) -> None:
+        """The peer's advertisement was (re)read; the ``compatible`` backends can serve it."""
+
+    def _forget_peer(self, record: R) -> None:
+        """The record leaves the table (the peer left, withdrew its advertisement, or the
+        endpoint is torn down); its channel is destroyed right after."""
+
+    def _peer_gone(self, gid: bytes) -> None:
+        """Discovery: an endpoint of the peer kind on the topic went away (a peer or a legacy
+        endpoint). The owner calls :meth:`PeerTable.drop` when it is done with the channel."""
+
+    def _release(self) -> None:
+        """Teardown, once, after every peer was dropped: free what else the endpoint holds
+        (its own timers and guard conditions: see :func:`destroy_node_entities`)."""
+
+
+class PeerTable(Generic[R]):
+    """The buffer-aware peers of one endpoint, and the discovery watch that finds them.
+
+    ``lock`` is the owner's: hold it around every use of the records. :meth:`open` starts
+    watching; :meth:`close` ends it and destroys every channel (once; ``closed`` then).
+    """
+
+    def __init__(self, owner: PeerOwner[R], node, callback_group, *, lock: threading.RLock,
+                 peer_kind: EndpointKind, topic_name: str, gid: bytes,
+                 backends: Mapping[str, BufferBackend], logger) -> None:
+        self.lock = lock
+        self.peer_kind = peer_kind
+        self.closed = False
+        self._owner = owner
+        self._node = node
+        self._callback_group = callback_group
+        self._topic_name = topic_name
+        self._gid = gid
+        self._backends = backends
+        self._logger = logger
+        self._records: Dict[bytes, R] = {}
+        self._discovery = discovery.for_node(node)
+        self._discovery_guard = None
+        self.reannouncer = Reannouncer(node, callback_group, self, owner._announce)
+
+    # the records ----------------------------------------------------------------------------
+
+    def __iter__(self) -> Iterator[R]:
+        return iter(self._records.values())
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    def __contains__(self, gid: bytes) -> bool:
+        return gid in self._records
+
+    def __getitem__(self, gid: bytes) -> R:
+        return self._records[gid]
+
+    def get(self, gid: bytes) -> Optional[R]:
+        return self._records.get(gid)
+
+    def node_names(self) -> Dict[bytes, str]:
+        """GID -> fully qualified node name of the peers, from the ROS graph (diagnostics)."""
+        graph = (self._node.get_subscriptions_info_by_topic
+                 if self.peer_kind is EndpointKind.SUBSCRIPTION
+                 else self._node.get_publishers_info_by_topic)
+        try:
+            infos = graph(self._topic_name)
+        except Exception:  # the node is being destroyed
+            return {}
+        return {bytes(info.endpoint_gid): (info.node_namespace.rstrip('/') + '/' +
+                                           info.node_name) for info in infos}
+
+    # lifetime -------------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Start watching the topic (discovery wakes the executor through a guard condition
+        in the owner's callback group) and take in the peers already known."""
+        self._discovery_guard = self._node.create_guard_condition(
+            self._discovery.process, self._callback_group)
+        self._discovery.add_wakeup(self._node, self._discovery_guard)
+        teardown.track(self)
+        with self.lock:
+            for peer in self._discovery.watch(dds_topic(self._topic_name), self):
+                self._on_peer(peer)
+
+    def poll(self) -> None:
+        """Process discovery now (for a node no executor spins)."""
+        self._discovery.process()
+        self.reannouncer.reannounce_if_unmatched()
+
+    def close(self) -> None:
+        """Destroy the channels, stop discovery, release the owner (once).
+
+        Lock order: discovery dispatch holds the discovery lock and then takes ours
+        (``_on_peer``), so ours is never held while taking the discovery's.
+        """
+        with self.lock:
+            if self.closed:
+                return
+            self.closed = True  # from here on _on_peer adds nothing
+        self._discovery.unwatch(dds_topic(self._topic_name), self)
+        if self._discovery_guard is not None:
+            self._discovery.remove_wakeup(self._discovery_guard)
+        with self.lock:
+            for gid in list(self._records):
+                self.drop(gid)
+            destroy_node_entities(self._node, [self.reannouncer.timer, self._discovery_guard],
+                                  self._logger)
+            self._owner._release()
+        teardown.untrack(self)
+
+    # discovery (the watcher interface of ParticipantDiscovery) ------------------------------
+
+    def _on_peer(self, peer: discovery.PeerEndpoint) -> None:
+        """Discovery: an endpoint of our topic appeared or changed its advertisement."""
+        if peer.kind is not self.peer_kind:
+            return
+        with self.lock:
+            if self.closed:
+                return
+            known = self._records.get(peer.gid)
+            if not peer.buffer_aware:
+                if known is not None:  # it withdrew its advertisement: now a legacy endpoint
+                    self.drop(peer.gid)
+                return
+            info = EndpointInfo(peer.gid, self._topic_name, self.peer_kind)
+            if known is None and peer.gid in incompatible_peers(
+                    self._node, self._topic_name, self._gid, self.peer_kind):
+                # stock endpoints would not communicate: neither do our channels (and an
+                # unmatched channel would make both sides re-announce, and log, forever)
+                return
+            compatible = self._compatible_backends(info, peer.backends)
+            if known is None:
+                known = self._owner._add_peer(info, dict(peer.backends))
+                known.created_at = time.monotonic()
+                self._records[peer.gid] = known
+                self.reannouncer.rearm()
+                if not peer.local:
+                    # a new buffer-aware peer whose QoS matches ours may have discovered us
+                    # before its tap existed (its node was created well before its endpoint):
+                    # announce once now rather than after a second of unmatched channel
+                    self._owner._announce()
+            known.backends = dict(peer.backends)
+            self._owner._update_peer(known, compatible)
+
+    def _on_peer_gone(self, gid: bytes) -> None:
+        """Discovery: an endpoint of our topic went away."""
+        with self.lock:
+            self._owner._peer_gone(gid)
+
+    def drop(self, gid: bytes) -> None:
+        """Forget a peer: its record leaves, its channel is destroyed, backends are told."""
+        record = self._records.get(gid)
+        if record is None:
+            return
+        self._owner._forget_peer(record)
+        del self._records[gid]
+        if record.channel is not None:
+            record.channel.destroy()
+        for backend in self._backends.values():
+            backend.on_removing_endpoint(record.info)
+
+    def _compatible_backends(self, info: EndpointInfo, advertised: Mapping[str, str]) -> Set[str]:
+        """Ask each backend both sides have whether it can serve this peer."""
+        existing = [p.info for p in self._records.values() if p.info.gid != info.gid]
+        compatible = set()
+        for name in advertised:
+            backend = self._backends.get(name)
+            if backend is None or name == CPU_BACKEND:
+                continue
+            try:
+                ok, _groups = backend.on_discovering_endpoint(info, existing, advertised)
+            except Exception as exc:  # a broken backend degrades this peer to CPU bytes
+                self._logger.error(f'backend {name!r} on_discovering_endpoint failed: '
+                                   f'{type(exc).__name__}: {exc}')
+                ok = False
+            if ok:
+                compatible.add(name)
+        return compatible
+
+
+def destroy_node_entities(node, entities: List[object], logger) -> None:
+    """Destroy the timers and guard conditions an endpoint created on its node (None entries
+    are skipped; a node destroyed first already destroyed them)."""
+    for entity in filter(None, entities):
+        try:
+            (node.destroy_timer if hasattr(entity, 'timer_period_ns')
+             else node.destroy_guard_condition)(entity)
+        except Exception as exc:  # the node was destroyed first
+            logger.debug(f'destroying {entity!r}: {exc}')

@@ -1,0 +1,83 @@
+"""Re-announcing an endpoint whose peer's channel stays unmatched, and whether its node spins.
+
+Both ends create a channel once each knows the other's advertisement. If one of them missed
+ours (discovery before its tap existed, or a lost update), our end of the channel stays
+unmatched: announcing again lets it see us as a 'changed' endpoint. Each side detects this on
+its own, so no back channel is needed. The check runs on a timer that exists only while some
+peer's channel is to be watched; the timer's runs are also the evidence that an executor spins
+the node (:meth:`Reannouncer.spinning`).
+"""
+import time
+from typing import Callable
+
+#: A channel unmatched this long means the peer probably missed our advertisement: re-announce
+#: (at most this often).
+UNMATCHED_REANNOUNCE_SECONDS = 1.0
+
+#: How recently the re-announce timer must have run for the node to count as spinning.
+SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
+
+
+class Reannouncer:
+    """The re-announce check of one endpoint over its :class:`~rosidl_buffer_py.peers.PeerTable`.
+
+    The timer is created with the first peer, retires (cancels itself) once every channel is
+    matched, and a new peer re-arms it. An endpoint without buffer-aware peers never wakes its
+    executor, as a stock one; each wake-up costs a node about half a millisecond of CPU, which
+    at camera rates was most of what a publisher spent beyond stock rclpy's.
+    """
+
+    def __init__(self, node, callback_group, peers, announce: Callable[[], None]) -> None:
+        self._node = node
+        self._callback_group = callback_group
+        self._peers = peers
+        self._announce = announce
+        self._announced_at = time.monotonic()
+        self._spun_at = 0.0
+        self._retired = False
+        #: the timer (None until the first peer): the owner's node entity
+        self.timer = None
+
+    def rearm(self) -> None:
+        """A new peer's channel is to be watched (under the lock, on the executor's thread:
+        only a spun node retires its timer, and a spun node handles discovery there)."""
+        if self.timer is None:
+            self.timer = self._node.create_timer(
+                UNMATCHED_REANNOUNCE_SECONDS, self._on_timer, self._callback_group)
+        elif self._retired:
+            self._retired = False
+            self.timer.reset()
+
+    def spinning(self, now: float) -> bool:
+        """Whether an executor runs our node: then discovery wakes us by itself.
+
+        Evidence: the timer ran lately, or it retired itself (which only a spinning executor
+        does). A node that stops spinning after that keeps its matched channels; peers that come
+        later are served on the main topic until it spins again.
+        """
+        return self._retired or now - self._spun_at < SPIN_EVIDENCE_SECONDS
+
+    def reannounce_if_unmatched(self) -> None:
+        """Re-announce our USER_DATA if a known peer's channel stays unmatched."""
+        with self._peers.lock:
+            if self._peers.closed:
+                return
+            now = time.monotonic()
+            if now - self._announced_at < UNMATCHED_REANNOUNCE_SECONDS:
+                return
+            for peer in self._peers:
+                if (peer.channel is not None and peer.channel.matched_count() == 0 and
+                        now - peer.created_at >= UNMATCHED_REANNOUNCE_SECONDS):
+                    self._announced_at = now
+                    self._announce()
+                    return
+
+    def _on_timer(self) -> None:
+        self._spun_at = time.monotonic()  # evidence that an executor spins our node
+        self.reannounce_if_unmatched()
+        with self._peers.lock:
+            if not self._peers.closed and all(
+                    peer.channel is None or peer.channel.matched_count() > 0
+                    for peer in self._peers):
+                self.timer.cancel()
+                self._retired = True
