@@ -1,0 +1,208 @@
+"""Types of ``rosidl_buffer_py._native``, the package's only native extension (src/native/).
+
+How each call behaves (pinning, lifetimes, threading, padding) is in ``src/native/README.md``.
+Every function taking an endpoint, a node or a guard condition accepts the rclpy entity, its
+``.handle`` or the raw pointer int (then the caller keeps it alive). Middleware failures raise
+:class:`DdsError`; an entity of another rmw raises :class:`UnsupportedRmwError`; wrong
+arguments raise ``TypeError``/``ValueError``.
+"""
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from typing_extensions import Buffer as _Bytes  # anything with the buffer protocol
+
+_Entity = Any      # rclpy entity, its .handle, or a pointer int
+_Kind = str        # 'publisher' | 'subscription'
+_Info = Dict[str, Any]  # source_timestamp, received_timestamp, publication_sequence_number,
+                        # reception_sequence_number, from_intra_process
+#: (kind, status, gid, topic, type_name, user_data, participant_gid, local):
+#: _dds.EndpointEvent names the fields
+_Event = Tuple[str, str, bytes, str, str, bytes, bytes, bool]
+
+
+class DdsError(RuntimeError):
+    """An rcl/rmw/DDS call failed (the message is rmw's)."""
+
+
+class UnsupportedRmwError(DdsError):
+    """The entity is not rmw_fastrtps_cpp's, or the private layout was not verified."""
+
+
+#: The rmw implementation this layer works with ('rmw_fastrtps_cpp').
+RMW_IMPLEMENTATION: str
+#: Package -> version compiled against (rmw_fastrtps_cpp, rmw_fastrtps_shared_cpp, fastrtps).
+BUILT_AGAINST: Dict[str, str]
+
+
+def set_private_layout_verified(verified: bool) -> None:
+    """Allow (or refuse) every access to rmw_fastrtps's private layout (``_dds.check_abi``)."""
+
+
+def private_layout_verified() -> bool: ...
+
+
+# buffers ------------------------------------------------------------------------------------
+
+class BufferBase:
+    """Buffer-protocol re-exporter: the base of :class:`rosidl_buffer_py.Buffer`."""
+
+    def __init__(self, exporter: Optional[_Bytes] = None) -> None: ...
+    @property
+    def _has_host_memory(self) -> bool: ...
+
+
+# endpoints ----------------------------------------------------------------------------------
+
+def endpoint_gid(endpoint: _Entity, kind: _Kind) -> bytes:
+    """16-byte GID, equal to the graph's ``TopicEndpointInfo.endpoint_gid``."""
+
+
+def get_user_data(endpoint: _Entity, kind: _Kind) -> bytes:
+    """USER_DATA of the DataWriter/DataReader behind the endpoint."""
+
+
+def set_user_data(endpoint: _Entity, kind: _Kind, data: bytes) -> None:
+    """Replace that USER_DATA (keep rmw's ``typehash=...;``: append to :func:`get_user_data`);
+    setting it, even to the same bytes, re-announces the endpoint."""
+
+
+def take_serialized_with_gid(subscription: _Entity) -> Optional[Tuple[bytes, bytes, _Info]]:
+    """Take one serialized message (CDR with its encapsulation header), with the GID of the
+    DataWriter that wrote it and an rclpy-like message info dict; None when none is there."""
+
+
+def take_message_with_gid(subscription: _Entity, msg_class: type,
+                          max_size: int = -1) -> Optional[Tuple[Any, bytes, _Info]]:
+    """Take one message, deserialized in C as rclpy's take does. The first item is a
+    ``msg_class`` instance, or the CDR ``bytes`` when they do not deserialize with the type's own
+    type support (a descriptor payload, malformed data: for ``codec.decode``) or are longer
+    than ``max_size`` (when >= 0)."""
+
+
+def peek_untaken(subscription: _Entity) -> Optional[Tuple[bytes, int]]:
+    """``(publisher_gid, source_timestamp)`` of the next unread sample, from its DDS sample
+    info: nothing is taken or copied. None when there is none."""
+
+
+def discard_untaken(subscription: _Entity) -> Optional[Tuple[bytes, int]]:
+    """Take the next unread sample without copying its payload (a duplicate to drop); its key,
+    or None when there was none."""
+
+
+def publish_serialized(publisher: _Entity, data: _Bytes, source_timestamp: int) -> None:
+    """Write serialized CDR (any C-contiguous buffer, not copied in Python; do not mutate it
+    during the call) on the DataWriter behind an rclpy publisher. ``source_timestamp`` is ns
+    since the epoch (0 <= t < 2**31 s); takes report exactly it."""
+
+
+def write_message(message: Any, source_timestamp: int,
+                  targets: Sequence[Any]) -> None:
+    """Write a ROS message to :class:`ChannelPublisher` objects and/or rclpy publishers (or
+    their handles) of its type: converted to C once, as rclpy's ``publish`` does, serialized by
+    rmw into each target's DDS payload with ``source_timestamp``."""
+
+
+def matched_subscription_gids(publisher: _Entity) -> List[bytes]:
+    """GIDs of the subscriptions matched with the publisher (the set
+    ``get_subscription_count()`` counts)."""
+
+
+def exclude_from_next_write(publisher: _Entity, reader_gids: Sequence[bytes]) -> bool:
+    """Keep the next sample written on the publisher's DataWriter from ``reader_gids``: Fast
+    DDS sends them a GAP instead. Call right before the write; calling again before it
+    replaces the set. False when this DataWriter cannot filter (nothing is excluded then)."""
+
+
+def remove_write_exclusions(publisher: _Entity) -> None:
+    """Take :func:`exclude_from_next_write`'s filter off the DataWriter again."""
+
+
+def set_new_message_wakeup(subscription: _Entity, guard_condition: _Entity) -> None:
+    """Trigger the guard condition on every new message of the subscription (right away when
+    some are unread; later only on status changes: take until nothing is left). Replaces an
+    earlier wakeup; pins both until :func:`clear_new_message_wakeup`."""
+
+
+def clear_new_message_wakeup(subscription: _Entity) -> None:
+    """Stop the wakeup and unpin (a barrier); a no-op when none is set."""
+
+
+# discovery ----------------------------------------------------------------------------------
+
+def install_discovery(node: _Entity) -> bool:
+    """Install the discovery tap on the node's participant (right after creating the node);
+    True if this call installed it."""
+
+
+def uninstall_discovery(node: _Entity) -> bool:
+    """Give rmw its own participant listener back."""
+
+
+def drain_discovery_events(node: _Entity) -> List[_Event]:
+    """Queued endpoint events of the node's participant (one consumer per participant)."""
+
+
+def list_known_endpoints(node: _Entity) -> List[_Event]:
+    """Alive endpoints seen since the tap was installed (status 'known')."""
+
+
+def add_discovery_wakeup(node: _Entity, guard_condition: _Entity) -> bool:
+    """Trigger the guard condition on every discovery event (pinned until removed); False if
+    it was already registered."""
+
+
+def remove_discovery_wakeup(guard_condition: _Entity) -> bool:
+    """Stop triggering it and unpin it (a barrier)."""
+
+
+def discovery_stats(node: _Entity) -> Dict[str, int]:
+    """installed, queued, known, wakeups, dropped, recorded."""
+
+
+# channels -----------------------------------------------------------------------------------
+
+class ChannelPublisher:
+    """An rmw publisher below rcl on a full DDS topic name (volatile)."""
+
+    gid: bytes
+    topic_name: str
+    valid: bool
+
+    def __init__(self, node: _Entity, type_support: Any, topic_name: str,
+                 reliability: int = 1, history: int = 1, depth: int = 10) -> None: ...
+    def publish(self, data: _Bytes, source_timestamp: Optional[int] = None) -> None: ...
+    def matched_count(self) -> int: ...
+    def matched_gids(self) -> List[bytes]: ...
+    def wait_for_all_acked(self, timeout_sec: float) -> bool: ...
+    def destroy(self) -> None: ...
+
+
+class ChannelSubscription:
+    """An rmw subscription below rcl on a full DDS topic name; new data triggers
+    ``guard_condition``."""
+
+    gid: bytes
+    topic_name: str
+    valid: bool
+    pending: int
+    on_udp: bool
+
+    def __init__(self, node: _Entity, type_support: Any, topic_name: str,
+                 reliability: int = 1, history: int = 1, depth: int = 10,
+                 guard_condition: Optional[_Entity] = None) -> None: ...
+    def take(self) -> Optional[Tuple[bytes, bytes, _Info]]: ...
+    def take_message(self, msg_class: type,
+                     max_size: int = -1) -> Optional[Tuple[Any, bytes, _Info]]: ...
+    def matched_count(self) -> int: ...
+    def destroy(self) -> None: ...
+
+
+# codec --------------------------------------------------------------------------------------
+
+def encode_descriptor(msg: Any, slots: Any, payload_slot: Any, empty: Any, backend: str,
+                      descriptor: bytes, suffix_size: int) -> Optional[bytearray]:
+    """``codec.encode`` of the descriptor form for a compiled plan; None when it cannot."""
+
+
+def decode_descriptor(raw: _Bytes, msg_class: type, prefix_ops: Any, suffix_size: int,
+                      max_descriptor: int) -> Optional[Tuple[Any, str, bytes]]:
+    """``codec.decode`` of descriptor-encoded CDR; None for anything else."""
