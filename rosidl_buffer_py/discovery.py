@@ -20,7 +20,9 @@ from typing import Dict, List, Mapping, Optional
 
 from rclpy.logging import get_logger
 
-from rosidl_buffer_py import _dds, _native, advertisement
+from rosidl_buffer_py import _dds, advertisement
+from rosidl_buffer_py._native import (
+    add_discovery_wakeup, install_discovery, remove_discovery_wakeup)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import is_channel_topic
 
@@ -67,7 +69,7 @@ class ParticipantDiscovery:
         self._nodes: 'weakref.WeakSet' = weakref.WeakSet()
         self._endpoints: Dict[bytes, PeerEndpoint] = {}
         self._watches: Dict[str, _Watch] = {}
-        self._installed = _native.install_discovery(node) or True
+        self._installed = install_discovery(node) or True
         self._nodes.add(node)
         for event in _dds.list_known_endpoints(node):
             self._apply(event)
@@ -98,11 +100,11 @@ class ParticipantDiscovery:
 
     def add_wakeup(self, node, guard_condition) -> None:
         """Trigger ``guard_condition`` whenever a discovery event arrives."""
-        _native.add_discovery_wakeup(node, guard_condition)
+        add_discovery_wakeup(node, guard_condition)
 
     def remove_wakeup(self, guard_condition) -> None:
         try:
-            _native.remove_discovery_wakeup(guard_condition)
+            remove_discovery_wakeup(guard_condition)
         except Exception as exc:  # the participant may already be gone at shutdown
             _logger.debug(f'remove_discovery_wakeup: {exc}')
 

@@ -35,7 +35,11 @@ from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
-from rosidl_buffer_py import _dds, _native, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py._native import (
+    ChannelPublisher, endpoint_gid, exclude_from_next_write, get_user_data,
+    matched_subscription_gids, publish_serialized, remove_write_exclusions, set_user_data,
+    write_message)
 from rosidl_buffer_py.backend import EndpointGone, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.channel import channel_topic
@@ -61,7 +65,7 @@ class _SubscriptionPeer:
     backends: Dict[str, str]
     route: routes.Route
     compatible: Set[str] = field(default_factory=set)
-    channel: Optional['_native.ChannelPublisher'] = None
+    channel: Optional['ChannelPublisher'] = None
     channel_topic: str = ''
     created_at: float = 0.0
     sent_descriptor: int = 0
@@ -161,7 +165,7 @@ class Publisher(rclpy.publisher.Publisher):
         if self._transport:
             event_callbacks = incompatible_qos_once_per_peer(
                 event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
-                _native.endpoint_gid(publisher_impl, 'publisher'), topic)
+                endpoint_gid(publisher_impl, 'publisher'), topic)
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._node = node
@@ -198,7 +202,7 @@ class Publisher(rclpy.publisher.Publisher):
         self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
                                           callback_group)
                           if deadline_callback else None)
-        self._gid = _native.endpoint_gid(self, 'publisher')
+        self._gid = endpoint_gid(self, 'publisher')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.PUBLISHER,
                                   node.get_name(), node.get_namespace())
         self._backends = get_installed_backends()
@@ -210,7 +214,7 @@ class Publisher(rclpy.publisher.Publisher):
         self._handshake = (qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT and
                            qos_profile.history != HistoryPolicy.KEEP_ALL)
         self._user_data = advertisement.append(
-            _native.get_user_data(self, 'publisher'), advertised)
+            get_user_data(self, 'publisher'), advertised)
         self._peers = PeerTable(
             self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
@@ -321,7 +325,7 @@ class Publisher(rclpy.publisher.Publisher):
             if main:
                 self._exclude_from_main(withheld)
             if targets:
-                _native.write_message(encoder.msg, timestamp, targets)
+                write_message(encoder.msg, timestamp, targets)
             for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
@@ -356,12 +360,12 @@ class Publisher(rclpy.publisher.Publisher):
         if encoder.host_buffer:
             # a Buffer in host memory: converted to C through its buffer protocol and
             # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
-            _native.write_message(encoder.msg, timestamp, cpu_targets)
+            write_message(encoder.msg, timestamp, cpu_targets)
             return changed
         data = encoder.cpu_bytes()
         for target in cpu_targets:
             if target is self:
-                _native.publish_serialized(self, data, timestamp)
+                publish_serialized(self, data, timestamp)
             else:
                 target.publish(data, timestamp)
         return changed
@@ -375,7 +379,7 @@ class Publisher(rclpy.publisher.Publisher):
         """
         if self._exclusions is False or not (withheld or self._excluding):
             return
-        self._exclusions = _native.exclude_from_next_write(self, withheld)
+        self._exclusions = exclude_from_next_write(self, withheld)
         self._excluding = bool(withheld) and self._exclusions
         if self._excluding:
             self._withheld += len(withheld)
@@ -416,7 +420,7 @@ class Publisher(rclpy.publisher.Publisher):
                 timestamp = self._last_timestamp or time.time_ns()
                 for _ in range(probes):
                     peer.channel.publish(control.PROBE_BYTES, timestamp)
-        plan = self._table.plan(now, _native.matched_subscription_gids(self))
+        plan = self._table.plan(now, matched_subscription_gids(self))
         peers = tuple(self._peers[gid] for gid in plan.channel)
         self._planned = _Planned(plan, peers, signature)
         self._arm_route_timer(plan.recheck_at - now < routes.RECHECK_SECONDS)
@@ -516,12 +520,12 @@ class Publisher(rclpy.publisher.Publisher):
 
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _native.set_user_data(self, 'publisher', self._user_data)
+        set_user_data(self, 'publisher', self._user_data)
 
     def _release(self) -> None:
         if self._exclusions:
             try:  # before rclpy destroys the DataWriter the filter sits on
-                _native.remove_write_exclusions(self)
+                remove_write_exclusions(self)
             except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
                 self._logger.debug(f'removing the main-topic exclusions: {exc}')
         destroy_node_entities(self._node, [

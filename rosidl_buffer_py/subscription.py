@@ -41,7 +41,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
 
-from rosidl_buffer_py import _dds, _native, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py._native import (
+    ChannelSubscription, discard_untaken, endpoint_gid, get_user_data, peek_untaken,
+    set_user_data, take_message_with_gid, take_serialized_with_gid)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import channel_topic
 from rosidl_buffer_py.routes import Verdict
@@ -82,7 +85,7 @@ class _PublisherPeer:
 
     info: EndpointInfo
     backends: Dict[str, str]
-    channel: Optional['_native.ChannelSubscription'] = None
+    channel: Optional['ChannelSubscription'] = None
     channel_topic: str = ''
     created_at: float = 0.0
     received_descriptor: int = 0
@@ -157,7 +160,7 @@ class Subscription(rclpy.subscription.Subscription):
         reader._owner = lambda: None
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
-            _native.endpoint_gid(reader, 'subscription'), topic)
+            endpoint_gid(reader, 'subscription'), topic)
         try:
             super().__init__(reader, msg_type, topic, callback, callback_group, qos_profile,
                              False, event_callbacks=event_callbacks)
@@ -165,7 +168,7 @@ class Subscription(rclpy.subscription.Subscription):
             reader.destroy_when_not_in_use()
             raise
         self._topic_name = reader.get_topic_name()
-        self._gid = _native.endpoint_gid(reader, 'subscription')
+        self._gid = endpoint_gid(reader, 'subscription')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.SUBSCRIPTION,
                                   node.get_name(), node.get_namespace())
         backends = get_installed_backends()
@@ -173,7 +176,7 @@ class Subscription(rclpy.subscription.Subscription):
         self._advertised = {name: backend.get_backend_metadata()
                             for name, backend in sorted(self._backends.items())}
         self._user_data = advertisement.append(
-            _native.get_user_data(reader, 'subscription'), self._advertised)
+            get_user_data(reader, 'subscription'), self._advertised)
         self._peers: PeerTable[_PublisherPeer] = PeerTable(
             self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
@@ -285,21 +288,21 @@ class Subscription(rclpy.subscription.Subscription):
         key = None
         streams = self._streams.streams
         while self._suspects or self._streams.any_switched:
-            key = _native.peek_untaken(self.handle)
+            key = peek_untaken(self.handle)
             if key is None:
                 return None
             stream = streams.get(key[0])
             if stream is None or not stream.duplicate(key[1]):
                 break
             stream.passed_by(key[1])
-            if _native.discard_untaken(self.handle) is not None:
+            if discard_untaken(self.handle) is not None:
                 self._counts['from_main_topic'] += 1
                 self._counts['duplicates_dropped'] += 1
             key = None
         if key is not None and key[0] in self._suspects:
-            taken = _native.take_serialized_with_gid(self.handle)
+            taken = take_serialized_with_gid(self.handle)
         else:
-            taken = _native.take_message_with_gid(self.handle, self.msg_type,
+            taken = take_message_with_gid(self.handle, self.msg_type,
                                                C_DESERIALIZE_MAX_BYTES)
             if taken is not None and type(taken[0]) is not self.msg_type and \
                     len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
@@ -329,7 +332,7 @@ class Subscription(rclpy.subscription.Subscription):
             taken = None
             if stream.holding:
                 if main_drained is None:  # a fence may time out only if nothing can come
-                    main_drained = _native.peek_untaken(self.handle) is None
+                    main_drained = peek_untaken(self.handle) is None
                 taken = stream.release(now, main_drained)
                 msg = None if taken is None else self._decode(taken, peer)
             if taken is None:
@@ -472,7 +475,7 @@ class Subscription(rclpy.subscription.Subscription):
 
     def _announce(self) -> None:
         """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        _native.set_user_data(self.handle, 'subscription', self._user_data)
+        set_user_data(self.handle, 'subscription', self._user_data)
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
         record = _PublisherPeer(info=info, backends=backends)

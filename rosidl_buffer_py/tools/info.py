@@ -128,7 +128,7 @@ def _missing(node, topic: str, tapped: bool, own: set) -> List[str]:
     endpoint itself (the graph says ``_NODE_NAME_UNKNOWN_`` meanwhile). A gap in any of these
     means discovery is still under way; so does a topic with no endpoint at all yet.
     """
-    from rosidl_buffer_py import _dds, _native
+    from rosidl_buffer_py import _dds
     infos = [i for i in node.get_publishers_info_by_topic(topic) +
              node.get_subscriptions_info_by_topic(topic) if _gid_hex(i.endpoint_gid) not in own]
     graph = {_gid_hex(i.endpoint_gid) for i in infos}
@@ -209,7 +209,7 @@ def _second_look(topic: str, gids: set) -> list:
 
 def inspect_topic(node, topic: str, wait: float, probe: bool, tapped: bool) -> dict:
     """Collect what the graph and the discovery tap know about ``topic`` (fully qualified)."""
-    from rosidl_buffer_py import _dds, _native
+    from rosidl_buffer_py import _dds
     time.sleep(wait)
     probes = []
     notes = []

@@ -9,6 +9,8 @@
 
 #include <structmember.h>
 
+#include "py_glue.hpp"
+
 namespace
 {
 
@@ -153,13 +155,5 @@ PyType_Spec buffer_base_spec = {
 
 int add_buffer_base_type(PyObject * module)
 {
-  PyObject * type = PyType_FromSpec(&buffer_base_spec);
-  if (type == nullptr) {
-    return -1;
-  }
-  if (PyModule_AddObject(module, "BufferBase", type) < 0) {
-    Py_DECREF(type);
-    return -1;
-  }
-  return 0;
+  return rbpy_glue::add_type(module, &buffer_base_spec) ? 0 : -1;
 }

@@ -350,25 +350,20 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   return PyByteArray_FromStringAndSize(out.data(), static_cast<Py_ssize_t>(out.size()));
 }
 
-PyMethodDef codec_methods[] = {
-  {"encode_descriptor", encode_descriptor, METH_VARARGS,
+}  // namespace
+
+PyMethodDef codec_functions[] = {
+  RBPY_FUNCTION(encode_descriptor, METH_VARARGS,
     "encode_descriptor(msg, slots, payload_slot, empty, backend, descriptor, suffix_size) -> "
     "bytearray | None\n\ncodec.encode(msg, (backend, descriptor)) of a plan (slots, payload "
     "slot, suffix size) in C; `empty` is the empty payload the serialized clone holds. None "
-    "when it cannot (the Python codec then raises the CodecError)."},
-  {"decode_descriptor", decode_descriptor, METH_VARARGS,
+    "when it cannot (the Python codec then raises the CodecError)."),
+  RBPY_FUNCTION(decode_descriptor, METH_VARARGS,
     "decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor) -> "
     "(msg, backend_type, descriptor) | None\n\ncodec.decode() of descriptor-encoded CDR in C "
     "(the message's payload field left empty). None for CPU bytes and anything malformed: the "
-    "Python codec then decodes or rejects it."},
-  {nullptr, nullptr, 0, nullptr},
+    "Python codec then decodes or rejects it."),
+  RBPY_METHODS_END,
 };
-
-}  // namespace
-
-int add_codec_functions(PyObject * module)
-{
-  return PyModule_AddFunctions(module, codec_methods);
-}
 
 }  // namespace rbpy_dds

@@ -269,20 +269,8 @@ int base_setup(
   if (base->node->acquire(node_arg, "node") < 0) {
     return -1;
   }
-  rmw_node_t * rmw_node;
-  {
-    GilRelease nogil;
-    rmw_node = rcl_node_get_rmw_handle(static_cast<const rcl_node_t *>(base->node->get()));
-    if (rmw_node == nullptr) {
-      rcl_reset_error();
-    }
-  }
+  rmw_node_t * rmw_node = fastrtps_handle(base->node->get(), rcl_node_get_rmw_handle, "node");
   if (rmw_node == nullptr) {
-    base->node->release();
-    PyErr_SetString(DdsError, "the rcl node is not valid (already destroyed?)");
-    return -1;
-  }
-  if (check_identifier(rmw_node->implementation_identifier, "node") < 0) {
     base->node->release();
     return -1;
   }
@@ -315,31 +303,17 @@ PyObject * base_topic_name(PyObject * self, void *)
   return PyUnicode_FromStringAndSize(name.data(), static_cast<Py_ssize_t>(name.size()));
 }
 
-const char * kPublisherKwlist[] = {
-  "node", "type_support", "topic_name", "reliability", "history", "depth", nullptr};
-const char * kSubscriptionKwlist[] = {
-  "node", "type_support", "topic_name", "reliability", "history", "depth", "guard_condition",
-  nullptr};
-
-// ------------------------------------------------------------------ ChannelPublisher
-
-PyObject * pub_new(PyTypeObject * type, PyObject *, PyObject *)
+/// Parse the constructor's arguments (ChannelSubscription's also takes `guard_condition`)
+/// and run base_setup. Returns 0, or -1 with an exception set.
+int channel_init_args(
+  ChannelBase * base, PyObject * args, PyObject * kwds, PyObject ** gc_arg,
+  const rosidl_message_type_support_t ** type_support, rmw_qos_profile_t * qos)
 {
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(type->tp_alloc(type, 0));
-  if (self == nullptr) {
-    return nullptr;
-  }
-  self->publisher = nullptr;
-  if (base_alloc(&self->base) < 0) {
-    Py_DECREF(self);
-    return nullptr;
-  }
-  return reinterpret_cast<PyObject *>(self);
-}
-
-int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
-{
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
+  static const char * subscription_kwlist[] = {
+    "node", "type_support", "topic_name", "reliability", "history", "depth", "guard_condition",
+    nullptr};
+  static const char * publisher_kwlist[] = {
+    "node", "type_support", "topic_name", "reliability", "history", "depth", nullptr};
   PyObject * node_arg;
   PyObject * ts_arg;
   const char * topic_name;
@@ -347,16 +321,159 @@ int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
   int history = RMW_QOS_POLICY_HISTORY_KEEP_LAST;
   int depth = 10;
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOs|iii:ChannelPublisher", const_cast<char **>(kPublisherKwlist),
-      &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth))
+      args, kwds, gc_arg ? "OOs|iiiO:ChannelSubscription" : "OOs|iii:ChannelPublisher",
+      const_cast<char **>(gc_arg ? subscription_kwlist : publisher_kwlist), &node_arg, &ts_arg,
+      &topic_name, &reliability, &history, &depth, gc_arg))
   {
     return -1;
   }
+  return base_setup(
+    base, node_arg, ts_arg, topic_name, reliability, history, depth, type_support, qos);
+}
+
+/// The rmw entity of a channel object (nullptr once destroyed).
+rmw_publisher_t *& entity(ChannelPublisherObject * self) {return self->publisher;}
+rmw_subscription_t *& entity(ChannelSubscriptionObject * self) {return self->subscription;}
+const char * type_name(ChannelPublisherObject *) {return "ChannelPublisher";}
+const char * type_name(ChannelSubscriptionObject *) {return "ChannelSubscription";}
+
+/// `op(entity, &error)` with the GIL released, serialised against destroy() by the channel's
+/// mutex; DdsError "<type> was destroyed" once it is. False with the exception set.
+template<typename Object, typename Op>
+bool channel_call(Object * self, Op && op)
+{
+  PendingError error;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (entity(self) == nullptr) {
+      error.set(DdsError, std::string(type_name(self)) + " was destroyed");
+    } else {
+      op(entity(self), &error);
+    }
+  }
+  return error ? error.raise() != nullptr : true;
+}
+
+/// destroy(): `destroy_rmw(entity, &error)` once (GIL released, under the channel's mutex),
+/// then `unpin()` and the node's pin released (GIL held: the rmw entity is gone by then).
+/// Returns 0 or -1 with an exception set.
+template<typename Object, typename DestroyRmw, typename Unpin>
+int destroy_channel(Object * self, DestroyRmw && destroy_rmw, Unpin && unpin)
+{
+  if (self->base.op_mutex == nullptr) {
+    return 0;
+  }
+  PendingError error;
+  bool destroyed = false;
+  {
+    GilRelease nogil;
+    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
+    if (entity(self) != nullptr) {
+      destroy_rmw(entity(self), &error);
+      entity(self) = nullptr;
+      destroyed = true;
+    }
+  }
+  if (destroyed) {
+    unpin();
+    base_unsetup(&self->base);
+  }
+  return error ? (error.raise(), -1) : 0;
+}
+
+int do_destroy(ChannelPublisherObject * self);
+int do_destroy(ChannelSubscriptionObject * self);
+void free_members(ChannelPublisherObject *) {}
+void free_members(ChannelSubscriptionObject * self);
+
+/// tp_new: the object zeroed (tp_alloc), with its base's members allocated.
+template<typename Object>
+PyObject * channel_new(PyTypeObject * type, PyObject *, PyObject *)
+{
+  auto * self = reinterpret_cast<Object *>(type->tp_alloc(type, 0));
+  if (self != nullptr && base_alloc(&self->base) < 0) {
+    Py_DECREF(self);
+    return nullptr;
+  }
+  return reinterpret_cast<PyObject *>(self);
+}
+
+/// tp_dealloc: destroy() (an error is reported as unraisable), then free.
+template<typename Object>
+void channel_dealloc(PyObject * op)
+{
+  auto * self = reinterpret_cast<Object *>(op);
+  {
+    rbpy_glue::SavedException saved;
+    if (do_destroy(self) < 0) {
+      PyErr_WriteUnraisable(op);
+    }
+  }
+  free_members(self);
+  base_free(&self->base);
+  PyTypeObject * tp = Py_TYPE(op);
+  tp->tp_free(op);
+  Py_DECREF(tp);
+}
+
+template<typename Object>
+PyObject * channel_destroy(PyObject * op, PyObject *)
+{
+  if (do_destroy(reinterpret_cast<Object *>(op)) < 0) {
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+template<typename Object>
+PyObject * channel_valid(PyObject * op, void *)
+{
+  return PyBool_FromLong(entity(reinterpret_cast<Object *>(op)) != nullptr);
+}
+
+/// Matched count of a channel's rmw entity (`count_fn`, the rmw call that counts).
+template<typename Object, typename Entity>
+PyObject * matched_count(
+  PyObject * op, rmw_ret_t (* count_fn)(const Entity *, size_t *), const char * call_name)
+{
+  size_t count = 0;
+  if (!channel_call(reinterpret_cast<Object *>(op), [&](Entity * rmw_entity, PendingError * error) {
+      if (count_fn(rmw_entity, &count) != RMW_RET_OK) {
+        set_rmw_error(error, std::string(call_name) + " failed");
+      }
+    }))
+  {
+    return nullptr;
+  }
+  return PyLong_FromSize_t(count);
+}
+
+/// The getters both channel types have.
+#define RBPY_CHANNEL_GETSET(Object, gid_doc) \
+  {"gid", base_gid, nullptr, gid_doc, nullptr}, \
+  {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr}, \
+  {"valid", channel_valid<Object>, nullptr, "False once destroyed", nullptr}
+
+/// The slots and the spec (`prefix`_slots, `prefix`_spec) of a channel type.
+#define RBPY_CHANNEL_TYPE(prefix, Object, name, doc) \
+  PyType_Slot prefix ## _slots[] = { \
+    {Py_tp_doc, const_cast<char *>(doc)}, \
+    {Py_tp_new, reinterpret_cast<void *>(channel_new<Object>)}, \
+    {Py_tp_init, reinterpret_cast<void *>(prefix ## _init)}, \
+    {Py_tp_dealloc, reinterpret_cast<void *>(channel_dealloc<Object>)}, \
+    {Py_tp_methods, prefix ## _methods}, {Py_tp_getset, prefix ## _getset}, {0, nullptr}}; \
+  PyType_Spec prefix ## _spec = { \
+    "rosidl_buffer_py._native." name, sizeof(Object), 0, Py_TPFLAGS_DEFAULT, prefix ## _slots}
+
+// ------------------------------------------------------------------ ChannelPublisher
+
+int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
+{
+  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
   const rosidl_message_type_support_t * ts;
   rmw_qos_profile_t qos;
-  if (base_setup(
-      &self->base, node_arg, ts_arg, topic_name, reliability, history, depth, &ts, &qos) < 0)
-  {
+  if (channel_init_args(&self->base, args, kwds, nullptr, &ts, &qos) < 0) {
     return -1;
   }
   rmw_publisher_options_t options = rmw_get_default_publisher_options();
@@ -387,58 +504,13 @@ int pub_init(PyObject * op, PyObject * args, PyObject * kwds)
   return 0;
 }
 
-/// Destroy the rmw publisher (GIL held; released inside). Returns 0 or -1 with an exception.
-int pub_do_destroy(ChannelPublisherObject * self)
+int do_destroy(ChannelPublisherObject * self)
 {
-  if (self->base.op_mutex == nullptr) {
-    return 0;
-  }
-  rmw_ret_t ret = RMW_RET_OK;
-  std::string error;
-  bool destroyed = false;
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->publisher != nullptr) {
-      ret = rmw_destroy_publisher(self->base.rmw_node, self->publisher);
-      if (ret != RMW_RET_OK) {
-        error = take_rmw_error();
+  return destroy_channel(self, [self](rmw_publisher_t * publisher, PendingError * error) {
+      if (rmw_destroy_publisher(self->base.rmw_node, publisher) != RMW_RET_OK) {
+        set_rmw_error(error, "rmw_destroy_publisher failed");
       }
-      self->publisher = nullptr;
-      destroyed = true;
-    }
-  }
-  if (destroyed) {
-    base_unsetup(&self->base);  // unpin the node only after the publisher is gone
-  }
-  if (ret != RMW_RET_OK) {
-    raise_rmw_error("rmw_destroy_publisher failed", error);
-    return -1;
-  }
-  return 0;
-}
-
-void pub_dealloc(PyObject * op)
-{
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
-  PyObject * exc_type, * exc_value, * exc_tb;
-  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
-  if (pub_do_destroy(self) < 0) {
-    PyErr_WriteUnraisable(op);
-  }
-  PyErr_Restore(exc_type, exc_value, exc_tb);
-  base_free(&self->base);
-  PyTypeObject * tp = Py_TYPE(op);
-  tp->tp_free(op);
-  Py_DECREF(tp);
-}
-
-PyObject * pub_destroy(PyObject * op, PyObject *)
-{
-  if (pub_do_destroy(reinterpret_cast<ChannelPublisherObject *>(op)) < 0) {
-    return nullptr;
-  }
-  Py_RETURN_NONE;
+    }, [] {});
 }
 
 PyObject * pub_publish(PyObject * op, PyObject * args, PyObject * kwds)
@@ -457,128 +529,58 @@ PyObject * pub_publish(PyObject * op, PyObject * args, PyObject * kwds)
   if (with_timestamp && parse_source_timestamp(ts_arg, &source_timestamp) < 0) {
     return nullptr;
   }
-  Py_buffer view;
-  if (PyObject_GetBuffer(data, &view, PyBUF_C_CONTIGUOUS) < 0) {
+  SerializedView view;
+  if (view.acquire(data) < 0) {
     return nullptr;
   }
-  if (view.len < 4) {
-    PyBuffer_Release(&view);
-    PyErr_SetString(
-      PyExc_ValueError, "serialized message too short (needs the 4-byte CDR encapsulation)");
-    return nullptr;
-  }
-  rmw_ret_t ret = RMW_RET_OK;
-  bool valid = true;
-  std::string error;
-  const char * what = "rmw_publish_serialized_message failed";
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->publisher == nullptr) {
-      valid = false;
-    } else if (with_timestamp) {
-      // Same payload as rmw's serialized path, but with the caller's source timestamp.
-      what = "publish with source_timestamp failed";
-      eprosima::fastdds::dds::DataWriter * writer =
-        rmw_fastrtps_cpp::get_datawriter(self->publisher);
-      if (writer == nullptr) {
-        ret = RMW_RET_ERROR;
-        error = "rmw_fastrtps_cpp returned no DataWriter";
-      } else if (!write_serialized_w_timestamp(
-          writer, view.buf, static_cast<size_t>(view.len), source_timestamp, &error))
-      {
-        ret = RMW_RET_ERROR;
+  if (!channel_call(self, [&](rmw_publisher_t * publisher, PendingError * error) {
+      if (with_timestamp) {
+        // Same payload as rmw's serialized path, but with the caller's source timestamp.
+        eprosima::fastdds::dds::DataWriter * writer = rmw_fastrtps_cpp::get_datawriter(publisher);
+        std::string why = "rmw_fastrtps_cpp returned no DataWriter";
+        if (writer == nullptr || !write_serialized_w_timestamp(
+          writer, view.data(), view.size(), source_timestamp, &why))
+        {
+          error->set(DdsError, "publish with source_timestamp failed: " + why);
+        }
+        return;
       }
-    } else {
       // rmw only reads the buffer: point it at the caller's memory, no copy here.
       rmw_serialized_message_t msg = rmw_get_zero_initialized_serialized_message();
-      msg.buffer = static_cast<uint8_t *>(view.buf);
-      msg.buffer_length = static_cast<size_t>(view.len);
-      msg.buffer_capacity = static_cast<size_t>(view.len);
+      msg.buffer = static_cast<uint8_t *>(view.data());
+      msg.buffer_length = view.size();
+      msg.buffer_capacity = view.size();
       msg.allocator = rcutils_get_default_allocator();
-      ret = rmw_publish_serialized_message(self->publisher, &msg, nullptr);
-      if (ret != RMW_RET_OK) {
-        error = take_rmw_error();
+      if (rmw_publish_serialized_message(publisher, &msg, nullptr) != RMW_RET_OK) {
+        set_rmw_error(error, "rmw_publish_serialized_message failed");
       }
-    }
-  }
-  PyBuffer_Release(&view);
-  if (!valid) {
-    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    }))
+  {
     return nullptr;
-  }
-  if (ret != RMW_RET_OK) {
-    return raise_rmw_error(what, error);
   }
   Py_RETURN_NONE;
 }
 
 PyObject * pub_matched_gids(PyObject * op, PyObject *)
 {
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
   std::vector<GidArray> gids;
-  bool valid = true;
-  bool ok = true;
-  std::string error;
+  if (!channel_call(reinterpret_cast<ChannelPublisherObject *>(op),
+    [&](rmw_publisher_t * publisher, PendingError * error) {
+      std::string why;
+      if (!matched_reader_gids(publisher, &gids, &why)) {
+        error->set(DdsError, "matched_gids: " + why);
+      }
+    }))
   {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->publisher == nullptr) {
-      valid = false;
-    } else {
-      ok = matched_reader_gids(self->publisher, &gids, &error);
-    }
-  }
-  if (!valid) {
-    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
-    return nullptr;
-  }
-  if (!ok) {
-    PyErr_Format(DdsError, "matched_gids: %s", error.c_str());
     return nullptr;
   }
   return gid_list(gids);
 }
 
-/// Matched count of a channel's rmw entity (GIL released, serialised against destroy()).
-/// `entity` is the member that destroy() clears; `count_fn` the rmw call that counts.
-template<typename Entity, typename CountFn>
-PyObject * matched_count(
-  ChannelBase & base, Entity * const & entity, CountFn count_fn, const char * type_name,
-  const char * call_name)
-{
-  size_t count = 0;
-  rmw_ret_t ret = RMW_RET_OK;
-  bool valid = true;
-  std::string error;
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*base.op_mutex);
-    if (entity == nullptr) {
-      valid = false;
-    } else {
-      ret = count_fn(entity, &count);
-      if (ret != RMW_RET_OK) {
-        error = take_rmw_error();
-      }
-    }
-  }
-  if (!valid) {
-    PyErr_Format(DdsError, "%s was destroyed", type_name);
-    return nullptr;
-  }
-  if (ret != RMW_RET_OK) {
-    return raise_rmw_error(std::string(call_name) + " failed", error);
-  }
-  return PyLong_FromSize_t(count);
-}
-
 PyObject * pub_matched_count(PyObject * op, PyObject *)
 {
-  auto * self = reinterpret_cast<ChannelPublisherObject *>(op);
-  return matched_count(
-    self->base, self->publisher, rmw_publisher_count_matched_subscriptions, "ChannelPublisher",
-    "rmw_publisher_count_matched_subscriptions");
+  return matched_count<ChannelPublisherObject>(
+    op, rmw_publisher_count_matched_subscriptions, "rmw_publisher_count_matched_subscriptions");
 }
 
 /// Block until every matched subscription acknowledged every sample, or `timeout_sec` passes.
@@ -594,134 +596,63 @@ PyObject * pub_wait_for_all_acked(PyObject * op, PyObject * arg)
     timeout.sec = static_cast<uint64_t>(timeout_sec);
     timeout.nsec = static_cast<uint64_t>((timeout_sec - static_cast<double>(timeout.sec)) * 1e9);
   }
-  rmw_ret_t ret = RMW_RET_OK;
-  bool valid = true;
-  std::string error;
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->publisher == nullptr) {
-      valid = false;
-    } else {
-      ret = rmw_publisher_wait_for_all_acked(self->publisher, timeout);
+  bool acked = true;
+  if (!channel_call(self, [&](rmw_publisher_t * publisher, PendingError * error) {
+      const rmw_ret_t ret = rmw_publisher_wait_for_all_acked(publisher, timeout);
+      acked = ret == RMW_RET_OK;
       if (ret != RMW_RET_OK && ret != RMW_RET_TIMEOUT) {
-        error = take_rmw_error();
+        set_rmw_error(error, "rmw_publisher_wait_for_all_acked failed");
       }
-    }
-  }
-  if (!valid) {
-    PyErr_SetString(DdsError, "ChannelPublisher was destroyed");
+    }))
+  {
     return nullptr;
   }
-  if (ret == RMW_RET_TIMEOUT) {
-    Py_RETURN_FALSE;
-  }
-  if (ret != RMW_RET_OK) {
-    return raise_rmw_error("rmw_publisher_wait_for_all_acked failed", error);
-  }
-  Py_RETURN_TRUE;
-}
-
-PyObject * pub_valid(PyObject * op, void *)
-{
-  return PyBool_FromLong(reinterpret_cast<ChannelPublisherObject *>(op)->publisher != nullptr);
+  return PyBool_FromLong(acked);
 }
 
 PyMethodDef pub_methods[] = {
-  {"publish", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(pub_publish)),
-    METH_VARARGS | METH_KEYWORDS,
+  RBPY_METHOD("publish", pub_publish, METH_VARARGS | METH_KEYWORDS,
     "publish(data, source_timestamp=None) -> None\n\nWrite serialized CDR (with its 4-byte "
     "encapsulation header) from any C-contiguous buffer, without copying it in Python; the GIL "
     "is released meanwhile. source_timestamp (int, ns since the epoch) becomes the samples'\n"
-    "source timestamp; None lets rmw stamp it with the current time."},
-  {"matched_count", pub_matched_count, METH_NOARGS,
-    "matched_count() -> int: subscriptions currently matched."},
-  {"matched_gids", pub_matched_gids, METH_NOARGS,
-    "matched_gids() -> list[bytes]: 16-byte GIDs of the DataReaders currently matched."},
-  {"wait_for_all_acked", pub_wait_for_all_acked, METH_O,
+    "source timestamp; None lets rmw stamp it with the current time."),
+  RBPY_METHOD("matched_count", pub_matched_count, METH_NOARGS,
+    "matched_count() -> int: subscriptions currently matched."),
+  RBPY_METHOD("matched_gids", pub_matched_gids, METH_NOARGS,
+    "matched_gids() -> list[bytes]: 16-byte GIDs of the DataReaders currently matched."),
+  RBPY_METHOD("wait_for_all_acked", pub_wait_for_all_acked, METH_O,
     "wait_for_all_acked(timeout_sec: float) -> bool: wait until every matched subscription\n"
-    "acknowledged every sample (reliable channels); a negative timeout waits forever."},
-  {"destroy", pub_destroy, METH_NOARGS,
-    "destroy() -> None: delete the rmw publisher and unpin the node (idempotent)."},
-  {nullptr, nullptr, 0, nullptr},
+    "acknowledged every sample (reliable channels); a negative timeout waits forever."),
+  RBPY_METHOD("destroy", channel_destroy<ChannelPublisherObject>, METH_NOARGS,
+    "destroy() -> None: delete the rmw publisher and unpin the node (idempotent)."),
+  RBPY_METHODS_END,
 };
 
 PyGetSetDef pub_getset[] = {
-  {"gid", base_gid, nullptr, "16-byte GID (as in get_publishers_info_by_topic)", nullptr},
-  {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
-  {"valid", pub_valid, nullptr, "False once destroyed", nullptr},
+  RBPY_CHANNEL_GETSET(ChannelPublisherObject, "16-byte GID (as in get_publishers_info_by_topic)"),
   {nullptr, nullptr, nullptr, nullptr, nullptr},
 };
 
-PyType_Slot pub_slots[] = {
-  {Py_tp_doc, const_cast<char *>(
-      "ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)\n"
-      "--\n\n"
-      "An rmw_fastrtps publisher below rcl on the node's participant: topic_name is the full\n"
-      "DDS name (e.g. 'rt/camera/image/_buf/<hex>_<hex>'), volatile durability. node is an\n"
-      "rclpy Node (or its handle, or an rcl_node_t* int); type_support is msg_type._TYPE_SUPPORT.")},
-  {Py_tp_new, reinterpret_cast<void *>(pub_new)},
-  {Py_tp_init, reinterpret_cast<void *>(pub_init)},
-  {Py_tp_dealloc, reinterpret_cast<void *>(pub_dealloc)},
-  {Py_tp_methods, pub_methods},
-  {Py_tp_getset, pub_getset},
-  {0, nullptr},
-};
-
-PyType_Spec pub_spec = {
-  "rosidl_buffer_py._native.ChannelPublisher",
-  sizeof(ChannelPublisherObject),
-  0,
-  Py_TPFLAGS_DEFAULT,
-  pub_slots,
-};
+RBPY_CHANNEL_TYPE(
+  pub, ChannelPublisherObject, "ChannelPublisher",
+  "ChannelPublisher(node, type_support, topic_name, reliability=1, history=1, depth=10)\n"
+  "--\n\n"
+  "An rmw_fastrtps publisher below rcl on the node's participant: topic_name is the full\n"
+  "DDS name (e.g. 'rt/camera/image/_buf/<hex>_<hex>'), volatile durability. node is an\n"
+  "rclpy Node (or its handle, or an rcl_node_t* int); type_support is msg_type._TYPE_SUPPORT.");
 
 // ------------------------------------------------------------------ ChannelSubscription
-
-PyObject * sub_new(PyTypeObject * type, PyObject *, PyObject *)
-{
-  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(type->tp_alloc(type, 0));
-  if (self == nullptr) {
-    return nullptr;
-  }
-  self->subscription = nullptr;
-  self->notify = nullptr;
-  self->buffer = nullptr;
-  self->on_udp = false;
-  self->guard_condition = new (std::nothrow) PinnedHandle();
-  if (self->guard_condition == nullptr || base_alloc(&self->base) < 0) {
-    if (!PyErr_Occurred()) {
-      PyErr_NoMemory();
-    }
-    Py_DECREF(self);
-    return nullptr;
-  }
-  return reinterpret_cast<PyObject *>(self);
-}
 
 int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
 {
   auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
-  PyObject * node_arg;
-  PyObject * ts_arg;
-  const char * topic_name;
-  int reliability = RMW_QOS_POLICY_RELIABILITY_RELIABLE;
-  int history = RMW_QOS_POLICY_HISTORY_KEEP_LAST;
-  int depth = 10;
   PyObject * gc_arg = Py_None;
-  if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOs|iiiO:ChannelSubscription", const_cast<char **>(kSubscriptionKwlist),
-      &node_arg, &ts_arg, &topic_name, &reliability, &history, &depth, &gc_arg))
-  {
-    return -1;
-  }
   const rosidl_message_type_support_t * ts;
   rmw_qos_profile_t qos;
-  if (base_setup(
-      &self->base, node_arg, ts_arg, topic_name, reliability, history, depth, &ts, &qos) < 0)
-  {
+  if (channel_init_args(&self->base, args, kwds, &gc_arg, &ts, &qos) < 0) {
     return -1;
   }
+  self->guard_condition = new PinnedHandle();
   if (gc_arg != Py_None) {
     if (self->guard_condition->acquire(gc_arg, "guard_condition") < 0) {
       base_unsetup(&self->base);
@@ -780,81 +711,36 @@ int sub_init(PyObject * op, PyObject * args, PyObject * kwds)
   return 0;
 }
 
-int sub_do_destroy(ChannelSubscriptionObject * self)
+int do_destroy(ChannelSubscriptionObject * self)
 {
-  if (self->base.op_mutex == nullptr) {
-    return 0;
-  }
-  rmw_ret_t ret = RMW_RET_OK;
-  std::string error;
-  bool destroyed = false;
-  {
-    GilRelease nogil;
-    std::lock_guard<std::mutex> lock(*self->base.op_mutex);
-    if (self->subscription != nullptr) {
-      if (self->notify != nullptr) {
-        // rmw holds its callback mutex while calling us: once this returns, no callback
-        // is running or will run.
-        if (rmw_subscription_set_on_new_message_callback(
-            self->subscription, nullptr, nullptr) != RMW_RET_OK)
-        {
-          rcutils_reset_error();
-        }
-      }
-      ret = rmw_destroy_subscription(self->base.rmw_node, self->subscription);
-      if (ret != RMW_RET_OK) {
-        error = take_rmw_error();
-      }
-      self->subscription = nullptr;
-      destroyed = true;
-    }
-    if (self->buffer != nullptr) {
-      if (self->buffer->buffer != nullptr && rmw_serialized_message_fini(self->buffer) != RMW_RET_OK) {
+  return destroy_channel(self, [self](rmw_subscription_t * subscription, PendingError * error) {
+      // rmw holds its callback mutex while calling us: once this returns, no callback is
+      // running or will run.
+      if (self->notify != nullptr &&
+        rmw_subscription_set_on_new_message_callback(subscription, nullptr, nullptr) != RMW_RET_OK)
+      {
         rcutils_reset_error();
       }
-      delete self->buffer;
-      self->buffer = nullptr;
-    }
-  }
-  if (destroyed) {
-    delete self->notify;
-    self->notify = nullptr;
-    if (self->guard_condition) {
+      if (rmw_destroy_subscription(self->base.rmw_node, subscription) != RMW_RET_OK) {
+        set_rmw_error(error, "rmw_destroy_subscription failed");
+      }
+      if (self->buffer->buffer != nullptr &&
+        rmw_serialized_message_fini(self->buffer) != RMW_RET_OK)
+      {
+        rcutils_reset_error();
+      }
+    }, [self] {
+      delete self->notify;
+      self->notify = nullptr;
       self->guard_condition->release();
-    }
-    base_unsetup(&self->base);
-  }
-  if (ret != RMW_RET_OK) {
-    raise_rmw_error("rmw_destroy_subscription failed", error);
-    return -1;
-  }
-  return 0;
+    });
 }
 
-void sub_dealloc(PyObject * op)
+void free_members(ChannelSubscriptionObject * self)
 {
-  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
-  PyObject * exc_type, * exc_value, * exc_tb;
-  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
-  if (sub_do_destroy(self) < 0) {
-    PyErr_WriteUnraisable(op);
-  }
-  PyErr_Restore(exc_type, exc_value, exc_tb);
   delete self->notify;
   delete self->guard_condition;
   delete self->buffer;
-  base_free(&self->base);
-  PyTypeObject * tp = Py_TYPE(op);
-  tp->tp_free(op);
-  Py_DECREF(tp);
-}
-
-PyObject * sub_destroy(PyObject * op, PyObject *)
-{
-  if (sub_do_destroy(reinterpret_cast<ChannelSubscriptionObject *>(op)) < 0) {
-    return nullptr;
-  }
-  Py_RETURN_NONE;
 }
 
 /// take() and take_message(): one serialized take; with `support`, the CDR is deserialized
@@ -894,24 +780,12 @@ PyObject * sub_take_impl(
   } else if (ret != RMW_RET_OK) {
     raise_rmw_error("rmw_take_serialized_message_with_info failed", error);
   } else if (!taken) {
-    Py_INCREF(Py_None);
-    result = Py_None;
+    result = Py_NewRef(Py_None);
+  } else if (deserialized) {
+    lock.unlock();  // the C message is ours: convert it without holding the channel
+    result = taken_tuple(support->to_py(ros_message.get()), info);
   } else {
-    PyObject * data;
-    if (deserialized) {
-      lock.unlock();  // the C message is ours: convert it without holding the channel
-      data = support->to_py(ros_message.get());
-    } else {
-      data = serialized_bytes(*self->buffer);
-    }
-    PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
-    PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
-    if (info_dict) {
-      result = PyTuple_Pack(3, data, gid, info_dict);
-    }
-    Py_XDECREF(data);
-    Py_XDECREF(gid);
-    Py_XDECREF(info_dict);
+    result = taken_tuple(serialized_bytes(*self->buffer), info);
   }
   if (lock.owns_lock()) {
     lock.unlock();
@@ -943,10 +817,8 @@ PyObject * sub_take_message(PyObject * op, PyObject * args, PyObject * kwds)
 
 PyObject * sub_matched_count(PyObject * op, PyObject *)
 {
-  auto * self = reinterpret_cast<ChannelSubscriptionObject *>(op);
-  return matched_count(
-    self->base, self->subscription, rmw_subscription_count_matched_publishers,
-    "ChannelSubscription", "rmw_subscription_count_matched_publishers");
+  return matched_count<ChannelSubscriptionObject>(
+    op, rmw_subscription_count_matched_publishers, "rmw_subscription_count_matched_publishers");
 }
 
 PyObject * sub_on_udp(PyObject * op, void *)
@@ -954,29 +826,21 @@ PyObject * sub_on_udp(PyObject * op, void *)
   return PyBool_FromLong(reinterpret_cast<ChannelSubscriptionObject *>(op)->on_udp);
 }
 
-PyObject * sub_valid(PyObject * op, void *)
-{
-  return PyBool_FromLong(
-    reinterpret_cast<ChannelSubscriptionObject *>(op)->subscription != nullptr);
-}
-
 PyMethodDef sub_methods[] = {
-  {"take", sub_take, METH_NOARGS,
+  RBPY_METHOD("take", sub_take, METH_NOARGS,
     "take() -> (bytes, publisher_gid, info) | None\n\nTake one serialized message: CDR "
-    "bytes, the writer's 16-byte GID and an rclpy-like message info dict."},
-  {"take_message",
-    reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(sub_take_message)),
-    METH_VARARGS | METH_KEYWORDS,
+    "bytes, the writer's 16-byte GID and an rclpy-like message info dict."),
+  RBPY_METHOD("take_message", sub_take_message, METH_VARARGS | METH_KEYWORDS,
     "take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None\n\n"
     "Take one message and deserialize it into a msg_class instance, as rclpy's take does; CDR "
     "that does not deserialize (a descriptor payload, malformed data), or is longer than "
-    "max_size bytes when max_size >= 0, comes back as bytes instead."},
-  {"matched_count", sub_matched_count, METH_NOARGS,
-    "matched_count() -> int: publishers currently matched."},
-  {"destroy", sub_destroy, METH_NOARGS,
+    "max_size bytes when max_size >= 0, comes back as bytes instead."),
+  RBPY_METHOD("matched_count", sub_matched_count, METH_NOARGS,
+    "matched_count() -> int: publishers currently matched."),
+  RBPY_METHOD("destroy", channel_destroy<ChannelSubscriptionObject>, METH_NOARGS,
     "destroy() -> None: stop notifications, delete the rmw subscription, unpin the node "
-    "and the guard condition (idempotent)."},
-  {nullptr, nullptr, 0, nullptr},
+    "and the guard condition (idempotent)."),
+  RBPY_METHODS_END,
 };
 
 PyObject * sub_pending(PyObject * op, void *)
@@ -990,36 +854,20 @@ PyGetSetDef sub_getset[] = {
     "Samples announced to the guard condition and not taken since (1 without a guard "
     "condition): 0 after a take means that every sample left will trigger the guard "
     "condition (again), so no empty take is needed to know the channel is drained", nullptr},
-  {"gid", base_gid, nullptr, "16-byte GID (as in get_subscriptions_info_by_topic)", nullptr},
-  {"topic_name", base_topic_name, nullptr, "DDS topic name", nullptr},
-  {"valid", sub_valid, nullptr, "False once destroyed", nullptr},
+  RBPY_CHANNEL_GETSET(
+    ChannelSubscriptionObject, "16-byte GID (as in get_subscriptions_info_by_topic)"),
   {"on_udp", sub_on_udp, nullptr, "True if the DataReader listens on UDP only, not on the "
     "participant's shared memory (the default; see ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT)",
     nullptr},
   {nullptr, nullptr, nullptr, nullptr, nullptr},
 };
 
-PyType_Slot sub_slots[] = {
-  {Py_tp_doc, const_cast<char *>(
-      "ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,\n"
-      "                    guard_condition=None)\n--\n\n"
-      "An rmw_fastrtps subscription below rcl; new data triggers guard_condition (an rclpy\n"
-      "GuardCondition or its handle, pinned until destroy()).")},
-  {Py_tp_new, reinterpret_cast<void *>(sub_new)},
-  {Py_tp_init, reinterpret_cast<void *>(sub_init)},
-  {Py_tp_dealloc, reinterpret_cast<void *>(sub_dealloc)},
-  {Py_tp_methods, sub_methods},
-  {Py_tp_getset, sub_getset},
-  {0, nullptr},
-};
-
-PyType_Spec sub_spec = {
-  "rosidl_buffer_py._native.ChannelSubscription",
-  sizeof(ChannelSubscriptionObject),
-  0,
-  Py_TPFLAGS_DEFAULT,
-  sub_slots,
-};
+RBPY_CHANNEL_TYPE(
+  sub, ChannelSubscriptionObject, "ChannelSubscription",
+  "ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,\n"
+  "                    guard_condition=None)\n--\n\n"
+  "An rmw_fastrtps subscription below rcl; new data triggers guard_condition (an rclpy\n"
+  "GuardCondition or its handle, pinned until destroy()).");
 
 /// The ChannelPublisher type (set at registration), to recognise write_message's targets.
 PyObject * g_channel_publisher_type = nullptr;
@@ -1038,30 +886,9 @@ int resolve_target(PyObject * target, WriteTarget * out)
     out->channel = reinterpret_cast<ChannelPublisherObject *>(target);
     return 0;
   }
-  if (check_handle_kind(target, "Publisher", "target") < 0) {
-    return -1;
-  }
   out->pin = std::make_unique<PinnedHandle>();
-  if (out->pin->acquire(target, "target") < 0) {
-    return -1;
-  }
-  rmw_publisher_t * rmw_pub;
-  {
-    GilRelease nogil;
-    rmw_pub = rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(out->pin->get()));
-    if (rmw_pub == nullptr) {
-      rcl_reset_error();
-    }
-  }
-  if (rmw_pub == nullptr) {
-    PyErr_SetString(DdsError, "write_message: the rcl publisher is not valid");
-    return -1;
-  }
-  if (check_identifier(rmw_pub->implementation_identifier, "publisher") < 0) {
-    return -1;
-  }
-  out->rmw_publisher = rmw_pub;
-  return 0;
+  out->rmw_publisher = pin_rmw_publisher(target, "target", out->pin.get());
+  return out->rmw_publisher ? 0 : -1;
 }
 
 PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
@@ -1152,43 +979,23 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
   Py_RETURN_NONE;
 }
 
+}  // namespace
+
 PyMethodDef channel_functions[] = {
-  {"write_message", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(write_message)),
-    METH_VARARGS | METH_KEYWORDS,
+  RBPY_FUNCTION(write_message, METH_VARARGS | METH_KEYWORDS,
     "write_message(message, source_timestamp, targets) -> None\n\nConvert a ROS message to its "
     "C struct once (as rclpy's publish does) and write it, with source_timestamp (int, ns since "
     "the epoch), to every target in order: ChannelPublisher objects and rclpy publishers of the "
     "message's type. rmw serializes it into each DDS payload; the GIL is released meanwhile. "
-    "Stops at the first failing target."},
-  {nullptr, nullptr, 0, nullptr},
+    "Stops at the first failing target."),
+  RBPY_METHODS_END,
 };
 
-}  // namespace
-
-int add_dds_channel_types(PyObject * module)
+int add_channel_types(PyObject * module)
 {
-  PyObject * pub_type = PyType_FromSpec(&pub_spec);
-  if (pub_type == nullptr) {
-    return -1;
-  }
-  Py_INCREF(pub_type);
-  g_channel_publisher_type = pub_type;
-  if (PyModule_AddObject(module, "ChannelPublisher", pub_type) < 0) {
-    Py_DECREF(pub_type);
-    return -1;
-  }
-  if (PyModule_AddFunctions(module, channel_functions) < 0) {
-    return -1;
-  }
-  PyObject * sub_type = PyType_FromSpec(&sub_spec);
-  if (sub_type == nullptr) {
-    return -1;
-  }
-  if (PyModule_AddObject(module, "ChannelSubscription", sub_type) < 0) {
-    Py_DECREF(sub_type);
-    return -1;
-  }
-  return 0;
+  // kept for good: write_message recognises its ChannelPublisher targets by it
+  g_channel_publisher_type = Py_XNewRef(rbpy_glue::add_type(module, &pub_spec));
+  return g_channel_publisher_type && rbpy_glue::add_type(module, &sub_spec) ? 0 : -1;
 }
 
 }  // namespace rbpy_dds

@@ -5,6 +5,7 @@
 
 #include <cstring>
 
+#include "rcl/publisher.h"
 #include "rcutils/error_handling.h"
 
 namespace rbpy_dds
@@ -13,56 +14,69 @@ namespace rbpy_dds
 PyObject * DdsError = nullptr;
 PyObject * UnsupportedRmwError = nullptr;
 
+namespace
+{
+
+/// The rclpy handle of `arg` (an rclpy entity carries it in `.handle`), a new reference;
+/// nullptr with TypeError when `arg` is neither. Plain ints are the caller's case.
+PyObject * handle_of(PyObject * arg, const char * what)
+{
+  if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "pointer")) {
+    return Py_NewRef(arg);
+  }
+  if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "handle")) {
+    return PyObject_GetAttrString(arg, "handle");
+  }
+  PyErr_Format(
+    PyExc_TypeError, "%s: expected a pointer int, an rclpy handle or an rclpy entity, got %.100s",
+    what, arg ? Py_TYPE(arg)->tp_name : "NULL");
+  return nullptr;
+}
+
+/// The pointer of a pointer int or of `handle.pointer`; nullptr with an exception.
+void * pointer_of(PyObject * arg, bool is_handle, const char * what)
+{
+  PyObject * pointer = is_handle ? PyObject_GetAttrString(arg, "pointer") : Py_NewRef(arg);
+  void * p = pointer ? PyLong_AsVoidPtr(pointer) : nullptr;
+  Py_XDECREF(pointer);
+  if (p == nullptr && !PyErr_Occurred()) {
+    PyErr_Format(
+      PyExc_ValueError, "%s: %s", what, is_handle ? "handle holds a null pointer" : "null pointer");
+  }
+  return p;
+}
+
+void exit_handle(PyObject * handle)
+{
+  PyObject * r = PyObject_CallMethod(handle, "__exit__", "OOO", Py_None, Py_None, Py_None);
+  if (r == nullptr) {
+    PyErr_WriteUnraisable(handle);
+  }
+  Py_XDECREF(r);
+}
+
+}  // namespace
+
 int PinnedHandle::acquire(PyObject * arg, const char * what)
 {
   release();
-  if (arg == nullptr || arg == Py_None) {
-    PyErr_Format(PyExc_TypeError, "%s: expected a pointer int or an rclpy handle, got None", what);
-    return -1;
+  if (arg != nullptr && PyLong_Check(arg)) {
+    ptr_ = pointer_of(arg, false, what);
+    return ptr_ ? 0 : -1;
   }
-  if (PyLong_Check(arg)) {
-    void * p = PyLong_AsVoidPtr(arg);
-    if (p == nullptr) {
-      if (!PyErr_Occurred()) {
-        PyErr_Format(PyExc_ValueError, "%s: null pointer", what);
-      }
-      return -1;
-    }
-    ptr_ = p;
-    return 0;
-  }
-  // An rclpy entity (Node, Publisher, ...) carries its handle in `.handle`.
-  PyObject * handle = nullptr;
-  if (PyObject_HasAttrString(arg, "pointer")) {
-    handle = arg;
-    Py_INCREF(handle);
-  } else if (PyObject_HasAttrString(arg, "handle")) {
-    handle = PyObject_GetAttrString(arg, "handle");
-    if (handle == nullptr) {
-      return -1;
-    }
-  } else {
-    PyErr_Format(
-      PyExc_TypeError, "%s: expected a pointer int, an rclpy handle or an rclpy entity, got %.100s",
-      what, Py_TYPE(arg)->tp_name);
+  PyObject * handle = handle_of(arg, what);
+  if (handle == nullptr) {
     return -1;
   }
   // Enter first (raises if rclpy already destroyed it), then read the pointer.
   PyObject * entered = PyObject_CallMethod(handle, "__enter__", nullptr);
-  if (entered == nullptr) {
-    Py_DECREF(handle);
-    return -1;
-  }
-  Py_DECREF(entered);
-  PyObject * pointer = PyObject_GetAttrString(handle, "pointer");
-  void * p = pointer ? PyLong_AsVoidPtr(pointer) : nullptr;
-  Py_XDECREF(pointer);
+  void * p = entered ? pointer_of(handle, true, what) : nullptr;
+  Py_XDECREF(entered);
   if (p == nullptr) {
-    if (!PyErr_Occurred()) {
-      PyErr_Format(PyExc_ValueError, "%s: handle holds a null pointer", what);
+    if (entered != nullptr) {
+      rbpy_glue::SavedException error;
+      exit_handle(handle);
     }
-    PyObject * r = PyObject_CallMethod(handle, "__exit__", "OOO", Py_None, Py_None, Py_None);
-    Py_XDECREF(r);
     Py_DECREF(handle);
     return -1;
   }
@@ -74,34 +88,11 @@ int PinnedHandle::acquire(PyObject * arg, const char * what)
 void * PinnedHandle::peek(PyObject * arg, const char * what)
 {
   if (arg != nullptr && PyLong_Check(arg)) {
-    void * p = PyLong_AsVoidPtr(arg);
-    if (p == nullptr && !PyErr_Occurred()) {
-      PyErr_Format(PyExc_ValueError, "%s: null pointer", what);
-    }
-    return p;
+    return pointer_of(arg, false, what);
   }
-  PyObject * handle = nullptr;
-  if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "pointer")) {
-    handle = arg;
-    Py_INCREF(handle);
-  } else if (arg != nullptr && arg != Py_None && PyObject_HasAttrString(arg, "handle")) {
-    handle = PyObject_GetAttrString(arg, "handle");
-    if (handle == nullptr) {
-      return nullptr;
-    }
-  } else {
-    PyErr_Format(
-      PyExc_TypeError, "%s: expected a pointer int, an rclpy handle or an rclpy entity, got %.100s",
-      what, arg ? Py_TYPE(arg)->tp_name : "NULL");
-    return nullptr;
-  }
-  PyObject * pointer = PyObject_GetAttrString(handle, "pointer");
-  Py_DECREF(handle);
-  void * p = pointer ? PyLong_AsVoidPtr(pointer) : nullptr;
-  Py_XDECREF(pointer);
-  if (p == nullptr && !PyErr_Occurred()) {
-    PyErr_Format(PyExc_ValueError, "%s: handle holds a null pointer", what);
-  }
+  PyObject * handle = handle_of(arg, what);
+  void * p = handle ? pointer_of(handle, true, what) : nullptr;
+  Py_XDECREF(handle);
   return p;
 }
 
@@ -113,15 +104,9 @@ void PinnedHandle::release()
     return;
   }
   handle_ = nullptr;
-  PyObject * exc_type, * exc_value, * exc_tb;
-  PyErr_Fetch(&exc_type, &exc_value, &exc_tb);
-  PyObject * r = PyObject_CallMethod(handle, "__exit__", "OOO", Py_None, Py_None, Py_None);
-  if (r == nullptr) {
-    PyErr_WriteUnraisable(handle);
-  }
-  Py_XDECREF(r);
+  rbpy_glue::SavedException error;
+  exit_handle(handle);
   Py_DECREF(handle);
-  PyErr_Restore(exc_type, exc_value, exc_tb);
 }
 
 int check_handle_kind(PyObject * arg, const char * kind, const char * what)
@@ -129,17 +114,13 @@ int check_handle_kind(PyObject * arg, const char * kind, const char * what)
   if (arg == nullptr || PyLong_Check(arg)) {
     return 0;  // a raw pointer: the caller vouches for its kind
   }
-  PyObject * handle = nullptr;
-  if (PyObject_HasAttrString(arg, "pointer")) {
-    handle = arg;
-    Py_INCREF(handle);
-  } else if (PyObject_HasAttrString(arg, "handle")) {
-    handle = PyObject_GetAttrString(arg, "handle");
-    if (handle == nullptr) {
-      return -1;
+  PyObject * handle = handle_of(arg, what);
+  if (handle == nullptr) {
+    if (PyErr_ExceptionMatches(PyExc_TypeError)) {
+      PyErr_Clear();  // PinnedHandle::acquire reports it
+      return 0;
     }
-  } else {
-    return 0;  // PinnedHandle::acquire reports it
+    return -1;
   }
   const char * name = Py_TYPE(handle)->tp_name;
   const char * dot = std::strrchr(name, '.');
@@ -228,6 +209,31 @@ PyObject * message_info_dict(const rmw_message_info_t & info)
     "from_intra_process", info.from_intra_process ? Py_True : Py_False);
 }
 
+PyObject * taken_tuple(PyObject * data, const rmw_message_info_t & info)
+{
+  PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
+  PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
+  PyObject * result = info_dict ? PyTuple_Pack(3, data, gid, info_dict) : nullptr;
+  Py_XDECREF(data);
+  Py_XDECREF(gid);
+  Py_XDECREF(info_dict);
+  return result;
+}
+
+int SerializedView::acquire(PyObject * data)
+{
+  if (PyObject_GetBuffer(data, &view_, PyBUF_C_CONTIGUOUS) < 0) {
+    return -1;
+  }
+  held_ = true;
+  if (view_.len < 4) {
+    PyErr_SetString(
+      PyExc_ValueError, "serialized message too short (needs the 4-byte CDR encapsulation)");
+    return -1;
+  }
+  return 0;
+}
+
 int parse_kind(const char * kind, bool * is_publisher)
 {
   if (std::strcmp(kind, "publisher") == 0 || std::strcmp(kind, "writer") == 0) {
@@ -254,6 +260,14 @@ int check_identifier(const char * identifier, const char * what)
   return 0;
 }
 
+rmw_publisher_t * pin_rmw_publisher(PyObject * arg, const char * what, PinnedHandle * pin)
+{
+  if (check_handle_kind(arg, "Publisher", what) < 0 || pin->acquire(arg, what) < 0) {
+    return nullptr;
+  }
+  return fastrtps_handle(pin->get(), rcl_publisher_get_rmw_handle, "publisher");
+}
+
 }  // namespace rbpy_dds
 
 namespace
@@ -274,81 +288,64 @@ PyObject * private_layout_verified(PyObject *, PyObject *)
   return PyBool_FromLong(rbpy_dds::rmw_private::layout_verified());
 }
 
-PyMethodDef abi_methods[] = {
-  {"set_private_layout_verified", set_private_layout_verified, METH_O,
+PyMethodDef abi_functions[] = {
+  RBPY_FUNCTION(set_private_layout_verified, METH_O,
     "set_private_layout_verified(verified: bool) -> None\n\n"
     "Allow (or forbid) the accesses to rmw_fastrtps's private layout; rosidl_buffer_py._dds\n"
-    "allows them at import when the running libraries are the BUILT_AGAINST versions."},
-  {"private_layout_verified", private_layout_verified, METH_NOARGS,
-    "private_layout_verified() -> bool"},
-  {nullptr, nullptr, 0, nullptr},
+    "allows them at import when the running libraries are the BUILT_AGAINST versions."),
+  RBPY_FUNCTION(private_layout_verified, METH_NOARGS, "private_layout_verified() -> bool"),
+  RBPY_METHODS_END,
 };
 
-int add_abi_api(PyObject * module)
+/// BUILT_AGAINST: package -> version compiled against.
+PyObject * built_against()
 {
   PyObject * built = PyDict_New();
-  if (built == nullptr) {
-    return -1;
-  }
   for (const auto & entry : rbpy_dds::rmw_private::built_versions()) {
-    PyObject * version = PyUnicode_FromString(entry.version);
+    PyObject * version = built ? PyUnicode_FromString(entry.version) : nullptr;
     if (version == nullptr || PyDict_SetItemString(built, entry.package, version) < 0) {
       Py_XDECREF(version);
-      Py_DECREF(built);
-      return -1;
+      Py_XDECREF(built);
+      return nullptr;
     }
     Py_DECREF(version);
   }
-  if (PyModule_AddObject(module, "BUILT_AGAINST", built) < 0) {
-    Py_DECREF(built);
-    return -1;
+  return built;
+}
+
+/// A module exception `rosidl_buffer_py._native.<name>` (created once).
+int add_exception(PyObject * module, PyObject ** exception, const char * name, const char * doc,
+  PyObject * base)
+{
+  if (*exception == nullptr) {
+    *exception = PyErr_NewExceptionWithDoc(
+      (std::string("rosidl_buffer_py._native.") + name).c_str(), doc, base, nullptr);
   }
-  return PyModule_AddFunctions(module, abi_methods);
+  return *exception ? PyModule_AddObjectRef(module, name, *exception) : -1;
 }
 
 }  // namespace
 
 int add_dds_api(PyObject * module)
 {
-  using rbpy_dds::DdsError;
-  using rbpy_dds::UnsupportedRmwError;
-  if (DdsError == nullptr) {
-    DdsError = PyErr_NewExceptionWithDoc(
-      "rosidl_buffer_py._native.DdsError",
-      "A Fast DDS / rmw / rcl call of the native layer failed.", PyExc_RuntimeError, nullptr);
-    if (DdsError == nullptr) {
-      return -1;
-    }
-  }
-  if (UnsupportedRmwError == nullptr) {
-    UnsupportedRmwError = PyErr_NewExceptionWithDoc(
-      "rosidl_buffer_py._native.UnsupportedRmwError",
-      "The entity does not belong to rmw_fastrtps_cpp; use plain rclpy instead.",
-      DdsError, nullptr);
-    if (UnsupportedRmwError == nullptr) {
-      return -1;
-    }
-  }
-  Py_INCREF(DdsError);
-  if (PyModule_AddObject(module, "DdsError", DdsError) < 0) {
-    Py_DECREF(DdsError);
-    return -1;
-  }
-  Py_INCREF(UnsupportedRmwError);
-  if (PyModule_AddObject(module, "UnsupportedRmwError", UnsupportedRmwError) < 0) {
-    Py_DECREF(UnsupportedRmwError);
-    return -1;
-  }
-  if (PyModule_AddStringConstant(module, "RMW_IMPLEMENTATION", rbpy_dds::kFastrtpsIdentifier) < 0) {
-    return -1;
-  }
-  if (add_abi_api(module) < 0 ||
-    rbpy_dds::add_dds_endpoint_functions(module) < 0 ||
-    rbpy_dds::add_dds_discovery_functions(module) < 0 ||
-    rbpy_dds::add_dds_channel_types(module) < 0 ||
-    rbpy_dds::add_codec_functions(module) < 0)
+  using namespace rbpy_dds;
+  if (add_exception(
+      module, &DdsError, "DdsError", "A Fast DDS / rmw / rcl call of the native layer failed.",
+      PyExc_RuntimeError) < 0 ||
+    add_exception(
+      module, &UnsupportedRmwError, "UnsupportedRmwError",
+      "The entity does not belong to rmw_fastrtps_cpp; use plain rclpy instead.", DdsError) < 0 ||
+    PyModule_AddStringConstant(module, "RMW_IMPLEMENTATION", kFastrtpsIdentifier) < 0 ||
+    rbpy_glue::add_object(module, "BUILT_AGAINST", built_against()) < 0)
   {
     return -1;
   }
-  return 0;
+  for (PyMethodDef * table :
+    {abi_functions, endpoint_functions, discovery_functions, channel_functions, codec_functions})
+  {
+    if (PyModule_AddFunctions(module, table) < 0) {
+      return -1;
+    }
+  }
+  return add_channel_types(module);
 }

@@ -4,14 +4,14 @@
 #ifndef ROSIDL_BUFFER_PY_NATIVE__DDS_COMMON_HPP_
 #define ROSIDL_BUFFER_PY_NATIVE__DDS_COMMON_HPP_
 
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
+#include "py_glue.hpp"
 
 #include <array>
 #include <cstdint>
 #include <string>
 #include <vector>
 
+#include "rcutils/error_handling.h"
 #include "rmw/serialized_message.h"
 #include "rmw/types.h"
 #include "rosidl_runtime_c/message_type_support_struct.h"
@@ -27,18 +27,9 @@ constexpr const char * kFastrtpsIdentifier = "rmw_fastrtps_cpp";
 extern PyObject * DdsError;
 extern PyObject * UnsupportedRmwError;
 
-/// Releases the GIL for its scope. Never touch Python objects inside.
-class GilRelease
-{
-public:
-  GilRelease() : state_(PyEval_SaveThread()) {}
-  ~GilRelease() {PyEval_RestoreThread(state_);}
-  GilRelease(const GilRelease &) = delete;
-  GilRelease & operator=(const GilRelease &) = delete;
-
-private:
-  PyThreadState * state_;
-};
+using rbpy_glue::GilRelease;
+using rbpy_glue::PendingError;
+using rbpy_glue::without_gil;
 
 /// A C pointer handed over from Python, optionally pinned.
 ///
@@ -103,6 +94,25 @@ int parse_kind(const char * kind, bool * is_publisher);
 /// Raise UnsupportedRmwError unless `identifier` is rmw_fastrtps_cpp. Returns 0 or -1.
 int check_identifier(const char * identifier, const char * what);
 
+/// The rmw_fastrtps handle behind a pinned rcl entity (`get` is rcl_{node,publisher,
+/// subscription}_get_rmw_handle, called with the GIL released). nullptr with DdsError when
+/// the rcl entity is not valid, UnsupportedRmwError when it is another rmw's (GIL held).
+template<typename Rmw, typename Rcl>
+Rmw * fastrtps_handle(void * rcl_entity, Rmw * (*get)(const Rcl *), const char * what)
+{
+  Rmw * handle = without_gil([&] {return get(static_cast<const Rcl *>(rcl_entity));});
+  if (handle == nullptr) {
+    rcutils_reset_error();
+    PyErr_Format(DdsError, "the rcl %s is not valid (already destroyed?)", what);
+    return nullptr;
+  }
+  return check_identifier(handle->implementation_identifier, what) < 0 ? nullptr : handle;
+}
+
+/// Pin an rclpy publisher (or its handle; a pointer int is trusted) into `pin`; its rmw
+/// publisher, or nullptr with TypeError/DdsError/UnsupportedRmwError (GIL held).
+rmw_publisher_t * pin_rmw_publisher(PyObject * arg, const char * what, PinnedHandle * pin);
+
 /// The C side of a generated ROS message class, as rclpy's own publish and take use it: the
 /// type support and the functions rosidl_generator_py attaches to the class (_CREATE_ROS_MESSAGE,
 /// _DESTROY_ROS_MESSAGE, _CONVERT_FROM_PY, _CONVERT_TO_PY). Valid while the class lives.
@@ -143,6 +153,28 @@ private:
 /// A bytes copy of serialized CDR (GIL held).
 PyObject * serialized_bytes(const rmw_serialized_message_t & serialized);
 
+/// `(data, publisher_gid, info)` of a take; takes over `data` (nullptr: an exception is set).
+PyObject * taken_tuple(PyObject * data, const rmw_message_info_t & info);
+
+/// A caller's serialized CDR (any C-contiguous buffer holding at least the 4-byte
+/// encapsulation header), held for the duration of a call. Read it without the GIL.
+class SerializedView
+{
+public:
+  SerializedView() = default;
+  ~SerializedView() {if (held_) {PyBuffer_Release(&view_);}}
+  SerializedView(const SerializedView &) = delete;
+  SerializedView & operator=(const SerializedView &) = delete;
+  /// Returns 0, or -1 with BufferError/TypeError/ValueError (GIL held).
+  int acquire(PyObject * data);
+  void * data() const {return view_.buf;}
+  size_t size() const {return static_cast<size_t>(view_.len);}
+
+private:
+  Py_buffer view_{};
+  bool held_ = false;
+};
+
 /// Whether a sample of this length is to be deserialized (max_size < 0: any length).
 inline bool fits(const rmw_serialized_message_t & serialized, Py_ssize_t max_size)
 {
@@ -157,11 +189,18 @@ bool try_deserialize(
   const MessageSupport & support, const rmw_serialized_message_t & serialized,
   OwnedRosMessage * ros_message);
 
-// Registration of each part (called from add_dds_api).
-int add_dds_endpoint_functions(PyObject * module);
-int add_dds_discovery_functions(PyObject * module);
-int add_dds_channel_types(PyObject * module);
-int add_codec_functions(PyObject * module);  // codec_fast.cpp
+/// DdsError("<what>: <rmw error>") to raise once the GIL is back (GIL not needed).
+inline void set_rmw_error(PendingError * error, const std::string & what)
+{
+  error->set(DdsError, what + ": " + take_rmw_error());
+}
+
+// The function tables of each part and the channel types (added by add_dds_api).
+extern PyMethodDef endpoint_functions[];   // dds_endpoints.cpp
+extern PyMethodDef discovery_functions[];  // dds_discovery.cpp
+extern PyMethodDef channel_functions[];    // dds_channels.cpp
+extern PyMethodDef codec_functions[];      // codec_fast.cpp
+int add_channel_types(PyObject * module);  // dds_channels.cpp
 
 }  // namespace rbpy_dds
 

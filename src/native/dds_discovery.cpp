@@ -99,14 +99,6 @@ public:
 
   // ---- discovery: forward to rmw first, then record ----
   void on_participant_discovery(
-    dds::DomainParticipant * p, rtps::ParticipantDiscoveryInfo && info) override
-  {
-    if (original_) {
-      original_->on_participant_discovery(p, std::move(info));
-    }
-  }
-
-  void on_participant_discovery(
     dds::DomainParticipant * p, rtps::ParticipantDiscoveryInfo && info,
     bool & should_be_ignored) override
   {
@@ -127,138 +119,88 @@ public:
   void on_subscriber_discovery(
     dds::DomainParticipant * p, rtps::ReaderDiscoveryInfo && info) override
   {
-    EndpointEvent ev = make_event(false, reader_status(info.status), info.info);
-    if (original_) {
-      original_->on_subscriber_discovery(p, std::move(info));
-    }
-    record(std::move(ev));
-  }
-
-  void on_subscriber_discovery(
-    dds::DomainParticipant * p, rtps::ReaderDiscoveryInfo && info,
-    bool & should_be_ignored) override
-  {
-    if (original_) {
-      original_->on_subscriber_discovery(p, std::move(info), should_be_ignored);
-    }
+    observe(false, reader_status(info.status), info.info, [&] {
+        original_->on_subscriber_discovery(p, std::move(info));
+      });
   }
 
   void on_publisher_discovery(
     dds::DomainParticipant * p, rtps::WriterDiscoveryInfo && info) override
   {
-    EndpointEvent ev = make_event(true, writer_status(info.status), info.info);
-    if (original_) {
-      original_->on_publisher_discovery(p, std::move(info));
-    }
-    record(std::move(ev));
+    observe(true, writer_status(info.status), info.info, [&] {
+        original_->on_publisher_discovery(p, std::move(info));
+      });
   }
 
-  void on_publisher_discovery(
-    dds::DomainParticipant * p, rtps::WriterDiscoveryInfo && info,
-    bool & should_be_ignored) override
-  {
-    if (original_) {
-      original_->on_publisher_discovery(p, std::move(info), should_be_ignored);
-    }
-  }
+// A callback of the listener interface that only forwards to rmw's listener.
+#define RBPY_FORWARD(callback, params, args) \
+  void callback params override {if (original_) {original_->callback args;}}
 
   // ---- everything else: plain forwarding (rmw masks these today) ----
-  void on_type_discovery(
-    dds::DomainParticipant * p, const rtps::SampleIdentity & request_sample_id,
+  RBPY_FORWARD(
+    on_participant_discovery,
+    (dds::DomainParticipant * p, rtps::ParticipantDiscoveryInfo && info), (p, std::move(info)))
+  RBPY_FORWARD(
+    on_subscriber_discovery,
+    (dds::DomainParticipant * p, rtps::ReaderDiscoveryInfo && info, bool & should_be_ignored),
+    (p, std::move(info), should_be_ignored))
+  RBPY_FORWARD(
+    on_publisher_discovery,
+    (dds::DomainParticipant * p, rtps::WriterDiscoveryInfo && info, bool & should_be_ignored),
+    (p, std::move(info), should_be_ignored))
+  RBPY_FORWARD(
+    on_type_discovery,
+    (dds::DomainParticipant * p, const rtps::SampleIdentity & request_sample_id,
     const eprosima::fastrtps::string_255 & topic,
     const eprosima::fastrtps::types::TypeIdentifier * identifier,
     const eprosima::fastrtps::types::TypeObject * object,
-    eprosima::fastrtps::types::DynamicType_ptr dyn_type) override
-  {
-    if (original_) {
-      original_->on_type_discovery(p, request_sample_id, topic, identifier, object, dyn_type);
-    }
-  }
-
-  void on_type_dependencies_reply(
-    dds::DomainParticipant * p, const rtps::SampleIdentity & request_sample_id,
-    const eprosima::fastrtps::types::TypeIdentifierWithSizeSeq & dependencies) override
-  {
-    if (original_) {
-      original_->on_type_dependencies_reply(p, request_sample_id, dependencies);
-    }
-  }
-
-  void on_type_information_received(
-    dds::DomainParticipant * p, const eprosima::fastrtps::string_255 topic_name,
+    eprosima::fastrtps::types::DynamicType_ptr dyn_type),
+    (p, request_sample_id, topic, identifier, object, dyn_type))
+  RBPY_FORWARD(
+    on_type_dependencies_reply,
+    (dds::DomainParticipant * p, const rtps::SampleIdentity & request_sample_id,
+    const eprosima::fastrtps::types::TypeIdentifierWithSizeSeq & dependencies),
+    (p, request_sample_id, dependencies))
+  RBPY_FORWARD(
+    on_type_information_received,
+    (dds::DomainParticipant * p, const eprosima::fastrtps::string_255 topic_name,
     const eprosima::fastrtps::string_255 type_name,
-    const eprosima::fastrtps::types::TypeInformation & type_information) override
-  {
-    if (original_) {
-      original_->on_type_information_received(p, topic_name, type_name, type_information);
-    }
-  }
-
-  void on_publication_matched(
-    dds::DataWriter * w, const dds::PublicationMatchedStatus & s) override
-  {
-    if (original_) {original_->on_publication_matched(w, s);}
-  }
-  void on_offered_deadline_missed(
-    dds::DataWriter * w, const dds::OfferedDeadlineMissedStatus & s) override
-  {
-    if (original_) {original_->on_offered_deadline_missed(w, s);}
-  }
-  void on_offered_incompatible_qos(
-    dds::DataWriter * w, const dds::OfferedIncompatibleQosStatus & s) override
-  {
-    if (original_) {original_->on_offered_incompatible_qos(w, s);}
-  }
-  void on_liveliness_lost(dds::DataWriter * w, const dds::LivelinessLostStatus & s) override
-  {
-    if (original_) {original_->on_liveliness_lost(w, s);}
-  }
-  void on_unacknowledged_sample_removed(
-    dds::DataWriter * w, const dds::InstanceHandle_t & instance) override
-  {
-    if (original_) {original_->on_unacknowledged_sample_removed(w, instance);}
-  }
-  void on_data_on_readers(dds::Subscriber * sub) override
-  {
-    if (original_) {original_->on_data_on_readers(sub);}
-  }
-  void on_data_available(dds::DataReader * r) override
-  {
-    if (original_) {original_->on_data_available(r);}
-  }
-  void on_subscription_matched(
-    dds::DataReader * r, const dds::SubscriptionMatchedStatus & s) override
-  {
-    if (original_) {original_->on_subscription_matched(r, s);}
-  }
-  void on_requested_deadline_missed(
-    dds::DataReader * r, const eprosima::fastrtps::RequestedDeadlineMissedStatus & s) override
-  {
-    if (original_) {original_->on_requested_deadline_missed(r, s);}
-  }
-  void on_liveliness_changed(
-    dds::DataReader * r, const eprosima::fastrtps::LivelinessChangedStatus & s) override
-  {
-    if (original_) {original_->on_liveliness_changed(r, s);}
-  }
-  void on_sample_rejected(
-    dds::DataReader * r, const eprosima::fastrtps::SampleRejectedStatus & s) override
-  {
-    if (original_) {original_->on_sample_rejected(r, s);}
-  }
-  void on_requested_incompatible_qos(
-    dds::DataReader * r, const dds::RequestedIncompatibleQosStatus & s) override
-  {
-    if (original_) {original_->on_requested_incompatible_qos(r, s);}
-  }
-  void on_sample_lost(dds::DataReader * r, const dds::SampleLostStatus & s) override
-  {
-    if (original_) {original_->on_sample_lost(r, s);}
-  }
-  void on_inconsistent_topic(dds::Topic * t, dds::InconsistentTopicStatus s) override
-  {
-    if (original_) {original_->on_inconsistent_topic(t, s);}
-  }
+    const eprosima::fastrtps::types::TypeInformation & type_information),
+    (p, topic_name, type_name, type_information))
+  RBPY_FORWARD(
+    on_publication_matched, (dds::DataWriter * w, const dds::PublicationMatchedStatus & s),
+    (w, s))
+  RBPY_FORWARD(
+    on_offered_deadline_missed, (dds::DataWriter * w, const dds::OfferedDeadlineMissedStatus & s),
+    (w, s))
+  RBPY_FORWARD(
+    on_offered_incompatible_qos,
+    (dds::DataWriter * w, const dds::OfferedIncompatibleQosStatus & s), (w, s))
+  RBPY_FORWARD(
+    on_liveliness_lost, (dds::DataWriter * w, const dds::LivelinessLostStatus & s), (w, s))
+  RBPY_FORWARD(
+    on_unacknowledged_sample_removed,
+    (dds::DataWriter * w, const dds::InstanceHandle_t & instance), (w, instance))
+  RBPY_FORWARD(on_data_on_readers, (dds::Subscriber * sub), (sub))
+  RBPY_FORWARD(on_data_available, (dds::DataReader * r), (r))
+  RBPY_FORWARD(
+    on_subscription_matched, (dds::DataReader * r, const dds::SubscriptionMatchedStatus & s),
+    (r, s))
+  RBPY_FORWARD(
+    on_requested_deadline_missed,
+    (dds::DataReader * r, const eprosima::fastrtps::RequestedDeadlineMissedStatus & s), (r, s))
+  RBPY_FORWARD(
+    on_liveliness_changed,
+    (dds::DataReader * r, const eprosima::fastrtps::LivelinessChangedStatus & s), (r, s))
+  RBPY_FORWARD(
+    on_sample_rejected,
+    (dds::DataReader * r, const eprosima::fastrtps::SampleRejectedStatus & s), (r, s))
+  RBPY_FORWARD(
+    on_requested_incompatible_qos,
+    (dds::DataReader * r, const dds::RequestedIncompatibleQosStatus & s), (r, s))
+  RBPY_FORWARD(on_sample_lost, (dds::DataReader * r, const dds::SampleLostStatus & s), (r, s))
+  RBPY_FORWARD(on_inconsistent_topic, (dds::Topic * t, dds::InconsistentTopicStatus s), (t, s))
+#undef RBPY_FORWARD
 
   // ---- Python-facing (called with the GIL released unless noted) ----
   std::vector<EndpointEvent> drain()
@@ -356,6 +298,18 @@ private:
       case rtps::ReaderDiscoveryInfo::IGNORED_READER: return "ignored";
     }
     return "unknown";
+  }
+
+  /// An endpoint callback: the event is made first (rmw's listener takes the info over), then
+  /// `forward` hands the info to rmw's listener, then the event is recorded.
+  template<typename ProxyData, typename Forward>
+  void observe(bool is_writer, const char * status, const ProxyData & data, Forward && forward)
+  {
+    EndpointEvent ev = make_event(is_writer, status, data);
+    if (original_) {
+      forward();
+    }
+    record(std::move(ev));
   }
 
   template<class ProxyData>
@@ -461,6 +415,16 @@ Registry & registry()
   return *r;
 }
 
+/// `f(registry)` with the GIL released, under the registry's lock; returns what it returns.
+template<typename F>
+auto with_registry(F && f) -> decltype(f(registry()))
+{
+  GilRelease nogil;
+  Registry & reg = registry();
+  std::lock_guard<std::mutex> lock(reg.mutex);
+  return f(reg);
+}
+
 /// Release pins with the GIL held.
 void release_pins(std::vector<PinnedHandle *> & pins)
 {
@@ -470,30 +434,18 @@ void release_pins(std::vector<PinnedHandle *> & pins)
   pins.clear();
 }
 
-/// The participant behind a pinned rcl node. GIL held; returns nullptr with an exception.
-dds::DomainParticipant * participant_of(void * rcl_node)
+/// Pin the node `node_arg` into `pin`; the participant behind it. GIL held; returns nullptr
+/// with an exception.
+dds::DomainParticipant * participant_of(PyObject * node_arg, PinnedHandle * pin)
 {
-  const char * identifier = nullptr;
-  dds::DomainParticipant * participant = nullptr;
-  bool invalid = false;
-  {
-    GilRelease nogil;
-    rmw_node_t * node = rcl_node_get_rmw_handle(static_cast<const rcl_node_t *>(rcl_node));
-    if (node == nullptr) {
-      invalid = true;
-      rcl_reset_error();
-    } else {
-      identifier = node->implementation_identifier;
-      participant = rmw_fastrtps_cpp::get_domain_participant(node);
-    }
-  }
-  if (invalid) {
-    PyErr_SetString(DdsError, "the rcl node is not valid (already destroyed?)");
+  if (pin->acquire(node_arg, "node") < 0) {
     return nullptr;
   }
-  if (check_identifier(identifier, "node") < 0) {
+  rmw_node_t * node = fastrtps_handle(pin->get(), rcl_node_get_rmw_handle, "node");
+  if (node == nullptr) {
     return nullptr;
   }
+  dds::DomainParticipant * participant = rmw_fastrtps_cpp::get_domain_participant(node);
   if (participant == nullptr) {
     PyErr_SetString(DdsError, "rmw_fastrtps_cpp returned no DomainParticipant for this node");
     return nullptr;
@@ -507,10 +459,7 @@ dds::DomainParticipant * participant_of(void * rcl_node)
 DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = nullptr)
 {
   PinnedHandle node;
-  if (node.acquire(node_arg, "node") < 0) {
-    return nullptr;
-  }
-  dds::DomainParticipant * participant = participant_of(node.get());
+  dds::DomainParticipant * participant = participant_of(node_arg, &node);
   if (participant == nullptr) {
     return nullptr;
   }
@@ -519,10 +468,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
   bool created = false;
   std::string error;
   std::vector<PinnedHandle *> stale_pins;
-  {
-    GilRelease nogil;
-    Registry & reg = registry();
-    std::lock_guard<std::mutex> lock(reg.mutex);
+  with_registry([&](Registry & reg) {
     auto it = reg.taps.find(participant);
     const dds::DomainParticipantListener * current = participant->get_listener();
     if (it != reg.taps.end() && current != it->second) {
@@ -545,7 +491,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
         failed = true;
       }
     }
-  }
+  });
   release_pins(stale_pins);
   if (failed) {
     PyErr_Format(DdsError, "cannot install the discovery tap: %s", error.c_str());
@@ -601,69 +547,48 @@ PyObject * install_discovery(PyObject *, PyObject * node_arg)
 PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
 {
   PinnedHandle node;
-  if (node.acquire(node_arg, "node") < 0) {
-    return nullptr;
-  }
-  dds::DomainParticipant * participant = participant_of(node.get());
+  dds::DomainParticipant * participant = participant_of(node_arg, &node);
   if (participant == nullptr) {
     return nullptr;
   }
-  bool removed = false;
-  bool failed = false;
-  std::string error;
+  PendingError error;
   std::vector<PinnedHandle *> pins;
-  {
-    GilRelease nogil;
-    Registry & reg = registry();
-    std::lock_guard<std::mutex> lock(reg.mutex);
+  const bool removed = with_registry([&](Registry & reg) {
     auto it = reg.taps.find(participant);
-    if (it != reg.taps.end()) {
-      DiscoveryTap * tap = it->second;
-      if (participant->get_listener() == tap) {
-        failed = !rbpy_dds::rmw_private::set_participant_listener(
-          participant, tap->original(), &error);
-      }
-      if (!failed) {
-        pins = tap->detach();  // the tap itself stays allocated: a late callback is harmless
-        reg.taps.erase(it);
-        removed = true;
-      }
+    if (it == reg.taps.end()) {
+      return false;
     }
-  }
+    DiscoveryTap * tap = it->second;
+    std::string why;
+    if (participant->get_listener() == tap &&
+      !rbpy_dds::rmw_private::set_participant_listener(participant, tap->original(), &why))
+    {
+      error.set(DdsError, "cannot give rmw its participant listener back: " + why);
+      return false;
+    }
+    pins = tap->detach();  // the tap itself stays allocated: a late callback is harmless
+    reg.taps.erase(it);
+    return true;
+  });
   release_pins(pins);
-  if (failed) {
-    PyErr_Format(DdsError, "cannot give rmw its participant listener back: %s", error.c_str());
-    return nullptr;
-  }
-  return PyBool_FromLong(removed);
+  return error ? error.raise() : PyBool_FromLong(removed);
+}
+
+/// The events `read` returns from the node's tap (installed first; GIL released meanwhile).
+PyObject * events_of(PyObject * node_arg, std::vector<EndpointEvent> (DiscoveryTap::* read)())
+{
+  DiscoveryTap * tap = tap_of(node_arg, true);
+  return tap ? event_list(without_gil([&] {return (tap->*read)();})) : nullptr;
 }
 
 PyObject * drain_discovery_events(PyObject *, PyObject * node_arg)
 {
-  DiscoveryTap * tap = tap_of(node_arg, true);
-  if (tap == nullptr) {
-    return nullptr;
-  }
-  std::vector<EndpointEvent> events;
-  {
-    GilRelease nogil;
-    events = tap->drain();
-  }
-  return event_list(events);
+  return events_of(node_arg, &DiscoveryTap::drain);
 }
 
 PyObject * list_known_endpoints(PyObject *, PyObject * node_arg)
 {
-  DiscoveryTap * tap = tap_of(node_arg, true);
-  if (tap == nullptr) {
-    return nullptr;
-  }
-  std::vector<EndpointEvent> events;
-  {
-    GilRelease nogil;
-    events = tap->known();
-  }
-  return event_list(events);
+  return events_of(node_arg, &DiscoveryTap::known);
 }
 
 PyObject * add_discovery_wakeup(PyObject *, PyObject * args)
@@ -703,16 +628,13 @@ PyObject * remove_discovery_wakeup(PyObject *, PyObject * gc_arg)
     return nullptr;
   }
   std::vector<PinnedHandle *> pins;
-  {
-    GilRelease nogil;
-    Registry & reg = registry();
-    std::lock_guard<std::mutex> lock(reg.mutex);
+  with_registry([&](Registry & reg) {
     for (auto & kv : reg.taps) {
       if (PinnedHandle * pin = kv.second->remove_wakeup(static_cast<rcl_guard_condition_t *>(gc))) {
         pins.push_back(pin);
       }
     }
-  }
+  });
   const bool removed = !pins.empty();
   release_pins(pins);
   return PyBool_FromLong(removed);
@@ -741,42 +663,37 @@ PyObject * discovery_stats(PyObject *, PyObject * node_arg)
     "recorded", static_cast<unsigned long long>(recorded));
 }
 
-PyMethodDef discovery_methods[] = {
-  {"install_discovery", install_discovery, METH_O,
+}  // namespace
+
+PyMethodDef discovery_functions[] = {
+  RBPY_FUNCTION(install_discovery, METH_O,
     "install_discovery(node) -> bool\n\n"
     "Install the discovery tap on the node's DomainParticipant (once per participant; the\n"
     "other discovery functions do it implicitly). True if this call installed it. Install\n"
-    "it right after creating the node: endpoints discovered earlier are not replayed."},
-  {"uninstall_discovery", uninstall_discovery, METH_O,
+    "it right after creating the node: endpoints discovered earlier are not replayed."),
+  RBPY_FUNCTION(uninstall_discovery, METH_O,
     "uninstall_discovery(node) -> bool\n\n"
-    "Give the participant rmw's own listener back and drop queued events and wakeups."},
-  {"drain_discovery_events", drain_discovery_events, METH_O,
+    "Give the participant rmw's own listener back and drop queued events and wakeups."),
+  RBPY_FUNCTION(drain_discovery_events, METH_O,
     "drain_discovery_events(node) -> list[event]\n\n"
     "Take every queued endpoint event of the node's participant (one consumer per\n"
     "participant). event = (kind, status, gid, topic, type_name, user_data,\n"
-    "participant_gid, local)."},
-  {"list_known_endpoints", list_known_endpoints, METH_O,
+    "participant_gid, local)."),
+  RBPY_FUNCTION(list_known_endpoints, METH_O,
     "list_known_endpoints(node) -> list[event]\n\n"
     "Snapshot of the endpoints discovered (and not removed) since the tap was installed,\n"
-    "with their latest USER_DATA; status 'known'."},
-  {"add_discovery_wakeup", add_discovery_wakeup, METH_VARARGS,
+    "with their latest USER_DATA; status 'known'."),
+  RBPY_FUNCTION(add_discovery_wakeup, METH_VARARGS,
     "add_discovery_wakeup(node, guard_condition) -> bool\n\n"
     "Trigger this rcl guard condition on every recorded event. The guard condition is\n"
-    "pinned (rclpy defers destroying it) until remove_discovery_wakeup()."},
-  {"remove_discovery_wakeup", remove_discovery_wakeup, METH_O,
+    "pinned (rclpy defers destroying it) until remove_discovery_wakeup()."),
+  RBPY_FUNCTION(remove_discovery_wakeup, METH_O,
     "remove_discovery_wakeup(guard_condition) -> bool\n\n"
     "Stop triggering it (on every participant) and unpin it; once this returns it is never\n"
-    "triggered again. Works after rclpy was asked to destroy the guard condition."},
-  {"discovery_stats", discovery_stats, METH_O,
-    "discovery_stats(node) -> dict (installed, queued, known, wakeups, dropped, recorded)"},
-  {nullptr, nullptr, 0, nullptr},
+    "triggered again. Works after rclpy was asked to destroy the guard condition."),
+  RBPY_FUNCTION(discovery_stats, METH_O,
+    "discovery_stats(node) -> dict (installed, queued, known, wakeups, dropped, recorded)"),
+  RBPY_METHODS_END,
 };
-
-}  // namespace
-
-int add_dds_discovery_functions(PyObject * module)
-{
-  return PyModule_AddFunctions(module, discovery_methods);
-}
 
 }  // namespace rbpy_dds

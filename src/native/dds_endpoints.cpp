@@ -56,40 +56,20 @@ struct DdsEndpoint
 
 int resolve_endpoint(void * rcl_endpoint, bool is_publisher, DdsEndpoint * out)
 {
-  const char * identifier = nullptr;
-  bool invalid = false;
-  {
-    GilRelease nogil;
-    if (is_publisher) {
-      rmw_publisher_t * pub =
-        rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(rcl_endpoint));
-      if (pub == nullptr) {
-        invalid = true;
-      } else {
-        identifier = pub->implementation_identifier;
-        out->writer = rmw_fastrtps_cpp::get_datawriter(pub);
-      }
-    } else {
-      rmw_subscription_t * sub =
-        rcl_subscription_get_rmw_handle(static_cast<const rcl_subscription_t *>(rcl_endpoint));
-      if (sub == nullptr) {
-        invalid = true;
-      } else {
-        identifier = sub->implementation_identifier;
-        out->reader = rmw_fastrtps_cpp::get_datareader(sub);
-      }
-    }
-    if (invalid) {
-      rcl_reset_error();
-    }
-  }
   const char * what = is_publisher ? "publisher" : "subscription";
-  if (invalid) {
-    PyErr_Format(DdsError, "the rcl %s is not valid (already destroyed?)", what);
-    return -1;
-  }
-  if (check_identifier(identifier, what) < 0) {
-    return -1;
+  if (is_publisher) {
+    rmw_publisher_t * pub = fastrtps_handle(rcl_endpoint, rcl_publisher_get_rmw_handle, what);
+    if (pub == nullptr) {
+      return -1;
+    }
+    out->writer = rmw_fastrtps_cpp::get_datawriter(pub);
+  } else {
+    rmw_subscription_t * sub =
+      fastrtps_handle(rcl_endpoint, rcl_subscription_get_rmw_handle, what);
+    if (sub == nullptr) {
+      return -1;
+    }
+    out->reader = rmw_fastrtps_cpp::get_datareader(sub);
   }
   if (out->writer == nullptr && out->reader == nullptr) {
     PyErr_Format(
@@ -106,59 +86,57 @@ int open_endpoint(
   PyObject * endpoint_arg, const char * kind, PinnedHandle * pin, DdsEndpoint * dds)
 {
   bool is_publisher;
-  if (parse_kind(kind, &is_publisher) < 0) {
-    return -1;
-  }
-  if (pin->acquire(endpoint_arg, "endpoint") < 0) {
+  if (parse_kind(kind, &is_publisher) < 0 || pin->acquire(endpoint_arg, "endpoint") < 0) {
     return -1;
   }
   return resolve_endpoint(pin->get(), is_publisher, dds);
 }
 
-PyObject * endpoint_gid(PyObject *, PyObject * args)
+/// `f(entity)` on the endpoint's DataWriter or DataReader, GIL released.
+template<typename F>
+auto on_entity(const DdsEndpoint & dds, F && f) -> decltype(f(*dds.writer))
+{
+  GilRelease nogil;
+  return dds.writer ? f(*dds.writer) : f(*dds.reader);
+}
+
+/// Parse `(endpoint, kind)` (`format` names the function), open the endpoint and return
+/// `f(dds)` (nullptr with an exception when it cannot be opened).
+template<typename F>
+PyObject * with_endpoint(PyObject * args, const char * format, F && f)
 {
   PyObject * endpoint_arg;
   const char * kind;
-  if (!PyArg_ParseTuple(args, "Os:endpoint_gid", &endpoint_arg, &kind)) {
-    return nullptr;
-  }
   PinnedHandle endpoint;
   DdsEndpoint dds;
-  if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
+  if (!PyArg_ParseTuple(args, format, &endpoint_arg, &kind) ||
+    open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0)
+  {
     return nullptr;
   }
-  uint8_t gid[RMW_GID_STORAGE_SIZE] = {};
-  {
-    GilRelease nogil;
-    const auto & guid = dds.writer ? dds.writer->guid() : dds.reader->guid();
-    rmw_fastrtps_shared_cpp::copy_from_fastrtps_guid_to_byte_array(guid, gid);
-  }
-  return gid_bytes(gid);
+  return f(dds);
+}
+
+PyObject * endpoint_gid(PyObject *, PyObject * args)
+{
+  return with_endpoint(args, "Os:endpoint_gid", [](const DdsEndpoint & dds) {
+      uint8_t gid[RMW_GID_STORAGE_SIZE] = {};
+      on_entity(dds, [&](auto & entity) {
+          rmw_fastrtps_shared_cpp::copy_from_fastrtps_guid_to_byte_array(entity.guid(), gid);
+        });
+      return gid_bytes(gid);
+    });
 }
 
 PyObject * get_user_data(PyObject *, PyObject * args)
 {
-  PyObject * endpoint_arg;
-  const char * kind;
-  if (!PyArg_ParseTuple(args, "Os:get_user_data", &endpoint_arg, &kind)) {
-    return nullptr;
-  }
-  PinnedHandle endpoint;
-  DdsEndpoint dds;
-  if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
-    return nullptr;
-  }
-  std::vector<uint8_t> data;
-  {
-    GilRelease nogil;
-    if (dds.writer) {
-      data = dds.writer->get_qos().user_data().data_vec();
-    } else {
-      data = dds.reader->get_qos().user_data().data_vec();
-    }
-  }
-  return PyBytes_FromStringAndSize(
-    reinterpret_cast<const char *>(data.data()), static_cast<Py_ssize_t>(data.size()));
+  return with_endpoint(args, "Os:get_user_data", [](const DdsEndpoint & dds) {
+      const std::vector<uint8_t> data = on_entity(dds, [](auto & entity) {
+          return entity.get_qos().user_data().data_vec();
+        });
+      return PyBytes_FromStringAndSize(
+        reinterpret_cast<const char *>(data.data()), static_cast<Py_ssize_t>(data.size()));
+    });
 }
 
 PyObject * set_user_data(PyObject *, PyObject * args)
@@ -182,23 +160,15 @@ PyObject * set_user_data(PyObject *, PyObject * args)
   if (open_endpoint(endpoint_arg, kind, &endpoint, &dds) < 0) {
     return nullptr;
   }
-  ReturnCode_t rc;
   bool stored = false;
-  {
-    GilRelease nogil;
-    // No lock of ours is held: set_qos() may run discovery callbacks synchronously.
-    if (dds.writer) {
-      auto qos = dds.writer->get_qos();
+  // No lock of ours is held: set_qos() may run discovery callbacks synchronously.
+  const ReturnCode_t rc = on_entity(dds, [&](auto & entity) {
+      auto qos = entity.get_qos();
       qos.user_data().data_vec(data);
-      rc = dds.writer->set_qos(qos);
-      stored = dds.writer->get_qos().user_data().data_vec() == data;
-    } else {
-      auto qos = dds.reader->get_qos();
-      qos.user_data().data_vec(data);
-      rc = dds.reader->set_qos(qos);
-      stored = dds.reader->get_qos().user_data().data_vec() == data;
-    }
-  }
+      const ReturnCode_t result = entity.set_qos(qos);
+      stored = entity.get_qos().user_data().data_vec() == data;
+      return result;
+    });
   if (rc != ReturnCode_t::RETCODE_OK) {
     PyErr_Format(
       DdsError, "Fast DDS refused the new USER_DATA QoS (return code %d)",
@@ -242,20 +212,12 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
   }
   PyObject * result = nullptr;
   if (ret == RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
-    Py_INCREF(Py_None);
-    result = Py_None;
+    result = Py_NewRef(Py_None);
   } else if (ret != RCL_RET_OK) {
     raise_rmw_error("rcl_take_serialized_message failed", error);
   } else {
-    PyObject * data = deserialized ? support->to_py(ros_message.get()) : serialized_bytes(msg);
-    PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
-    PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
-    if (info_dict) {
-      result = PyTuple_Pack(3, data, gid, info_dict);
-    }
-    Py_XDECREF(data);
-    Py_XDECREF(gid);
-    Py_XDECREF(info_dict);
+    result = taken_tuple(
+      deserialized ? support->to_py(ros_message.get()) : serialized_bytes(msg), info);
   }
   if (msg.buffer != nullptr) {
     GilRelease nogil;
@@ -301,9 +263,10 @@ PyObject * sample_key(const eprosima::fastdds::dds::SampleInfo & info)
   return Py_BuildValue("(NL)", gid_bytes(gid), static_cast<long long>(ns));
 }
 
-/// peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None: the next sample's
-/// key, read from its SampleInfo (nothing is taken, nothing copied).
-PyObject * peek_untaken(PyObject *, PyObject * sub_arg)
+/// `read(reader, &info)` on the DataReader of an rcl subscription (GIL released), then the
+/// sample's key, or None when the call found no sample.
+template<typename Read>
+PyObject * sample_key_of(PyObject * sub_arg, Read && read)
 {
   PinnedHandle sub;
   DdsEndpoint dds;
@@ -311,15 +274,19 @@ PyObject * peek_untaken(PyObject *, PyObject * sub_arg)
     return nullptr;
   }
   eprosima::fastdds::dds::SampleInfo info;
-  ReturnCode_t ret;
-  {
-    GilRelease nogil;
-    ret = dds.reader->get_first_untaken_info(&info);
-  }
-  if (ret != ReturnCode_t::RETCODE_OK) {
+  if (without_gil([&] {return read(*dds.reader, &info);}) != ReturnCode_t::RETCODE_OK) {
     Py_RETURN_NONE;
   }
   return sample_key(info);
+}
+
+/// peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None: the next sample's
+/// key, read from its SampleInfo (nothing is taken, nothing copied).
+PyObject * peek_untaken(PyObject *, PyObject * sub_arg)
+{
+  return sample_key_of(sub_arg, [](DataReader & reader, eprosima::fastdds::dds::SampleInfo * info) {
+      return reader.get_first_untaken_info(info);
+    });
 }
 
 /// A cdr_deserialize that reads nothing: see discard_untaken.
@@ -345,26 +312,14 @@ const message_type_support_callbacks_t kSkipPayload = [] {
 /// payload is released with it, never copied.
 PyObject * discard_untaken(PyObject *, PyObject * sub_arg)
 {
-  PinnedHandle sub;
-  DdsEndpoint dds;
-  if (sub.acquire(sub_arg, "subscription") < 0 || resolve_endpoint(sub.get(), false, &dds) < 0) {
-    return nullptr;
-  }
-  char unused = 0;
-  rmw_fastrtps_shared_cpp::SerializedData data;
-  data.type = rmw_fastrtps_shared_cpp::FASTRTPS_SERIALIZED_DATA_TYPE_ROS_MESSAGE;
-  data.data = &unused;
-  data.impl = &kSkipPayload;
-  eprosima::fastdds::dds::SampleInfo info;
-  ReturnCode_t ret;
-  {
-    GilRelease nogil;
-    ret = dds.reader->take_next_sample(&data, &info);
-  }
-  if (ret != ReturnCode_t::RETCODE_OK) {
-    Py_RETURN_NONE;
-  }
-  return sample_key(info);
+  return sample_key_of(sub_arg, [](DataReader & reader, eprosima::fastdds::dds::SampleInfo * info) {
+      char unused = 0;
+      rmw_fastrtps_shared_cpp::SerializedData data;
+      data.type = rmw_fastrtps_shared_cpp::FASTRTPS_SERIALIZED_DATA_TYPE_ROS_MESSAGE;
+      data.data = &unused;
+      data.impl = &kSkipPayload;
+      return reader.take_next_sample(&data, info);
+    });
 }
 
 PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
@@ -385,97 +340,56 @@ PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
   {
     return nullptr;
   }
-  Py_buffer view;
-  if (PyObject_GetBuffer(data_arg, &view, PyBUF_C_CONTIGUOUS) < 0) {
-    return nullptr;
-  }
-  if (view.len < 4) {
-    PyBuffer_Release(&view);
-    PyErr_SetString(
-      PyExc_ValueError, "serialized message too short (needs the 4-byte CDR encapsulation)");
-    return nullptr;
-  }
+  SerializedView view;
   PinnedHandle pub;
   DdsEndpoint dds;
-  if (pub.acquire(pub_arg, "publisher") < 0 || resolve_endpoint(pub.get(), true, &dds) < 0) {
-    PyBuffer_Release(&view);
+  if (view.acquire(data_arg) < 0 || pub.acquire(pub_arg, "publisher") < 0 ||
+    resolve_endpoint(pub.get(), true, &dds) < 0)
+  {
     return nullptr;
   }
-  bool ok;
   std::string error;
+  // The pin keeps the rcl publisher (and its DataWriter) alive; Fast DDS copies the bytes.
+  if (!without_gil([&] {
+      return write_serialized_w_timestamp(
+        dds.writer, view.data(), view.size(), source_timestamp, &error);
+    }))
   {
-    GilRelease nogil;
-    // The pin keeps the rcl publisher (and its DataWriter) alive; Fast DDS copies the bytes.
-    ok = write_serialized_w_timestamp(
-      dds.writer, view.buf, static_cast<size_t>(view.len), source_timestamp, &error);
-  }
-  PyBuffer_Release(&view);
-  if (!ok) {
     PyErr_Format(DdsError, "publish_serialized: %s", error.c_str());
     return nullptr;
   }
   Py_RETURN_NONE;
 }
 
-PyObject * matched_subscription_gids(PyObject *, PyObject * pub_arg)
+/// `call(rmw_publisher, &error)` on a pinned rclpy publisher, GIL released; false with
+/// DdsError("<what>: <error>") when it fails.
+template<typename Call>
+bool on_rmw_publisher(PyObject * pub_arg, const char * what, Call && call)
 {
   PinnedHandle pub;
-  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
-    pub.acquire(pub_arg, "publisher") < 0)
-  {
-    return nullptr;
+  rmw_publisher_t * rmw_pub = pin_rmw_publisher(pub_arg, "publisher", &pub);
+  if (rmw_pub == nullptr) {
+    return false;
   }
-  DdsEndpoint dds;  // checks validity and the rmw implementation
-  if (resolve_endpoint(pub.get(), true, &dds) < 0) {
-    return nullptr;
-  }
-  std::vector<GidArray> gids;
-  bool ok;
   std::string error;
-  {
-    GilRelease nogil;
-    rmw_publisher_t * rmw_pub =
-      rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(pub.get()));
-    if (rmw_pub == nullptr) {
-      rcl_reset_error();
-      ok = false;
-      error = "the rcl publisher is not valid";
-    } else {
-      ok = matched_reader_gids(rmw_pub, &gids, &error);
-    }
+  if (!without_gil([&] {return call(rmw_pub, &error);})) {
+    PyErr_Format(DdsError, "%s: %s", what, error.c_str());
+    return false;
   }
-  if (!ok) {
-    PyErr_Format(DdsError, "matched_subscription_gids: %s", error.c_str());
+  return true;
+}
+
+PyObject * matched_subscription_gids(PyObject *, PyObject * pub_arg)
+{
+  std::vector<GidArray> gids;
+  if (!on_rmw_publisher(pub_arg, "matched_subscription_gids",
+    [&](rmw_publisher_t * pub, std::string * error) {
+      return matched_reader_gids(pub, &gids, error);
+    }))
+  {
     return nullptr;
   }
   return gid_list(gids);
-}
-
-/// Pin `pub_arg` (an rclpy publisher or its handle) into `pub` and return its rmw publisher
-/// (GIL released inside); nullptr with TypeError/DdsError.
-rmw_publisher_t * pin_rmw_publisher(PyObject * pub_arg, PinnedHandle * pub)
-{
-  if (check_handle_kind(pub_arg, "Publisher", "publisher") < 0 ||
-    pub->acquire(pub_arg, "publisher") < 0)
-  {
-    return nullptr;
-  }
-  DdsEndpoint dds;  // checks validity and the rmw implementation
-  if (resolve_endpoint(pub->get(), true, &dds) < 0) {
-    return nullptr;
-  }
-  rmw_publisher_t * rmw_pub;
-  {
-    GilRelease nogil;
-    rmw_pub = rcl_publisher_get_rmw_handle(static_cast<const rcl_publisher_t *>(pub->get()));
-    if (rmw_pub == nullptr) {
-      rcl_reset_error();
-    }
-  }
-  if (rmw_pub == nullptr) {
-    PyErr_SetString(DdsError, "the rcl publisher is not valid");
-  }
-  return rmw_pub;
 }
 
 PyObject * exclude_from_next_write(PyObject *, PyObject * args)
@@ -506,20 +420,12 @@ PyObject * exclude_from_next_write(PyObject *, PyObject * args)
     std::copy(data, data + length, readers[static_cast<size_t>(i)].begin());
   }
   Py_DECREF(gids_seq);
-  PinnedHandle pub;
-  rmw_publisher_t * rmw_pub = pin_rmw_publisher(pub_arg, &pub);
-  if (rmw_pub == nullptr) {
-    return nullptr;
-  }
-  bool ok;
-  bool available;
-  std::string error;
+  bool available = false;
+  if (!on_rmw_publisher(pub_arg, "exclude_from_next_write",
+    [&](rmw_publisher_t * pub, std::string * error) {
+      return rbpy_dds::exclude_from_next_write(pub, readers, &available, error);
+    }))
   {
-    GilRelease nogil;
-    ok = rbpy_dds::exclude_from_next_write(rmw_pub, readers, &available, &error);
-  }
-  if (!ok) {
-    PyErr_Format(DdsError, "exclude_from_next_write: %s", error.c_str());
     return nullptr;
   }
   return PyBool_FromLong(available);
@@ -527,19 +433,7 @@ PyObject * exclude_from_next_write(PyObject *, PyObject * args)
 
 PyObject * remove_write_exclusions(PyObject *, PyObject * pub_arg)
 {
-  PinnedHandle pub;
-  rmw_publisher_t * rmw_pub = pin_rmw_publisher(pub_arg, &pub);
-  if (rmw_pub == nullptr) {
-    return nullptr;
-  }
-  bool ok;
-  std::string error;
-  {
-    GilRelease nogil;
-    ok = rbpy_dds::remove_write_exclusions(rmw_pub, &error);
-  }
-  if (!ok) {
-    PyErr_Format(DdsError, "remove_write_exclusions: %s", error.c_str());
+  if (!on_rmw_publisher(pub_arg, "remove_write_exclusions", rbpy_dds::remove_write_exclusions)) {
     return nullptr;
   }
   Py_RETURN_NONE;
@@ -680,72 +574,66 @@ PyObject * clear_new_message_wakeup(PyObject *, PyObject * sub_arg)
   Py_RETURN_NONE;
 }
 
-PyMethodDef endpoint_methods[] = {
-  {"endpoint_gid", endpoint_gid, METH_VARARGS,
+}  // namespace
+
+PyMethodDef endpoint_functions[] = {
+  RBPY_FUNCTION(endpoint_gid, METH_VARARGS,
     "endpoint_gid(endpoint, kind) -> bytes\n\n"
     "The 16-byte GID of an rcl publisher/subscription (kind 'publisher'/'subscription'), as\n"
-    "Node.get_publishers_info_by_topic() reports it in endpoint_gid."},
-  {"get_user_data", get_user_data, METH_VARARGS,
+    "Node.get_publishers_info_by_topic() reports it in endpoint_gid."),
+  RBPY_FUNCTION(get_user_data, METH_VARARGS,
     "get_user_data(endpoint, kind) -> bytes\n\n"
-    "The USER_DATA QoS of the DataWriter/DataReader behind an rcl publisher/subscription."},
-  {"set_user_data", set_user_data, METH_VARARGS,
+    "The USER_DATA QoS of the DataWriter/DataReader behind an rcl publisher/subscription."),
+  RBPY_FUNCTION(set_user_data, METH_VARARGS,
     "set_user_data(endpoint, kind, data: bytes) -> None\n\n"
     "Replace that USER_DATA (keep rmw's 'typehash=...;' prefix!). Remote participants see\n"
-    "the change as a 'changed' discovery event."},
-  {"take_message_with_gid", take_message_with_gid, METH_VARARGS,
+    "the change as a 'changed' discovery event."),
+  RBPY_FUNCTION(take_message_with_gid, METH_VARARGS,
     "take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, "
     "publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is deserialized "
     "into a msg_class instance as rclpy's take does; CDR that does not deserialize (a "
     "descriptor payload, malformed data), or is longer than max_size bytes when max_size >= 0, "
-    "comes back as bytes."},
-  {"peek_untaken", peek_untaken, METH_O,
+    "comes back as bytes."),
+  RBPY_FUNCTION(peek_untaken, METH_O,
     "peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
     "The next unread sample's publisher GID and source timestamp (ns), from its SampleInfo:\n"
-    "nothing is taken or copied."},
-  {"discard_untaken", discard_untaken, METH_O,
+    "nothing is taken or copied."),
+  RBPY_FUNCTION(discard_untaken, METH_O,
     "discard_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
-    "Take the next unread sample without copying its payload (a duplicate to drop)."},
-  {"take_serialized_with_gid", take_serialized_with_gid, METH_VARARGS,
+    "Take the next unread sample without copying its payload (a duplicate to drop)."),
+  RBPY_FUNCTION(take_serialized_with_gid, METH_VARARGS,
     "take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None\n\n"
     "rcl_take_serialized_message on an rcl subscription: the CDR bytes, the 16-byte GID of\n"
-    "the publisher and an rclpy-like message info dict; None when nothing is there."},
-  {"publish_serialized", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(
-      publish_serialized)), METH_VARARGS | METH_KEYWORDS,
+    "the publisher and an rclpy-like message info dict; None when nothing is there."),
+  RBPY_FUNCTION(publish_serialized, METH_VARARGS | METH_KEYWORDS,
     "publish_serialized(publisher, data, source_timestamp: int) -> None\n\n"
     "Write serialized CDR (with its 4-byte encapsulation header; any C-contiguous buffer,\n"
     "not copied in Python) on the DataWriter behind an rcl publisher, with an explicit\n"
-    "source timestamp in ns since the epoch (takes report it in info['source_timestamp'])."},
-  {"matched_subscription_gids", matched_subscription_gids, METH_O,
+    "source timestamp in ns since the epoch (takes report it in info['source_timestamp'])."),
+  RBPY_FUNCTION(matched_subscription_gids, METH_O,
     "matched_subscription_gids(publisher) -> list[bytes]\n\n"
     "16-byte GIDs (as get_subscriptions_info_by_topic endpoint_gid) of the DataReaders\n"
-    "currently matched with the DataWriter behind an rcl publisher."},
-  {"exclude_from_next_write", exclude_from_next_write, METH_VARARGS,
+    "currently matched with the DataWriter behind an rcl publisher."),
+  RBPY_FUNCTION(exclude_from_next_write, METH_VARARGS,
     "exclude_from_next_write(publisher, reader_gids) -> bool\n\n"
     "Keep the next sample written on the DataWriter behind an rcl publisher from the matched\n"
     "DataReaders reader_gids (16-byte GIDs): Fast DDS sends them a GAP instead, so they\n"
     "neither receive nor copy it. Call right before the write; calling again before it\n"
-    "replaces the set. False when this writer cannot filter (then nothing is excluded)."},
-  {"remove_write_exclusions", remove_write_exclusions, METH_O,
+    "replaces the set. False when this writer cannot filter (then nothing is excluded)."),
+  RBPY_FUNCTION(remove_write_exclusions, METH_O,
     "remove_write_exclusions(publisher) -> None\n\n"
-    "Take the exclusion filter off the publisher's DataWriter (before destroying it)."},
-  {"set_new_message_wakeup", set_new_message_wakeup, METH_VARARGS,
+    "Take the exclusion filter off the publisher's DataWriter (before destroying it)."),
+  RBPY_FUNCTION(set_new_message_wakeup, METH_VARARGS,
     "set_new_message_wakeup(subscription, guard_condition) -> None\n\n"
     "Trigger the rcl guard condition on every new message of the rcl subscription\n"
     "(rcl_subscription_set_on_new_message_callback; also right away if messages are\n"
-    "unread). Replaces an earlier registration. Pins both until clear_new_message_wakeup()."},
-  {"clear_new_message_wakeup", clear_new_message_wakeup, METH_O,
+    "unread). Replaces an earlier registration. Pins both until clear_new_message_wakeup()."),
+  RBPY_FUNCTION(clear_new_message_wakeup, METH_O,
     "clear_new_message_wakeup(subscription) -> None\n\n"
     "Stop triggering (a barrier: once it returns, the guard condition is never triggered by\n"
     "it again) and unpin both. No-op when nothing is registered (also on a handle rclpy\n"
-    "already destroyed). Works after rclpy was asked to destroy the subscription."},
-  {nullptr, nullptr, 0, nullptr},
+    "already destroyed). Works after rclpy was asked to destroy the subscription."),
+  RBPY_METHODS_END,
 };
-
-}  // namespace
-
-int add_dds_endpoint_functions(PyObject * module)
-{
-  return PyModule_AddFunctions(module, endpoint_methods);
-}
 
 }  // namespace rbpy_dds

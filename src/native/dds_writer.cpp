@@ -119,15 +119,23 @@ ReaderExclusions * installed_exclusions(eprosima::fastrtps::rtps::RTPSWriter * r
 
 /// The RTPSWriter of an rmw_fastrtps_cpp publisher's DataWriter. False with *error when rmw's
 /// layout is not verified; true with *rtps null when Fast DDS's does not check out.
-bool main_rtps_writer(
-  rmw_publisher_t * publisher, rmw_private::PublisherParts * info,
-  eprosima::fastrtps::rtps::RTPSWriter ** rtps, std::string * error)
+/// `f(parts, rtps_writer)` under the exclusion registry's lock, when the publisher's
+/// DataWriter has an RTPSWriter we may reach (else nothing happens: true). False with `error`
+/// when its parts did not check out.
+template<typename F>
+bool with_main_rtps_writer(rmw_publisher_t * publisher, std::string * error, F && f)
 {
-  if (!rmw_private::publisher_parts(publisher, info, error)) {
+  rmw_private::PublisherParts info;
+  if (!rmw_private::publisher_parts(publisher, &info, error)) {
     return false;
   }
   std::string unavailable;
-  *rtps = rmw_private::rtps_writer_of(info->writer, &unavailable);
+  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(
+    info.writer, &unavailable);
+  if (rtps != nullptr) {
+    std::lock_guard<std::mutex> registry(g_exclusions_mutex);
+    f(info, rtps);
+  }
   return true;
 }
 
@@ -138,63 +146,48 @@ bool exclude_from_next_write(
   std::string * error)
 {
   *available = false;
-  rmw_private::PublisherParts info;
-  eprosima::fastrtps::rtps::RTPSWriter * rtps;
-  if (!main_rtps_writer(publisher, &info, &rtps, error)) {
-    return false;
-  }
-  if (rtps == nullptr) {
-    return true;
-  }
   std::vector<GUID_t> guids(readers.size());
   for (size_t i = 0; i < readers.size(); ++i) {
     rmw_fastrtps_shared_cpp::copy_from_byte_array_to_fastrtps_guid(readers[i].data(), &guids[i]);
   }
-  std::lock_guard<std::mutex> registry(g_exclusions_mutex);
-  ReaderExclusions * exclusions = installed_exclusions(rtps);
-  if (exclusions == nullptr) {
-    std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
-    const auto * previous = rtps->reader_data_filter();
-    if (previous != nullptr && !rmw_private::is_own_reader_filter(info.writer, previous)) {
-      return true;  // someone else's filter: leave it alone
-    }
-    exclusions = new ReaderExclusions(previous);
-    rtps->reader_data_filter(exclusions);
-    g_exclusions[rtps] = exclusions;
-  }
-  const int64_t sequence = rmw_private::next_sequence_number(rtps);
-  if (sequence <= 0) {
-    return true;
-  }
-  exclusions->exclude(sequence, std::move(guids));
-  *available = true;
-  return true;
+  return with_main_rtps_writer(publisher, error, [&](
+      const rmw_private::PublisherParts & info, eprosima::fastrtps::rtps::RTPSWriter * rtps) {
+      ReaderExclusions * exclusions = installed_exclusions(rtps);
+      if (exclusions == nullptr) {
+        std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
+        const auto * previous = rtps->reader_data_filter();
+        if (previous != nullptr && !rmw_private::is_own_reader_filter(info.writer, previous)) {
+          return;  // someone else's filter: leave it alone
+        }
+        exclusions = new ReaderExclusions(previous);
+        rtps->reader_data_filter(exclusions);
+        g_exclusions[rtps] = exclusions;
+      }
+      const int64_t sequence = rmw_private::next_sequence_number(rtps);
+      if (sequence > 0) {
+        exclusions->exclude(sequence, std::move(guids));
+        *available = true;
+      }
+    });
 }
 
 bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error)
 {
-  rmw_private::PublisherParts info;
-  eprosima::fastrtps::rtps::RTPSWriter * rtps;
-  if (!main_rtps_writer(publisher, &info, &rtps, error)) {
-    return false;
-  }
-  if (rtps == nullptr) {
-    return true;
-  }
-  std::lock_guard<std::mutex> registry(g_exclusions_mutex);
-  ReaderExclusions * exclusions = installed_exclusions(rtps);
-  if (exclusions == nullptr) {
-    return true;
-  }
-  {
-    // Fast DDS asks the filter under this mutex only: once it is ours again, nobody uses it.
-    std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
-    rtps->reader_data_filter(
-      const_cast<eprosima::fastdds::rtps::IReaderDataFilter *>(exclusions->previous()));
-  }
-  g_exclusions.erase(rtps);
-  delete exclusions;
-  return true;
+  return with_main_rtps_writer(publisher, error, [](
+      const rmw_private::PublisherParts &, eprosima::fastrtps::rtps::RTPSWriter * rtps) {
+      ReaderExclusions * exclusions = installed_exclusions(rtps);
+      if (exclusions == nullptr) {
+        return;
+      }
+      {
+        // Fast DDS asks the filter under this mutex only: once it is ours again, nobody uses it.
+        std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
+        rtps->reader_data_filter(
+          const_cast<eprosima::fastdds::rtps::IReaderDataFilter *>(exclusions->previous()));
+      }
+      g_exclusions.erase(rtps);
+      delete exclusions;
+    });
 }
 
 bool write_serialized_w_timestamp(
