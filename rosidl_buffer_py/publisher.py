@@ -545,8 +545,10 @@ class Publisher(rclpy.publisher.Publisher):
         return record
 
     def _peer_gone(self, gid: bytes) -> None:
-        # any subscription of our topic going, legacy ones too, may change routes
+        # any subscription of our topic going, legacy ones too, may change routes (the table
+        # also remembers legacy subscriptions' last main-topic message)
         self._planned = None
+        self._table.remove(gid)
         self._peers.drop(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
