@@ -1,0 +1,205 @@
+"""PeerTable and Reannouncer against stand-ins for the node, the discovery and the owner (no DDS):
+the PeerOwner protocol's hooks are called as documented, and teardown happens once."""
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+import threading
+
+import pytest
+
+from rosidl_buffer_py import peers, reannounce
+from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
+from rosidl_buffer_py.discovery import PeerEndpoint
+
+TOPIC = '/camera/image'
+OWN_GID = bytes(range(16))
+
+
+class Timer:
+    timer_period_ns = 1
+
+    def __init__(self, callback):
+        self.callback, self.canceled = callback, False
+
+    def cancel(self):
+        self.canceled = True
+
+    def reset(self):
+        self.canceled = False
+
+
+class Node:
+    def __init__(self):
+        self.destroyed = []
+
+    def create_guard_condition(self, callback, group):
+        return object()
+
+    def create_timer(self, period, callback, group):
+        return Timer(callback)
+
+    def destroy_timer(self, timer):
+        self.destroyed.append(timer)
+
+    def destroy_guard_condition(self, guard):
+        self.destroyed.append(guard)
+
+    def get_publishers_info_by_topic(self, topic):
+        return []
+
+    get_subscriptions_info_by_topic = get_publishers_info_by_topic
+
+
+class Discovery:
+    def __init__(self):
+        self.watching, self.wakeups, self.known = set(), set(), []
+
+    def watch(self, topic, watcher):
+        self.watching.add(topic)
+        return list(self.known)
+
+    def unwatch(self, topic, watcher):
+        self.watching.discard(topic)
+
+    def add_wakeup(self, node, guard):
+        self.wakeups.add(guard)
+
+    def remove_wakeup(self, guard):
+        self.wakeups.discard(guard)
+
+    def process(self):
+        pass
+
+
+class Channel:
+    def __init__(self):
+        self.matched, self.destroyed = 0, False
+
+    def matched_count(self):
+        return self.matched
+
+    def destroy(self):
+        self.destroyed = True
+
+
+@dataclass
+class Record:
+    info: EndpointInfo
+    backends: Dict[str, str]
+    channel: Optional[Channel] = field(default_factory=Channel)
+    created_at: float = 0.0
+
+
+class Owner:
+    """A PeerOwner that logs its hooks."""
+
+    def __init__(self):
+        self.calls, self.table = [], None
+
+    def _announce(self):
+        self.calls.append('announce')
+
+    def _add_peer(self, info, backends):
+        self.calls.append(('add', info.gid))
+        return Record(info, backends)
+
+    def _update_peer(self, record, compatible):
+        self.calls.append(('update', record.info.gid, frozenset(compatible)))
+
+    def _forget_peer(self, record):
+        self.calls.append(('forget', record.info.gid))
+
+    def _peer_gone(self, gid):
+        self.calls.append(('gone', gid))
+        self.table.drop(gid)
+
+    def _release(self):
+        self.calls.append('release')
+
+
+class Backend:
+    def __init__(self):
+        self.removed = []
+
+    def on_discovering_endpoint(self, info, existing, advertised):
+        return True, []
+
+    def on_removing_endpoint(self, info):
+        self.removed.append(info.gid)
+
+
+@pytest.fixture
+def table(monkeypatch):
+    discovery = Discovery()
+    monkeypatch.setattr(peers.discovery, 'for_node', lambda node: discovery)
+    owner, node, backend = Owner(), Node(), Backend()
+    t = peers.PeerTable(owner, node, None, lock=threading.RLock(),
+                        peer_kind=EndpointKind.SUBSCRIPTION, topic_name=TOPIC, gid=OWN_GID,
+                        backends={'demo': backend}, logger=None)
+    owner.table = t
+    t.open()
+    yield t, owner, node, discovery, backend
+    t.close()
+
+
+def peer(gid: bytes, backends=None, kind=EndpointKind.SUBSCRIPTION, local=False):
+    return PeerEndpoint(gid, kind, 'rt' + TOPIC, 'T', backends, local)
+
+
+def test_a_buffer_aware_peer_gets_a_record_and_the_owner_hears_of_it(table):
+    t, owner, _, discovery, _ = table
+    assert discovery.watching == {'rt' + TOPIC} and discovery.wakeups
+    gid = b'\x01' * 16
+    t._on_peer(peer(gid, {'cpu': '', 'demo': 'meta'}))
+    assert owner.calls == [('add', gid), 'announce', ('update', gid, frozenset({'demo'}))]
+    assert gid in t and len(t) == 1 and t[gid].created_at > 0
+    assert t.reannouncer.timer is not None  # the first peer brings the unmatched check
+    t._on_peer(peer(b'\x02' * 16, {'cpu': ''}, kind=EndpointKind.PUBLISHER))  # other kind
+    t._on_peer(peer(b'\x03' * 16))  # a legacy endpoint
+    assert len(t) == 1
+
+
+def test_a_withdrawn_or_gone_peer_is_dropped_with_its_channel(table):
+    t, owner, _, _, backend = table
+    a, b = b'\x01' * 16, b'\x02' * 16
+    t._on_peer(peer(a, {'cpu': ''}, local=True))
+    t._on_peer(peer(b, {'cpu': ''}, local=True))
+    channel_a, channel_b = t[a].channel, t[b].channel
+    owner.calls.clear()
+    t._on_peer(peer(a))  # withdrew its advertisement: a legacy endpoint now
+    t._on_peer_gone(b)
+    assert owner.calls == [('forget', a), ('gone', b), ('forget', b)]
+    assert channel_a.destroyed and channel_b.destroyed and len(t) == 0
+    assert backend.removed == [a, b]
+
+
+def test_close_drops_every_peer_and_releases_the_owner_once(table):
+    t, owner, node, discovery, _ = table
+    t._on_peer(peer(b'\x01' * 16, {'cpu': ''}, local=True))
+    t.close()
+    t.close()
+    assert t.closed and not discovery.watching and not discovery.wakeups
+    assert owner.calls.count('release') == 1 and len(t) == 0
+    assert t.reannouncer.timer in node.destroyed
+    t._on_peer(peer(b'\x02' * 16, {'cpu': ''}))  # nothing is added after teardown
+    assert len(t) == 0
+
+
+def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_timer(
+        table, monkeypatch):
+    t, owner, _, _, _ = table
+    now = [1000.0]
+    monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
+    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce)
+    gid = b'\x01' * 16
+    t._on_peer(peer(gid, {'cpu': ''}, local=True))
+    t[gid].created_at = now[0]
+    assert not t.reannouncer.spinning(now[0])
+    owner.calls.clear()
+    now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS
+    t.reannouncer._on_timer()
+    assert owner.calls == ['announce'] and t.reannouncer.spinning(now[0])
+    t[gid].channel.matched = 1
+    t.reannouncer._on_timer()
+    assert t.reannouncer.timer.canceled  # retired: every channel is matched
+    now[0] += 10 * reannounce.SPIN_EVIDENCE_SECONDS
+    assert t.reannouncer.spinning(now[0])  # only a spun node retires its timer
