@@ -147,7 +147,8 @@ setup(
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),
     ],
-    package_data={PACKAGE: ['py.typed', '_native.pyi']},  # PEP 561: the package's type hints are for users
+    # PEP 561: the package's type hints are for users, the native module's (its stub) too
+    package_data={PACKAGE: ['py.typed', '_native.pyi']},
     zip_safe=False,
     maintainer='rosidl_buffer_py maintainers',
     maintainer_email='maintainers@rosidl-buffer-py.invalid',
