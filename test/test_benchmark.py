@@ -37,7 +37,9 @@ def table_rows(text: str):
     return rows
 
 
-@pytest.fixture(scope='module')
+# session scope: a module fixture would run again whenever the worker that holds this
+# file's group runs another file's test between two of these (it did, 2 x 48 s)
+@pytest.fixture(scope='session')
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
     command = [str(ROOT / 'dev'), 'bench'] if in_dev_venv() else \
