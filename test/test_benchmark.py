@@ -21,9 +21,6 @@ from launch_free_demos.bench.suite import (
     ALL_ROWS, BIG, CPU, FANOUT_TRANSPORTS, MEMCPY, MODES, PEER_TABLE_OURS, PEERS, STOCK, Result,
     measure, median_run, paired_ratios, peer_scratch, peer_version, skipped_note)
 
-#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
-pytestmark = pytest.mark.xdist_group('test_benchmark')
-
 ROOT = Path(__file__).resolve().parent.parent
 PNG_MAGIC = b'\x89PNG\r\n\x1a\n'
 
@@ -37,9 +34,7 @@ def table_rows(text: str):
     return rows
 
 
-# session scope: a module fixture would run again whenever the worker that holds this
-# file's group runs another file's test between two of these (it did, 2 x 48 s)
-@pytest.fixture(scope='session')
+@pytest.fixture(scope='module')
 def smoke_run(tmp_path_factory):
     out = tmp_path_factory.mktemp('benchmark')
     command = [str(ROOT / 'dev'), 'bench'] if in_dev_venv() else \

@@ -31,9 +31,6 @@ from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
 from rosidl_buffer_py.tools.bag import qos_from_yaml
 from rosidl_buffer_py.tools.message_definition import full_definition
 
-#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
-pytestmark = pytest.mark.xdist_group('test_record')
-
 WIDTH, HEIGHT, COUNT = 64, 48, 20
 FINITE = {'/rec/demo': ('image_publisher', 'demo'), '/rec/cpu': ('image_publisher', 'cpu'),
           '/rec/legacy': ('legacy_image_publisher', 'cpu')}

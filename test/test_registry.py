@@ -13,9 +13,6 @@ import pytest
 
 from rosidl_buffer_py import BufferBackend, registry
 
-#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
-pytestmark = pytest.mark.xdist_group('test_registry')
-
 PLUGINS = {
     # module name: (entry point name, module source)
     'good_backend': ('good', '''

@@ -21,9 +21,6 @@ import pytest
 from harness.scenarios import SMALL
 from launch_free_demos.runner import Run
 
-#: One worker runs this file's tests when the suite runs in parallel: its module fixture once.
-pytestmark = pytest.mark.xdist_group('test_third_party_backend')
-
 SOURCE = Path(__file__).resolve().parent / 'example_backend'
 DISTRIBUTION = 'rbpy-example-backend'
 STORE_DIR_ENV = 'RBPY_EXAMPLE_STORE_DIR'
