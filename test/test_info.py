@@ -105,3 +105,25 @@ def test_no_endpoints_is_an_error():
 
 def _short_wait_note(found):
     return [note for note in found['notes'] if note.startswith('listened 0.2 s, less than')]
+
+
+def test_json_output_is_only_json_when_native_code_writes_to_stdout():
+    """Fast DDS logs through std::cout (``RTPS_TRANSPORT_SHM Error Failed init_port ...`` when a
+    shared-memory port is busy or stale, as on a machine where tests SIGKILL nodes): a line
+    there once broke a script's ``json.loads`` of the inspector's output (CI, the inspector
+    measurement). Native writes to file descriptor 1 go to stderr; the JSON alone to stdout."""
+    import sys
+    code = (
+        'import os, sys\n'
+        'from rosidl_buffer_py.tools import info\n'
+        'def inspect(node, topic, wait, probe, tapped):\n'
+        '    os.write(1, b"RTPS_TRANSPORT_SHM Error Failed init_port (as Fast DDS)\\n")\n'
+        '    return {"topic": topic, "endpoints": [{"node_name": "n"}], "channels": [],\n'
+        '            "notes": []}\n'
+        'info.inspect_topic = inspect\n'
+        'sys.exit(info.main(["buffer_topic_info", "/t", "--json"]))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=60, env=dict(os.environ))
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)['topic'] == '/t', done.stdout
+    assert 'Failed init_port' in done.stderr, done.stderr

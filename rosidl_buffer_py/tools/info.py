@@ -45,6 +45,7 @@ from rclpy.utilities import remove_ros_args
 
 from rosidl_buffer_py import advertisement
 from rosidl_buffer_py.channel import CHANNEL_INFIX, dds_topic
+from rosidl_buffer_py.tools.native_output import native_stdout_to_stderr
 
 _KIND = {'writer': 'publisher', 'reader': 'subscription'}
 
@@ -378,6 +379,7 @@ def main(argv=None) -> int:
     options = _parser().parse_args(remove_ros_args(argv)[1:])
     if options.wait < 0:
         _parser().error(f'argument --wait: {options.wait:g} is not accepted; expected >= 0')
+    native_stdout_to_stderr()  # Fast DDS's log lines are not this tool's output (--json)
     rclpy.init(args=argv)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM ends it like Ctrl-C
     node = None
