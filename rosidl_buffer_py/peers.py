@@ -43,6 +43,10 @@ class PeerOwner(Protocol[R]):
     def _announce(self) -> None:
         """(Re-)set the endpoint's USER_DATA: peers discover, or re-discover, it."""
 
+    def _peer_seen(self) -> None:
+        """Discovery: an endpoint of the peer kind on the topic appeared or changed, a legacy
+        one too: what routes a message takes may change."""
+
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
         """A new buffer-aware peer: create its record and its channel."""
 
@@ -164,6 +168,7 @@ class PeerTable(Generic[R]):
         with self.lock:
             if self.closed:
                 return
+            self._owner._peer_seen()
             known = self._records.get(peer.gid)
             if not peer.buffer_aware:
                 if known is not None:  # it withdrew its advertisement: now a legacy endpoint

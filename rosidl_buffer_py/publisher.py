@@ -544,6 +544,10 @@ class Publisher(rclpy.publisher.Publisher):
         self._peers_added += 1
         return record
 
+    def _peer_seen(self) -> None:
+        # any subscription of our topic coming or changing, legacy ones too, may change routes
+        self._planned = None
+
     def _peer_gone(self, gid: bytes) -> None:
         # any subscription of our topic going, legacy ones too, may change routes (the table
         # also remembers legacy subscriptions' last main-topic message)

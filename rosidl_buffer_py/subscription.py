@@ -508,6 +508,9 @@ class Subscription(rclpy.subscription.Subscription):
                 self._streams.pop(peer.info.gid)
             self._channels = [p for p in self._channels if all(p is not d for d in done)]
 
+    def _peer_seen(self) -> None:
+        """Nothing to do: a subscription's streams change with its peers' channels only."""
+
     def _peer_gone(self, gid: bytes) -> None:
         """A publisher went away: what its channel had delivered to our reader stays
         deliverable, in order (as a stock reader keeps the samples of a writer that left).
