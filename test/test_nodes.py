@@ -283,9 +283,11 @@ def test_signal_mid_stream_ends_every_node_cleanly(signum):
                 (n.label, ''.join(n.err[-20:])) for n in nodes]
             time.sleep(0.2)
         assert all(streaming.values()), streaming
+        # one node after the other: Fast DDS 2.14's participant teardown can busy-wait while a
+        # peer's participant leaves at the same moment (eProsima/Fast-DDS#6513, see run_node);
+        # a stock node hit it here when all four were signalled at once (CI, lpub)
         for node in nodes:
             node.process.send_signal(signum)
-        for node in nodes:
             node.process.wait(60)
             node.reap()
     finally:
