@@ -86,8 +86,13 @@ def recording(tmp_path_factory):
             for topic, (executable, backend) in FINITE.items():
                 _publisher(run, topic, executable, backend)
             live = _publisher(run, LIVE, 'image_publisher', 'demo', count=0, rate_hz=20.0)
+            # a plain subscriber that ends after a few live frames: the recorder (the one
+            # buffer-aware peer the live publisher waits for) is recording /rec/live by then;
+            # under load that process may start after the finite publishers are done
+            run.start('live_watch', 'legacy_image_subscriber', topic=LIVE, expected_count=5,
+                      timeout_sec=90.0, report_period_sec=0.0, depth=100)
             finite = [topic.rsplit('/', 1)[-1] for topic in FINITE]
-            assert run.wait(finite, timeout=90), run.diagnostics()
+            assert run.wait(finite + ['live_watch'], timeout=90), run.diagnostics()
             assert live.process.poll() is None, run.diagnostics()
             recorder.send_signal(signal.SIGINT)  # mid-record: /rec/live is still publishing
             code, out, err = _finish(recorder, timeout=60)
