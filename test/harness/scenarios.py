@@ -6,6 +6,7 @@ subscriber must see. ``.venv/bin/python test/harness/scenarios.py [NAME ...]`` r
 prints a table; the integration tests run the same scenarios.
 """
 import argparse
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -15,6 +16,8 @@ from launch_free_demos.runner import Run
 
 #: Frame size used by the scenarios (small: these check behaviour, the benchmark checks speed).
 SMALL = {'width': 64, 'height': 48, 'encoding': 'rgb8'}
+#: image_subscriber's summary line once it has a frame
+FIRST_FRAMES = re.compile(r'\breceived [1-9][0-9]* \(')
 
 
 @dataclass
@@ -43,7 +46,9 @@ class Scenario:
     count: int = 20
     subscribers_first: bool = True
     rate_hz: float = 50.0
-    #: label of a subscriber to SIGKILL ``kill_after`` seconds after the publishers start
+    #: label of a subscriber to SIGKILL mid-stream: ``kill_after`` seconds after it logged
+    #: its first frame (a timer from the publishers' start would, on a loaded machine, kill it
+    #: before the publisher matched it, and the publisher would wait for it forever)
     kill: Optional[str] = None
     kill_after: float = 2.0
     #: how long publishers may take to leave once their subscribers are done (a SIGKILLed
@@ -76,6 +81,8 @@ class Scenario:
                         params['raw'] = sub.raw
                     else:
                         params['acceptable_buffer_backends'] = sub.acceptable
+                    if sub.label == self.kill:
+                        params['report_period_sec'] = 0.1  # its first frame shows in its log
                     run.start(sub.label, 'legacy_image_subscriber' if sub.legacy
                               else 'image_subscriber', **params)
 
@@ -85,7 +92,9 @@ class Scenario:
                                   count=self.count, first_frame=index * self.count,
                                   rate_hz=self.rate_hz,
                                   wait_for_subscribers=len(self.subscribers), depth=depth,
-                                  wait_timeout_sec=timeout,
+                                  # before the subscribers give up: its report then says
+                                  # what it matched, not what was left once they had gone
+                                  wait_timeout_sec=timeout * 0.75,
                                   linger_sec=self.publisher_exit_timeout, **SMALL)
                     if not pub.legacy:
                         params.update(fill=pub.fill, wait_for_buffer_peers=buffer_subs)
@@ -99,8 +108,16 @@ class Scenario:
             order[1]()
             survivors = [s.label for s in self.subscribers if s.label != self.kill]
             if self.kill:
+                victim = run.nodes[self.kill]
+                deadline = time.monotonic() + timeout
+                while not any(FIRST_FRAMES.search(line) for line in list(victim.stderr)):
+                    if time.monotonic() > deadline or victim.process.poll() is not None:
+                        result.failures.append(f'{self.kill}: no frame before {timeout} s, '
+                                               'not killed mid-stream')
+                        break
+                    time.sleep(0.05)
                 time.sleep(self.kill_after)
-                run.nodes[self.kill].kill()
+                victim.kill()
             finished = run.wait(survivors, timeout + 15)
             run.wait([p.label for p in self.publishers], self.publisher_exit_timeout + 5)
             run.stop_all()
@@ -206,7 +223,7 @@ def _matrix() -> Dict[str, Scenario]:
                       'another is SIGKILLed mid-stream; it drops the dead one when its DDS lease '
                       'expires', [Pub('pub', 'demo')],
                       [Sub('survivor', 'demo', 'any'), Sub('victim', None, 'any')],
-                      count=150, rate_hz=30.0, kill='victim', kill_after=3.0,
+                      count=150, rate_hz=30.0, kill='victim', kill_after=1.0,
                       publisher_exit_timeout=60.0))
     s.append(Scenario('publisher_first', 'the publisher starts before the subscriber',
                       [Pub('pub', 'demo')], [Sub('sub', 'demo', 'demo')],
