@@ -24,7 +24,7 @@ from rosidl_buffer_py.backend import EndpointGone
 import demo_buffer_backend
 from demo_buffer_backend import (DemoBackend, DemoBuffer, descriptor, diagnostics, handover,
                                  lifecycle, limits, memory)
-from harness.demo_backend_peer import Peer, memfd_usage
+from harness.demo_backend_peer import Peer
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 

@@ -396,7 +396,7 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
     Every one is refused and counted, each cause logged once, and the subscriber keeps working
     (0 crashes, 0 accepted)."""
     from rosidl_buffer_py import EndpointInfo, EndpointKind
-    from demo_buffer_backend import DemoBuffer, descriptor, handover
+    from demo_buffer_backend import DemoBuffer, descriptor
     be, started = backend
     taker = _peer(started, be, capture_stderr=True)
     token = taker.metadata.rpartition('.')[2]
@@ -416,7 +416,6 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
                     (20 if 'another uid' in label else i + 1)
                 bad_descs[f'handover: {label}'] = descriptor.pack(descriptor.Descriptor(
                     info['pid'], 7, segment_id, 1, 0, 8))
-        hostile_pid = procs[0][1]['pid']
         # the hostile's one valid segment (id 21, sent twice): named as if it were the real
         # publisher's, it is refused (a process answers only for its own pid)
         bad_descs['forged: hostile segment under the publisher\'s pid'] = descriptor.pack(
