@@ -1,11 +1,13 @@
 """Benchmark of the foundation pieces: wire codec and demo shared-memory backend.
 
 Prints a markdown table of median (and p90) times next to one memcpy of the same bytes, the
-physical reference. Run with ``./dev bench foundation`` (or
+physical reference, and the minor page faults of 100 whole publish/take cycles in the demo
+backend (from_cpu, describe, take, nothing kept: 0 once the pool is warm). Run with ``./dev bench foundation`` (or
 ``python -m launch_free_demos.bench.foundation``).
 A benchmark, not a test: it asserts nothing about time.
 """
 import argparse
+import resource
 import time
 from typing import Callable, Dict, List
 
@@ -73,6 +75,10 @@ def bench_payload(label: str, height: int, width: int, encoding: str,
     def from_descriptor():
         return backend.from_descriptor_with_endpoint(descriptor, publisher)
 
+    def cycle():  # one frame published and taken, nothing kept
+        backend.from_descriptor_with_endpoint(backend.create_descriptor_with_endpoint(
+            DemoBuffer.from_cpu(source), subscriber), publisher)
+
     row = {
         'payload': label,
         'bytes': f'{nbytes:,}',
@@ -80,12 +86,23 @@ def bench_payload(label: str, height: int, width: int, encoding: str,
         'codec encode (cpu)': summarize(measure(lambda: codec.encode(msg), repeat)),
         'codec decode (cpu)': summarize(measure(lambda: codec.decode(wire, Image), repeat)),
         'demo from_cpu': summarize(measure(lambda: DemoBuffer.from_cpu(source), repeat)),
+        'demo allocate': summarize(measure(lambda: DemoBuffer.allocate(nbytes), repeat)),
         'demo allocate+fill': summarize(measure(allocate_and_fill, repeat)),
         'demo create_descriptor': summarize(measure(
             lambda: backend.create_descriptor_with_endpoint(demo, subscriber), repeat)),
         'demo from_descriptor': summarize(measure(from_descriptor, repeat)),
+        'demo page faults / 100 cycles': str(page_faults(cycle, 100)),
     }
     return row
+
+
+def page_faults(func: Callable[[], object], count: int) -> int:
+    """Minor page faults of ``count`` calls of ``func`` after a warm-up."""
+    func()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(count):
+        func()
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
 def main(argv=None) -> None:
