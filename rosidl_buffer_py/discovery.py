@@ -91,12 +91,6 @@ class ParticipantDiscovery:
             if watch is not None:
                 watch.watchers.discard(watcher)
 
-    def endpoint(self, gid: bytes) -> Optional[PeerEndpoint]:
-        """The endpoint ``gid`` as the tap last reported it, or None when the tap has not seen
-        it (discovered before the tap existed, or gone)."""
-        with self._lock:
-            return self._endpoints.get(gid)
-
     def remote_writers(self) -> Dict[str, str]:
         """DDS topic -> DDS type name of every known writer of other participants (what a
         recorder subscribes to, before the ROS graph cache may list it)."""

@@ -10,11 +10,7 @@ backend get them zero-copy, so a perception pipeline can be replayed as it runs 
 
 Publishers offer the QoS the bag recorded for the topic (when its publishers agreed) with a
 history of ``--qos-depth``. ``--wait-for-subscribers N`` starts only once every publisher has
-``N`` subscriptions and every buffer-aware one among them is served on its channel. Whether a
-subscription is buffer-aware is in its discovery data, which the player's discovery tap reads
-from the moment its node exists; a subscription matched before that (rare) is buffer-aware once
-it re-announces on finding our publisher, and taken as plain after
-``ADVERTISEMENT_WAIT_SECONDS`` without one.
+``N`` subscriptions and every buffer-aware one among them is served on its channel.
 
 Usage: ``buffer_play <bag> [--topics T ...] [--rate R] [--loop] [--backend NAME]
 [--wait-for-subscribers N]``; also ``python -m rosidl_buffer_py.tools.play``.
@@ -37,10 +33,6 @@ __all__ = ['main']
 
 #: --wait-for-subscribers: how long every subscription must look served before playback starts.
 SERVED_SETTLE_SECONDS = 0.5
-#: --wait-for-subscribers: how long to wait for the advertisement of a subscription discovered
-#: before the tap existed: a buffer-aware one re-announces when it finds our publisher (its
-#: executor's next turn); a plain one never does.
-ADVERTISEMENT_WAIT_SECONDS = 5.0
 
 EXIT_USAGE = 2
 
@@ -148,10 +140,8 @@ class Player:
     def __init__(self, node, bag: BagReader, topics: Dict[str, dict],
                  args: argparse.Namespace, stop: threading.Event) -> None:
         import rosidl_buffer_py
-        from rosidl_buffer_py import _dds, codec, discovery
+        from rosidl_buffer_py import codec
         self.node = node
-        #: the node's discovery tap (None where unsupported): which subscriptions advertise
-        self.discovery = discovery.for_node(node) if _dds.is_supported() else None
         self.bag = bag
         self.args = args
         self.stop = stop
@@ -184,7 +174,6 @@ class Player:
         if needed <= 0:
             return
         deadline = time.monotonic() + self.args.wait_timeout
-        first_unseen: Dict[bytes, float] = {}  # subscription gid -> when the graph listed it
 
         def missing() -> List[str]:
             lacking = []
@@ -196,16 +185,12 @@ class Player:
                 elif output.buffer_aware and not all(
                         peer.channel_serving for peer in publisher.buffer_peers()):
                     lacking.append(f'{name}: a buffer-aware subscription not served yet')
-                elif output.buffer_aware and self._unadvertised(name, first_unseen):
-                    lacking.append(f'{name}: a subscription whose advertisement is not seen yet')
             return lacking
 
         # a matched subscription's advertisement can reach us a moment after the match: what
         # is ready must stay so for SERVED_SETTLE_SECONDS (no buffer-aware peer appeared)
         ready_since = None
         while not self.stop.is_set():
-            if self.discovery is not None:
-                self.discovery.process()
             lacking = missing()
             now = time.monotonic()
             if lacking:
@@ -218,20 +203,6 @@ class Player:
                 raise TimeoutError(f'after {self.args.wait_timeout} s: '
                                    f'{"; ".join(lacking) or "subscriptions still changing"}')
             executor.spin_once(timeout_sec=0.05)
-
-    def _unadvertised(self, topic: str, first_unseen: Dict[bytes, float]) -> bool:
-        """Whether a subscription of ``topic`` in the ROS graph is one the discovery tap has
-        not seen (discovered before the tap: buffer-aware or not is unknown) for less than
-        ADVERTISEMENT_WAIT_SECONDS."""
-        if self.discovery is None:
-            return False
-        now = time.monotonic()
-        waiting = False
-        for info in self.node.get_subscriptions_info_by_topic(topic):
-            gid = bytes(info.endpoint_gid)
-            if self.discovery.endpoint(gid) is None:
-                waiting |= now - first_unseen.setdefault(gid, now) < ADVERTISEMENT_WAIT_SECONDS
-        return waiting
 
     def _publish(self, output: _Output, data: bytes) -> None:
         from rosidl_buffer_py import codec
