@@ -23,7 +23,8 @@ Its first channel message is preceded by a *route fence* naming the last message
 carried for it, which the subscription delivers first. Once serving, a route stays on its
 channel while the channel is matched (the subscription drops main-topic copies from the fence
 on). CONFIRMED: the channel's samples were acknowledged too, so main-topic samples are withheld
-from that subscription (the DataWriter sends it a GAP instead of the payload).
+from that subscription (the DataWriter sends it a GAP instead of the payload); a route whose
+probes were acknowledged is withheld from already for its fenced message.
 
 Subscription side: one :class:`Stream` per publisher::
 
@@ -115,8 +116,12 @@ class Route:
 
     @property
     def withheld(self) -> bool:
-        """Main-topic samples are kept from this subscription (its channel reaches it)."""
-        return self.state is RouteState.CONFIRMED
+        """Main-topic samples are kept from this subscription: its channel reaches it
+        (CONFIRMED, or FENCING after acknowledged probes, CONFIRMED from the fence on: the
+        fenced message's main-topic copy would race its channel copy, and arrive first when
+        the main topic's transport is the faster one)."""
+        return self.state is RouteState.CONFIRMED or (
+            self.state is RouteState.FENCING and self.acknowledged_probes)
 
     # events --------------------------------------------------------------------------------
 

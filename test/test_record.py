@@ -244,7 +244,8 @@ def test_play_into_buffer_aware_and_plain_subscribers(recording):
                            ('plain_legacy', 'cpu')):
         report = reports[label]
         assert report['distinct'] == COUNT and report['gaps'] == 0, report
-        assert report['checksum_failures'] == 0 and report['wrong_backend'] == 0, report
+        assert report['checksum_failures'] == 0 and report['wrong_backend'] == 0, \
+            (label, report, report.get('statistics'))
         assert report['backends'] == {backend: COUNT}, report
 
 

@@ -77,6 +77,9 @@ def test_route_decisions_per_state():
         assert route.needs_main == (state in (S.UNMATCHED, S.PROBING, S.SETTLING,
                                               S.ACKNOWLEDGED)), state
         assert route.withheld == (state is S.CONFIRMED), state
+    # acknowledged probes: the fenced message's main-topic copy is kept away too (it raced the
+    # channel copy, and a demo subscription got a played frame as CPU bytes)
+    assert _route(S.FENCING, acknowledged_probes=True).withheld
 
 
 def test_probes_first_a_history_then_one_per_interval():
@@ -132,6 +135,9 @@ def test_table_plans_main_topic_for_legacy_and_unserved_subscriptions():
     assert table.add('later', handshake=False).last_main == 3
     plan = table.plan(0.0, ['a', 'legacy'])
     assert plan.channel == () and plan.main and set(plan.main_served) == {'a', 'legacy'}
+    route.state, route.acknowledged_probes = S.FENCING, True  # the fence goes with this one
+    plan = table.plan(0.0, ['a', 'legacy'])
+    assert plan.channel == ('a',) and plan.withheld == ('a',) and plan.main_served == ('legacy',)
     route.state = S.CONFIRMED
     plan = table.plan(0.0, ['a', 'legacy'])
     assert plan.channel == ('a',) and plan.withheld == ('a',) and plan.main_served == ('legacy',)
