@@ -189,7 +189,7 @@ class Recorder:
         self.timer = None   # the graph poll, where the discovery tap is unavailable
         self.retry = None   # a one-shot look at the graph for a writer it does not list yet
         self.retries = 0
-        self.first_seen: Dict[str, float] = {}  # topic -> when the tap first reported a writer
+        self.first_seen: Dict[str, float] = {}  # topic -> when a writer was first seen
         self.discovery = None
         if _dds.is_supported():
             # subscribe the moment discovery reports a writer: the tap wakes the executor
@@ -245,6 +245,10 @@ class Recorder:
             if not self.node.get_publishers_info_by_topic(name):
                 unlisted |= name in writers
                 continue  # no publisher: nothing to record yet, nor a QoS to match
+            if self.discovery is not None:
+                # the tap forwards each discovery callback to rmw's graph before it records
+                # the event: the graph may list a writer an instant before the tap reports it
+                self.first_seen.setdefault(name, now)
             if len(types) > 1:
                 self.node.get_logger().warning(
                     f'{name} has more than one type ({", ".join(types)}); recording {types[0]}')
