@@ -23,8 +23,9 @@ Its first channel message is preceded by a *route fence* naming the last message
 carried for it, which the subscription delivers first. Once serving, a route stays on its
 channel while the channel is matched (the subscription drops main-topic copies from the fence
 on). CONFIRMED: the channel's samples were acknowledged too, so main-topic samples are withheld
-from that subscription (the DataWriter sends it a GAP instead of the payload); a route whose
-probes were acknowledged is withheld from already for its fenced message.
+from that subscription (the DataWriter sends it a GAP instead of the payload). A route whose
+probes were acknowledged becomes CONFIRMED with its fence, and the fenced message's own
+main-topic copy is withheld too: it would race the channel copy.
 
 Subscription side: one :class:`Stream` per publisher::
 

@@ -2,8 +2,8 @@
 
 Prints a markdown table of median (and p90) times next to one memcpy of the same bytes, the
 physical reference, and the minor page faults of 100 whole publish/take cycles in the demo
-backend (from_cpu, describe, take, nothing kept: 0 once the pool is warm). Run with ``./dev bench foundation`` (or
-``python -m launch_free_demos.bench.foundation``).
+backend (from_cpu, describe, take, nothing kept: 0 once the pool is warm). Run with
+``./dev bench foundation`` (or ``python -m launch_free_demos.bench.foundation``).
 A benchmark, not a test: it asserts nothing about time.
 """
 import argparse

@@ -85,8 +85,9 @@ class TopicStats:
     dropped: int = 0
     bytes: int = 0
     backends: Dict[str, int] = field(default_factory=dict)
-    #: From the first discovery event naming a writer of the topic to its subscription (None
-    #: when the topic was found by polling the graph)
+    #: From the first sign of a writer of the topic (the tap's discovery event, or the graph
+    #: listing it an instant before) to its subscription (None when the topic was found by
+    #: polling the graph, without the tap)
     subscribe_delay_ms: Optional[float] = None
 
 
