@@ -3,7 +3,7 @@
 import threading
 from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
-from rosidl_buffer_py.backend import BufferBackend, EndpointInfo
+from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
 
 from demo_buffer_backend import handover, lifecycle, limits
@@ -72,7 +72,8 @@ class DemoBackend(BufferBackend):
     def on_discovering_endpoint(
             self, endpoint_info: EndpointInfo, existing_endpoints: Sequence[EndpointInfo],
             endpoint_supported_backends: Mapping[str, str]) -> Tuple[bool, List[Set[int]]]:
-        """Compatible iff the peer advertises our domain and a token."""
+        """Compatible iff the peer advertises our domain and a token. A compatible publisher's
+        process may hand this one segments from now on (see :mod:`.inbox`)."""
         compatible, token = self.parse_metadata(endpoint_supported_backends.get(BACKEND_TYPE))
         with self._lock:
             if self._peers.get(endpoint_info.gid, token) != token or not compatible:
@@ -81,6 +82,12 @@ class DemoBackend(BufferBackend):
                 self._peers[endpoint_info.gid] = token
             else:
                 self._peers.pop(endpoint_info.gid, None)
+        if endpoint_info.endpoint_kind is EndpointKind.PUBLISHER:
+            pool = lifecycle.get_pool()
+            if compatible:
+                pool.expect(endpoint_info.gid, handover.token_pid(token))
+            else:
+                pool.forget(endpoint_info.gid)
         return compatible, []
 
     def _forget_ledgers(self, gid: bytes) -> None:
@@ -95,7 +102,9 @@ class DemoBackend(BufferBackend):
         with self._lock:
             self._peers.pop(endpoint_info.gid, None)
             self._forget_ledgers(endpoint_info.gid)
-        lifecycle.get_pool().sweep()
+        pool = lifecycle.get_pool()
+        pool.forget(endpoint_info.gid)
+        pool.sweep()
 
     def is_compatible(self, endpoint_info: EndpointInfo) -> bool:
         """Whether the endpoint was discovered and shares our domain."""

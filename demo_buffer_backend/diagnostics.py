@@ -28,7 +28,10 @@ class Counters:
     handovers_busy: int = 0
     handovers_received: int = 0
     handovers_rejected: int = 0
+    handovers_refused: int = 0
+    verdicts_late: int = 0
     connections_refused: int = 0
+    links_refused: int = 0
     acks: int = 0
     acks_unsent: int = 0
     taken: int = 0

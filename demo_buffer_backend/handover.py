@@ -3,20 +3,26 @@
 Every process that advertises the demo backend listens on ``\\0rbpy_demo/<token>`` (its token,
 ``<pid>_<16 hex>``, is in its backend metadata). A publisher connects once per subscriber
 process (:class:`Link`) and pushes each segment's descriptor the first time it describes a
-frame of that segment to that process, before the frame's descriptor leaves; the subscriber
-drains its connections when it resolves a descriptor. Sockets are SOCK_SEQPACKET: one record
-per message, its descriptor attached to it. Both sides check the other's credentials
-(SO_PEERCRED: same uid; the pid of the token).
+frame of that segment to that process, before the frame's descriptor leaves, and waits a
+moment for the subscriber's verdict on it; the subscriber screens and drains its connections
+from a thread of its own (:mod:`.porter`). Sockets are SOCK_SEQPACKET: one record per message,
+its descriptor attached to it. Both sides check the other's credentials (SO_PEERCRED: same
+uid; the pid of the token).
 
 Descriptors queued in a socket outlive their sender: a SIGKILLed publisher's segments still
-reach the subscriber. The other way, the subscriber acknowledges each take with a small record
-(:data:`ACK`); a subscriber that died shows as a hang-up (EOF, EPIPE, ECONNRESET).
+reach the subscriber. The other way, the subscriber answers with small :data:`REPLY` records:
+each segment accepted or refused (with the reason, so that the publisher sends CPU bytes
+instead of descriptors the subscriber would reject), each take acknowledged, and a connection it
+will not serve refused before it is closed. A subscriber that died shows as a hang-up (EOF,
+EPIPE, ECONNRESET).
 """
 import array
+import enum
 import errno
 import os
 import re
 import secrets
+import select
 import socket
 import struct
 from typing import List, NamedTuple, Optional, Tuple
@@ -27,11 +33,51 @@ HANDOVER = struct.Struct('<8sQIIQ')
 HANDOVER_MAGIC = b'RBPYHND1'
 #: The same record without a descriptor: the publisher removed that segment (capacity 0).
 RETIRE_MAGIC = b'RBPYRET1'
-#: segment id, reserved (0), generation: "one descriptor of this generation was taken".
-ACK = struct.Struct('<IIQ')
+#: segment id, kind (:class:`ReplyKind`), value (a generation or a :class:`Refusal`).
+REPLY = struct.Struct('<IIQ')
 _FD_SPACE = socket.CMSG_SPACE(4 * 4)  # room for a few descriptors: extra ones are counted
-#: Records taken from one connection per drain (a sender cannot keep a drain going for ever).
-MAX_RECORDS_PER_DRAIN = 256
+#: Records taken from one connection per drain: a genuine publisher sends one per new segment,
+#: so a flood waits for later drains and costs only its own connection's turn.
+MAX_RECORDS_PER_DRAIN = 16
+
+
+class ReplyKind(enum.IntEnum):
+    """What a :data:`REPLY` record from a subscriber process says."""
+
+    TAKEN = 0     #: one descriptor of generation ``value`` of the segment was taken
+    ACCEPTED = 1  #: the segment is mapped: descriptors of it will be opened
+    REFUSED = 2   #: the segment is not mapped (``value``: the :class:`Refusal`)
+    UNWANTED = 3  #: this connection is refused as a whole (``value``: why); it closes next
+
+
+class Refusal(enum.IntEnum):
+    """Why a subscriber process refused a segment or a connection."""
+
+    PROCESS_LIMIT = 1  #: the sender has as many segments mapped as one process may
+    TOTAL_LIMIT = 2    #: this process has as many segments mapped as it may
+    INVALID = 3        #: not a segment as the demo backend makes them
+    UNMATCHED = 4      #: the sender is not a buffer-aware publisher this process discovered
+
+    def describe(self) -> str:
+        return _REFUSAL_TEXT.get(self, f'refusal {int(self)}')
+
+
+_REFUSAL_TEXT = {
+    Refusal.PROCESS_LIMIT: 'it maps at most limits.MAX_MAPPINGS_PER_PROCESS segments of one '
+                           'publisher process',
+    Refusal.TOTAL_LIMIT: 'it maps at most limits.MAX_MAPPINGS segments in all',
+    Refusal.INVALID: 'the segment is not one the demo backend makes',
+    Refusal.UNMATCHED: 'discovery did not show this process as a buffer-aware publisher '
+                       'matched to it',
+}
+
+
+class Reply(NamedTuple):
+    """One :data:`REPLY` record (its fields in wire order)."""
+
+    segment_id: int
+    kind: int  #: a :class:`ReplyKind` (an unknown kind is ignored)
+    value: int
 _GONE = (errno.EPIPE, errno.ECONNRESET, errno.ECONNREFUSED, errno.ENOENT, errno.ENOTCONN)
 
 
@@ -131,7 +177,8 @@ class Listener:
 
 def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
     """Drain ``conn`` without blocking: ``(handovers, reasons for rejected records, hung up)``.
-    Every descriptor received but not returned in a handover is closed here."""
+    Stops at the first malformed record (a genuine publisher sends none: the caller closes the
+    connection). Every descriptor received but not returned in a handover is closed here."""
     handovers: List[Handover] = []
     rejected: List[str] = []
     for _ in range(MAX_RECORDS_PER_DRAIN):
@@ -165,22 +212,29 @@ def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
             rejected.append(problem)
             for fd in fds:
                 os.close(fd)
+            return handovers, rejected, False
     return handovers, rejected, False  # the rest waits for the next drain
 
 
-def send_ack(conn: socket.socket, segment_id: int, generation: int) -> bool:
-    """Tell the publisher one descriptor was taken (never blocks; False when it could not)."""
+def send_reply(conn: socket.socket, kind: ReplyKind, segment_id: int = 0, value: int = 0) -> bool:
+    """Answer the publisher at the other end of ``conn`` (never blocks; False when it could
+    not: its queue is full or it hung up)."""
     try:
-        conn.send(ACK.pack(segment_id, 0, generation), socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
+        conn.send(REPLY.pack(segment_id, kind, value), socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
         return True
     except OSError:
         return False
 
 
+def send_ack(conn: socket.socket, segment_id: int, generation: int) -> bool:
+    """Tell the publisher one descriptor was taken (never blocks; False when it could not)."""
+    return send_reply(conn, ReplyKind.TAKEN, segment_id, generation)
+
+
 class Link:
     """The publisher side: a connection to one subscriber process."""
 
-    __slots__ = ('token', 'sock', 'segments')
+    __slots__ = ('token', 'sock', 'segments', 'verdicts', 'responsive')
 
     def __init__(self, token: str) -> None:
         """Connect to ``token``'s listener without waiting. ``ProcessGone`` when nobody listens
@@ -188,6 +242,10 @@ class Link:
         ``BlockingIOError`` when its backlog is full (a stopped process: try again later)."""
         self.token = token
         self.segments: set = set()  #: ids of the segments handed over on this link
+        #: segment id -> the subscriber's verdict on it (ACCEPTED or REFUSED, and the refusal)
+        self.verdicts: dict = {}
+        #: whether a publisher waits for verdicts: False once one was late (until one comes)
+        self.responsive = True
         self.sock = _new_socket()
         try:
             self.sock.setblocking(False)
@@ -219,28 +277,43 @@ class Link:
         """Tell the subscriber a segment it holds is removed (best effort, never blocks)."""
         if segment_id in self.segments:
             self.segments.discard(segment_id)
+            self.verdicts.pop(segment_id, None)
             try:
                 self.sock.send(HANDOVER.pack(RETIRE_MAGIC, nonce, segment_id, 0, 0),
                                socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
             except OSError:
                 pass  # gone or full: it drops the segment when we hang up
 
-    def acks(self) -> List[Tuple[int, int]]:
-        """Takes acknowledged since the last call, ``(segment id, generation)`` each;
-        ``ProcessGone`` when the subscriber hung up."""
-        got = []
+    def replies(self) -> Tuple[List[Reply], bool]:
+        """``(replies received since the last call, hung up)``: what the subscriber said before
+        it hung up is returned too (a refusal comes just before its subscriber closes)."""
+        got: List[Reply] = []
+        reset = False
         while True:
             try:
-                data = self.sock.recv(ACK.size + 1)
+                data = self.sock.recv(REPLY.size + 1)
             except (BlockingIOError, InterruptedError):
-                return got
-            except OSError as exc:
-                raise ProcessGone(f'demo subscriber {self.token} hung up: {exc}') from None
+                return got, reset
+            except ConnectionResetError:
+                if reset:
+                    return got, True
+                # it closed with records of ours unread: the kernel reports that first, and
+                # what it said before closing is still queued behind it
+                reset = True
+                continue
+            except OSError:
+                return got, True
             if not data:
-                raise ProcessGone(f'demo subscriber {self.token} hung up')
-            if len(data) == ACK.size:
-                segment_id, _, generation = ACK.unpack(data)
-                got.append((segment_id, generation))
+                return got, True
+            if len(data) == REPLY.size:
+                got.append(Reply(*REPLY.unpack(data)))
+
+    def wait_readable(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for a reply or a hang-up (call it without the pool's
+        lock held); True when there is one."""
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN)
+        return bool(poller.poll(max(0, int(timeout * 1000))))
 
     def close(self) -> None:
         self.sock.close()

@@ -22,15 +22,39 @@ ENV_RECLAIM_TIMEOUT = 'RBPY_DEMO_RECLAIM_TIMEOUT'
 ENV_MAX_INFLIGHT_PER_PEER = 'RBPY_DEMO_MAX_INFLIGHT_PER_PEER'
 
 # --- subscriber side --------------------------------------------------------------------------
+# What one connected process can make a subscriber process hold is bounded per process, so that
+# no peer can use up what a genuine publisher needs (see :mod:`.inbox` and :mod:`.mappings`).
 #: Received segments kept at most (beyond it, new handovers are refused; each costs two
 #: descriptors, ours and the one CPython's mmap keeps).
 MAX_MAPPINGS = 256
-#: Connections from publisher processes kept at most (beyond it, new ones are refused).
+#: Received segments kept at most from one publisher process (a publisher's pool has at most
+#: ``max_slots`` segments, 64 by default, plus retired ones until they are unused).
+MAX_MAPPINGS_PER_PROCESS = 128
+#: Connections kept at most from publisher processes that discovery shows as buffer-aware
+#: publishers matched to this process (beyond it, new ones are refused).
 MAX_INBOUND = 256
+#: ... from one such process (a publisher process opens one; a new pool of it, one more).
+MAX_CONNECTIONS_PER_PROCESS = 4
+#: Connections kept unread, at most, from processes discovery has not shown as matched
+#: publishers (yet: a publisher may connect before this process discovers it), in all and per
+#: process; beyond it they are refused at once.
+MAX_PENDING = 32
+MAX_PENDING_PER_PROCESS = 2
 
 # --- timings ----------------------------------------------------------------------------------
-#: Seconds between drains of the listener when every descriptor names a known segment.
+#: Seconds between drains of the listener when every descriptor names a known segment (and
+#: the longest the inbox's thread sleeps).
 SWEEP_INTERVAL = 1.0
+#: Seconds a connection from a process not (yet) discovered as a matched publisher waits,
+#: unread, before it is refused and closed.
+PENDING_SECONDS = 3.0
+#: Seconds a publisher waits for a subscriber process's verdict on a segment it hands over
+#: before it describes a frame of it there (on time, a refusal costs no frame: CPU bytes go
+#: instead); a late verdict makes it stop waiting on that link until the next one comes.
+VERDICT_SECONDS = 0.05
+#: Seconds a publisher sends CPU bytes to a subscriber process that refused its connection
+#: before it connects again.
+RELINK_SECONDS = 2.0
 #: Seconds an unused segment of a publisher that hung up stays mapped: descriptors it sent
 #: before it went may still be in our reader's history.
 ORPHAN_SECONDS = 5.0

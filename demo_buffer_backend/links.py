@@ -1,17 +1,22 @@
 """The publisher's links to subscriber processes (:class:`.handover.Link`, one per process token).
 
 A segment reaches a subscriber process once, over its link, before the first descriptor of it
-addressed there. Takes come back on the link as acks (counted in the slots); a process that hangs
-up is *gone*: nothing it was sent pins anything, and describing for it raises
+addressed there. What the subscriber answers comes back on the link (:class:`.handover.Reply`):
+takes as acks (counted in the slots), its verdict on each segment (a refused one gets CPU bytes
+instead of descriptors), and a refusal of the whole link (CPU bytes for
+``limits.RELINK_SECONDS``, then a new connection). A process that hangs up without refusing is
+*gone*: nothing it was sent pins anything, and describing for it raises
 :class:`~rosidl_buffer_py.backend.EndpointGone`. Callers hold the pool's guard.
 """
 import os
+import time
 from typing import Dict, Optional, Set
 
 from rosidl_buffer_py.backend import EndpointGone
 
-from demo_buffer_backend import handover
+from demo_buffer_backend import handover, limits
 from demo_buffer_backend.diagnostics import Diagnostics
+from demo_buffer_backend.handover import Refusal, ReplyKind
 from demo_buffer_backend.slots import Slot, Slots
 
 
@@ -30,16 +35,24 @@ class Links:
         self.counters = diagnostics.counters
         self.by_token: Dict[str, handover.Link] = {}
         self.gone: Set[str] = set()
+        #: token -> time.monotonic() at which its process refused our link
+        self.unwanted: Dict[str, float] = {}
 
     def __len__(self) -> int:
         return len(self.by_token)
 
     def get(self, token: str) -> Optional[handover.Link]:
         """The link to ``token``'s process (connected on first use); None when who listens
-        there is not that process of our user, or its backlog is full. ``EndpointGone`` when
-        nobody does, or it hung up."""
+        there is not that process of our user, its backlog is full, or it refused our link less
+        than ``limits.RELINK_SECONDS`` ago. ``EndpointGone`` when nobody listens, or it hung
+        up."""
         link = self.by_token.get(token)
-        if link is None:
+        if link is None and token not in self.gone:
+            refused = self.unwanted.get(token)
+            if refused is not None:
+                if time.monotonic() - refused < limits.RELINK_SECONDS:
+                    return None
+                del self.unwanted[token]
             try:
                 link = self.by_token[token] = handover.Link(token)
             except handover.ProcessGone:
@@ -62,17 +75,42 @@ class Links:
             self.drain(link)
 
     def drain(self, link: handover.Link) -> None:
-        """Apply the takes ``link``'s process acknowledged; note whether it hung up."""
-        try:
-            acks = link.acks()
-        except handover.ProcessGone:
+        """Apply what ``link``'s process answered: takes, verdicts on segments, a refusal of
+        the link; note whether it hung up."""
+        replies, hung_up = link.replies()
+        for reply in replies:
+            if reply.kind == ReplyKind.TAKEN:
+                if self.slots.acknowledge(reply.segment_id, reply.value, link.token):
+                    self.counters.acks += 1
+            elif reply.kind in (ReplyKind.ACCEPTED, ReplyKind.REFUSED):
+                link.verdicts[reply.segment_id] = reply
+                link.responsive = True
+                if reply.kind == ReplyKind.REFUSED:
+                    self.counters.handovers_refused += 1
+                    self.diagnostics.warn_once(
+                        f'segment_refused_{reply.value}',
+                        f'demo subscriber process {link.token} refused segment '
+                        f'{reply.segment_id}: {_why(reply.value)}; it gets CPU bytes for the '
+                        'frames in that segment')
+            elif reply.kind == ReplyKind.UNWANTED:
+                self._unwanted(link, reply.value)
+                return
+        if hung_up:
             self.hung_up(link.token)
-            return
-        for segment_id, generation in acks:
-            if self.slots.acknowledge(segment_id, generation, link.token):
-                self.counters.acks += 1
+
+    def _unwanted(self, link: handover.Link, refusal: int) -> None:
+        """``link``'s process refused it: CPU bytes there for a while, then a new link."""
+        self.by_token.pop(link.token, None)
+        link.close()
+        self.unwanted[link.token] = time.monotonic()
+        self.counters.links_refused += 1
+        self.diagnostics.warn_once(
+            f'link_refused_{refusal}', f'demo subscriber process {link.token} refused our link: '
+            f'{_why(refusal)}; it gets CPU bytes (a new link is tried after '
+            f'{limits.RELINK_SECONDS} s)')
 
     def hung_up(self, token: str) -> None:
+        self.unwanted.pop(token, None)
         link = self.by_token.pop(token, None)
         if link is not None:
             link.close()
@@ -116,3 +154,10 @@ class Links:
         for link in self.by_token.values():
             link.close()
         self.by_token.clear()
+
+
+def _why(refusal: int) -> str:
+    try:
+        return Refusal(refusal).describe()
+    except ValueError:
+        return f'refusal {refusal}'

@@ -1,10 +1,13 @@
 """The subscriber's mapped segments: what publisher processes handed to this one, and the views
 of them that received DemoBuffers hold.
 
-Segments arrive in the inbox (:mod:`.inbox`; drained, never waited for, when a descriptor
-names a segment not yet known, and every ``limits.SWEEP_INTERVAL`` seconds); a descriptor is
-accepted only for a segment that its own publisher pid (SO_PEERCRED) handed over, and its
-generation and size are checked under the shared OFD lock that protects the views (:class:`Hold`).
+Segments arrive in the inbox (:mod:`.inbox`; drained by its thread as they come, and, never
+waited for, when a descriptor names a segment not yet known); each one is answered, accepted or
+refused with the reason (at most ``limits.MAX_MAPPINGS_PER_PROCESS`` of one publisher process
+and ``limits.MAX_MAPPINGS`` in all), so that its publisher sends CPU bytes rather than
+descriptors we would reject. A descriptor is accepted only for a segment that its own publisher
+pid (SO_PEERCRED) handed over, and its generation and size are checked under the shared OFD lock
+that protects the views (:class:`Hold`).
 A segment is closed when its publisher retires it, or ``limits.ORPHAN_SECONDS`` after its
 publisher hung up and it was last used, once no view holds it. In-process subscriptions map this
 process's own slots the same way (:meth:`Mappings.adopt_own`).
@@ -20,7 +23,8 @@ from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
-from demo_buffer_backend.inbox import Inbox
+from demo_buffer_backend.handover import Refusal, ReplyKind
+from demo_buffer_backend.inbox import Delivery, Inbox
 from demo_buffer_backend.slots import Slot, Slots
 
 
@@ -88,6 +92,7 @@ class Mappings:
         self.diagnostics = diagnostics
         self.counters = diagnostics.counters
         self.by_key: Dict[SegmentKey, Mapping] = {}
+        self.per_process: Dict[int, int] = {}  #: publisher pid -> its segments mapped
         self.last_sweep = 0.0  #: time.monotonic() of the last drain of the inbox
 
     def __len__(self) -> int:
@@ -122,6 +127,7 @@ class Mappings:
     def _map(self, key: SegmentKey, fd: int, capacity: int,
              conn: Optional[socket.socket]) -> None:
         self.by_key[key] = Mapping(key, memory.open_received(fd, capacity), conn)
+        self.per_process[key.pid] = self.per_process.get(key.pid, 0) + 1
         self.counters.mappings_opened += 1
 
     def receive(self) -> None:
@@ -129,43 +135,63 @@ class Mappings:
         hung up, then close the segments nobody can use any more."""
         self.last_sweep = time.monotonic()
         for delivery in self.inbox.drain():
-            for problem in delivery.rejected:
-                self._refuse_handover(delivery.pid, problem)
-            for record in delivery.handovers:
-                self._take_handover(delivery.conn, delivery.pid, record)
-            if delivery.hung_up:
-                for mapping in self.by_key.values():
-                    if mapping.conn is delivery.conn:
-                        mapping.orphan = True
-                        mapping.conn = None
+            self._take_delivery(delivery)
         self._close_unused()
+
+    def _take_delivery(self, delivery: Delivery) -> None:
+        for problem in delivery.rejected:
+            self._refuse_handover(delivery.pid, problem)
+        hung_up = delivery.hung_up
+        for record in delivery.handovers:
+            if hung_up:  # refused for an earlier record: the rest is not looked at
+                if record.fd >= 0:
+                    os.close(record.fd)
+            elif not self._take_handover(delivery.conn, delivery.pid, record):
+                self.inbox.refuse(delivery.conn, delivery.pid, 'it handed over a segment that '
+                                  'is not one the demo backend makes')
+                hung_up = True
+        if hung_up:
+            for mapping in self.by_key.values():
+                if mapping.conn is delivery.conn:
+                    mapping.orphan = True
+                    mapping.conn = None
 
     def _refuse_handover(self, pid: int, problem: str) -> None:
         self.counters.handovers_rejected += 1
         self.diagnostics.warn_once(f'handover_{problem}',
                                    f'refused a demo segment from pid {pid}: {problem}')
 
-    def _take_handover(self, conn: socket.socket, pid: int, record: handover.Handover) -> None:
+    def _take_handover(self, conn: socket.socket, pid: int, record: handover.Handover) -> bool:
+        """Map (or retire) the segment of ``record`` and tell its publisher; False when the
+        record is one no genuine publisher sends (the caller closes the connection)."""
         key = SegmentKey(pid, record.nonce, record.segment_id)
         if record.fd < 0:  # retired by its publisher
             mapping = self.by_key.get(key)
             if mapping is not None and mapping.conn is conn:
                 mapping.retired = True
-            return
-        problem = None
+            return True
+        refusal = None
         if key in self.by_key:
-            problem = f'segment {record.segment_id} was handed over already'
+            problem, refusal = (f'segment {record.segment_id} was handed over already',
+                                Refusal.INVALID)
+        elif self.per_process.get(pid, 0) >= limits.MAX_MAPPINGS_PER_PROCESS:
+            problem, refusal = (f'{limits.MAX_MAPPINGS_PER_PROCESS} segments of that process '
+                                'are mapped already', Refusal.PROCESS_LIMIT)
         elif len(self.by_key) >= limits.MAX_MAPPINGS:
-            problem = f'{limits.MAX_MAPPINGS} segments are mapped already'
+            problem, refusal = (f'{limits.MAX_MAPPINGS} segments are mapped already',
+                                Refusal.TOTAL_LIMIT)
         else:
             try:
                 self._map(key, record.fd, record.capacity, conn)
                 self.counters.handovers_received += 1
-                return
+                handover.send_reply(conn, ReplyKind.ACCEPTED, record.segment_id)
+                return True
             except (ValueError, OSError) as exc:
-                problem = str(exc)
+                problem, refusal = str(exc), Refusal.INVALID
         os.close(record.fd)
         self._refuse_handover(pid, problem)
+        handover.send_reply(conn, ReplyKind.REFUSED, record.segment_id, refusal)
+        return refusal is not Refusal.INVALID
 
     # --- closing ------------------------------------------------------------------------------
     def _close_unused(self) -> None:
@@ -179,7 +205,10 @@ class Mappings:
 
     def _close(self, mapping: Mapping) -> None:
         mapping.closed = True
-        self.by_key.pop(mapping.key, None)
+        if self.by_key.pop(mapping.key, None) is not None:
+            left = self.per_process.pop(mapping.key.pid, 1) - 1
+            if left:
+                self.per_process[mapping.key.pid] = left
         self.counters.mappings_closed += 1
         try:
             mapping.view.release()
@@ -207,6 +236,7 @@ class Mappings:
         of their descriptors (the caller closes them)."""
         fds = [mapping.received.fd for mapping in self.by_key.values()]
         self.by_key = {}
+        self.per_process = {}
         return fds
 
     # --- taking -------------------------------------------------------------------------------

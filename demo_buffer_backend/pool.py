@@ -9,7 +9,9 @@ Words, one concept each, in every module of the backend:
 - *process*, named by its *token*: the other end of a *link* (:mod:`.links`) or of an inbound
   connection; it is *gone* once it hung up;
 - *inbox*: this process's listener and the connections publisher processes opened to it
-  (:mod:`.inbox`);
+  (:mod:`.inbox`), served by its own thread (:mod:`.porter`); a *matched publisher* is one that
+  discovery showed as buffer-aware on a topic this process subscribes to: only those may hand
+  segments over;
 - *mapping*: a segment handed to this process, mapped read-only (:mod:`.mappings`); *hold*: a
   received DemoBuffer's claim on it.
 
@@ -27,13 +29,15 @@ import time
 from typing import Optional, Tuple
 
 from demo_buffer_backend import descriptor as codec
-from demo_buffer_backend import limits
+from demo_buffer_backend import handover, limits
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
+from demo_buffer_backend.handover import ReplyKind
 from demo_buffer_backend.inbox import Inbox
 from demo_buffer_backend.ledgers import EndpointLedger
 from demo_buffer_backend.links import Links, gone_error
 from demo_buffer_backend.mappings import Hold, Mappings
+from demo_buffer_backend.porter import Porter
 from demo_buffer_backend.slots import Pin, Slot, Slots
 
 
@@ -42,7 +46,8 @@ class Pool:
 
     - publisher side: :meth:`allocate` (a slot for a new buffer), :meth:`describe` (a
       descriptor of it for one endpoint), :meth:`decline` (count a buffer sent as CPU bytes);
-    - subscriber side: :meth:`advertise` (listen; our token), :meth:`open_descriptor` (a view
+    - subscriber side: :meth:`advertise` (listen; our token), :meth:`expect` and
+      :meth:`forget` (the matched publishers discovery shows), :meth:`open_descriptor` (a view
       of what a descriptor names), :meth:`sweep` (take handovers, close unused segments);
     - both: :meth:`stats`, :meth:`shutdown`, :meth:`forget_after_fork`.
 
@@ -62,6 +67,7 @@ class Pool:
         self.links = Links(self.nonce, self.slots, self.diagnostics)
         self.inbox = Inbox(token, self.diagnostics)
         self.mappings = Mappings(token, self.inbox, self.slots, self.guard, self.diagnostics)
+        self.porter: Optional[Porter] = None  #: the inbox's thread, from the first advertise()
 
     def _retire(self, slot: Slot) -> None:
         self.links.retire(slot)
@@ -78,9 +84,11 @@ class Pool:
 
     def describe(self, pin: Pin, ledger: EndpointLedger) -> Optional[bytes]:
         """Record one more descriptor of ``pin``'s slot for the ledger's endpoint and return it,
-        its segment handed over first if need be. None (CPU bytes for this endpoint) when the
-        pin is stale, the endpoint's process is not of our user, or its queue is full;
-        ``EndpointGone`` when that process is gone."""
+        its segment handed over first if need be (and the subscriber's verdict on it awaited,
+        without the guard, for ``limits.VERDICT_SECONDS`` at most). None (CPU bytes for this
+        endpoint) when the pin is stale, the endpoint's process is not of our user, its queue
+        is full, or it refused the link or the segment; ``EndpointGone`` when that process is
+        gone."""
         with self.guard:
             slot = pin.slot
             if pin.owner is not self.slots or not slot.current(pin.generation):
@@ -90,27 +98,66 @@ class Pool:
             ledger.seq += 1
             if token == self.token:
                 self.mappings.adopt_own(slot)
-                link = None
-            else:
-                link = self.links.get(token)
-                if link is None:
-                    self.counters.descriptors_declined += 1
-                    return None
+                return self._record(pin, ledger, None)
+            link = self.links.get(token)
+            if link is None:
+                self.counters.descriptors_declined += 1
+                return None
+            self.links.drain(link)
+            if token in self.links.gone:
+                raise gone_error(token)
+            if self.links.by_token.get(token) is not link:  # it refused the link just now
+                self.counters.descriptors_declined += 1
+                return None
+            if slot.id in link.segments:
+                return self._record(pin, ledger, link)
+            if not self.links.hand_over(link, slot):
+                self.counters.descriptors_declined += 1
+                return None
+            if not link.responsive:
+                return self._record(pin, ledger, link)
+        on_time = self._await_verdict(link, slot.id)
+        with self.guard:
+            if not on_time:
+                link.responsive = False
+                self.counters.verdicts_late += 1
+            if token in self.links.gone:
+                raise gone_error(token)
+            if self.links.by_token.get(token) is not link:  # it refused the link meanwhile
+                self.counters.descriptors_declined += 1
+                return None
+            return self._record(pin, ledger, link)
+
+    def _await_verdict(self, link: handover.Link, segment_id: int) -> bool:
+        """Wait (without the guard) until ``link``'s process said whether it maps the segment,
+        or refused or hung up the link; False when ``limits.VERDICT_SECONDS`` passed first."""
+        deadline = time.monotonic() + limits.VERDICT_SECONDS
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not link.wait_readable(remaining):
+                return False
+            with self.guard:
                 self.links.drain(link)
-                if token in self.links.gone:
-                    raise gone_error(token)
-            ledger.settle(self.counters)
-            if link is not None and slot.id not in link.segments:
-                if not self.links.hand_over(link, slot):
-                    self.counters.descriptors_declined += 1
-                    return None
-            ledger.record(slot)
-            slot.last_used = time.monotonic_ns()
-            self.counters.descriptors_created += 1
-            if pin.packed is None:
-                pin.packed = codec.pack(codec.Descriptor(
-                    self.pid, self.nonce, slot.id, pin.generation, 0, pin.size))
-            return pin.packed
+                if segment_id in link.verdicts or self.links.by_token.get(link.token) is not link:
+                    return True
+
+    def _record(self, pin: Pin, ledger: EndpointLedger,
+                link: Optional[handover.Link]) -> Optional[bytes]:
+        """The descriptor of ``pin`` for the ledger's endpoint, recorded in flight; None when
+        the subscriber refused the segment (with the guard held)."""
+        slot = pin.slot
+        verdict = link.verdicts.get(slot.id) if link is not None else None
+        if verdict is not None and verdict.kind == ReplyKind.REFUSED:
+            self.counters.descriptors_declined += 1
+            return None
+        ledger.settle(self.counters)
+        ledger.record(slot)
+        slot.last_used = time.monotonic_ns()
+        self.counters.descriptors_created += 1
+        if pin.packed is None:
+            pin.packed = codec.pack(codec.Descriptor(
+                self.pid, self.nonce, slot.id, pin.generation, 0, pin.size))
+        return pin.packed
 
     def decline(self) -> None:
         """Count a buffer sent as CPU bytes where a descriptor was asked for."""
@@ -123,7 +170,24 @@ class Pool:
         with self.guard:
             if self.closed or not self.inbox.listen():
                 return None
+            if self.porter is None:
+                self.porter = Porter(self.guard, self.inbox, self.mappings.receive,
+                                     self.diagnostics)
             return self.token
+
+    def expect(self, gid: bytes, pid: int) -> None:
+        """Discovery shows publisher ``gid`` of process ``pid`` as buffer-aware and matched to
+        an endpoint of ours: its process may hand us segments."""
+        with self.guard:
+            if self.inbox.publishers.get(gid) != pid:
+                self.inbox.expect(gid, pid)
+                if self.porter is not None:
+                    self.porter.wake()
+
+    def forget(self, gid: bytes) -> None:
+        """Publisher ``gid`` is gone from discovery, or no longer buffer-aware."""
+        with self.guard:
+            self.inbox.forget(gid)
 
     def open_descriptor(self, raw) -> Tuple[memoryview, Hold]:
         """A read-only view of the bytes ``raw`` names and the hold that protects it;
@@ -170,14 +234,22 @@ class Pool:
         segments, slots. Views still alive keep their memory (the kernel frees it with them)."""
         with self.guard:
             self.closed = True
+            porter, self.porter = self.porter, None
+            if porter is not None:
+                porter.stop()
             self.links.close()
             self.mappings.close()
             self.inbox.close()
             self.slots.close()
+        if porter is not None:
+            porter.join()
 
     def forget_after_fork(self) -> None:
         """In a forked child: close our copies of the parent's descriptors, touch nothing."""
         self.closed = True
+        if self.porter is not None:
+            self.porter.forget_after_fork()
+            self.porter = None
         self.links.close()
         self.inbox.close()
         for fd in self.slots.forget_after_fork() + self.mappings.forget_after_fork():

@@ -341,19 +341,20 @@ def test_killed_holder_releases_its_slot(backend, peers):
 
 
 def test_killed_publisher_frames_in_flight_stay_readable_then_nothing_is_left(fresh, peers):
-    """A publisher SIGKILLed with frames in flight: a slow subscriber that had not looked at
-    any of them yet still reads every one (their segments wait in its socket queue); once it
+    """A publisher SIGKILLed with frames in flight: a slow subscriber that had not taken any of
+    them yet still reads every one (their segments were handed over with the frames); once it
     drops them, it holds no memory of that publisher (its maps and fds), and nothing was ever
     in /dev/shm."""
     reader, publisher = peers(), peers()
     assert reader('orphan_seconds', value=0.5)['ok']
     assert publisher('discover', metadata=reader.metadata)['compatible']
+    assert reader('expect_publisher', metadata=publisher.metadata, gid='ab' * 16)['compatible']
     sent = []
     for i, n in enumerate((10, 5000, 70000, 1 << 20, 5000)):  # the last one reuses no slot
         reply = publisher('publish', n=n, fill=i + 1, keep=str(i))
         assert reply['in_shm'] and reply['desc'] and not reply['gone'], reply
         sent.append((reply['desc'], hashlib.sha256(bytes([i + 1]) * n).hexdigest()))
-    assert reader('memory') == {'maps': 0, 'fds': 0}  # nothing taken yet
+    assert reader('stats')['taken'] == 0
     publisher.kill9()
     for i, (desc, sha) in enumerate(sent):
         reply = reader('take', desc=desc, key=str(i))
@@ -377,6 +378,7 @@ def test_held_views_outlive_their_publisher_until_dropped(fresh, peers):
     reader, publisher = peers(), peers()
     assert reader('orphan_seconds', value=0.0)['ok']
     publisher('discover', metadata=reader.metadata)
+    reader('expect_publisher', metadata=publisher.metadata, gid='ab' * 16)
     reply = publisher('publish', n=4096, fill=5, keep='p')
     assert reader('take', desc=reply['desc'], key='r')['ok']
     sha = reader('sha', key='r')['sha']

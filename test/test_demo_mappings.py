@@ -1,9 +1,11 @@
 """Unit tests of the demo backend's subscriber mappings (demo_buffer_backend/mappings.py), fed
 through its inbox (inbox.py) by the publisher's links (links.py), both ends in this process,
 without DDS: handover, take and ack, stale and unknown descriptors, holds, retired and orphaned
-segments, a refused connection."""
+segments, a refused connection; and two pools of one process, where the subscriber's inbox
+thread screens connections and answers each handover (refusals, limits per process)."""
 import gc
 import os
+import time
 
 import pytest
 from rosidl_buffer_py.backend import EndpointGone
@@ -16,6 +18,9 @@ from demo_buffer_backend.inbox import Inbox
 from demo_buffer_backend.links import Links
 from demo_buffer_backend.mappings import Hold, Mappings
 from demo_buffer_backend.slots import Slots
+
+
+PUBLISHER_GID = b'\x01' * 16
 
 
 class Ends:
@@ -32,6 +37,8 @@ class Ends:
         self.inbox = Inbox(self.token, self.subscriber)
         self.mappings = Mappings(self.token, self.inbox, self.slots, guard, self.subscriber)
         assert self.inbox.listen()
+        # discovery showed this process as a matched buffer-aware publisher
+        self.inbox.expect(PUBLISHER_GID, os.getpid())
 
     def publish(self, data: bytes):
         """A slot holding ``data`` handed over to the subscriber, and its descriptor."""
@@ -128,3 +135,113 @@ def test_the_inbox_refuses_connections_past_max_inbound(ends, monkeypatch):
     handover.Link(ends.token).close()
     assert ends.inbox.drain() == [] and not ends.inbox.inbound
     assert ends.subscriber.counters.connections_refused == 1
+
+
+# --- two pools of one process: a publisher's and a subscriber's, with the inbox's thread -------
+
+@pytest.fixture
+def pools():
+    """A publisher's pool and a subscriber's pool (listening, its inbox thread running) in this
+    process; the subscriber discovered this process as a matched publisher unless a test
+    forgets it."""
+    from demo_buffer_backend.pool import Pool
+    subscriber, publisher = Pool(handover.new_token()), Pool(handover.new_token())
+    assert subscriber.advertise() == subscriber.token
+    subscriber.expect(PUBLISHER_GID, os.getpid())
+    yield publisher, subscriber
+    gc.collect()
+    publisher.shutdown()
+    subscriber.shutdown()
+
+
+def _ledger(token):
+    from demo_buffer_backend.ledgers import EndpointLedger
+    return EndpointLedger(token, 0, per_channel=False)
+
+
+def test_a_refused_segment_goes_as_cpu_bytes_never_as_a_descriptor(pools, monkeypatch, caplog):
+    """A subscriber that cannot map a segment (here: one per publisher process) says so before
+    the frame's descriptor would leave: the publisher sends that frame as CPU bytes (describe
+    gives None) instead of a descriptor the subscriber would reject; both sides count it."""
+    monkeypatch.setattr(limits, 'MAX_MAPPINGS_PER_PROCESS', 1)
+    publisher, subscriber = pools
+    ledger = _ledger(subscriber.token)
+    view, first = publisher.allocate(4096)
+    view[:5] = b'first'
+    packed = publisher.describe(first, ledger)
+    assert packed is not None
+    got, hold = subscriber.open_descriptor(packed)
+    assert bytes(got[:5]) == b'first'
+    view2, second = publisher.allocate(4096)  # the first slot is pinned: a second segment
+    assert second.slot is not first.slot
+    assert publisher.describe(second, ledger) is None  # refused: CPU bytes for this frame
+    assert publisher.describe(second, ledger) is None  # and for every frame of that segment
+    pub, sub = publisher.stats(), subscriber.stats()
+    assert pub['handovers_refused'] == 1 and pub['descriptors_declined'] == 2, pub
+    assert pub['verdicts_late'] == 0 and pub['descriptors_created'] == 1, pub
+    assert sub['handovers_rejected'] == 1 and sub['rejected'] == 0 and sub['mappings'] == 1, sub
+
+
+def test_a_connection_of_an_undiscovered_process_is_refused_then_the_publisher_relinks(
+        pools, monkeypatch):
+    """A process discovery never showed as a matched publisher is not read; after
+    ``PENDING_SECONDS`` its connection is refused with the reason, and the publisher sends
+    CPU bytes until ``RELINK_SECONDS`` have passed; once discovered, its new link serves."""
+    monkeypatch.setattr(limits, 'PENDING_SECONDS', 0.2)
+    monkeypatch.setattr(limits, 'RELINK_SECONDS', 0.3)
+    publisher, subscriber = pools
+    subscriber.forget(PUBLISHER_GID)
+    ledger = _ledger(subscriber.token)
+    view, pin = publisher.allocate(4096)
+    assert publisher.describe(pin, ledger) is not None  # no verdict in time: sent, unanswered
+    assert publisher.stats()['verdicts_late'] == 1
+    deadline = time.monotonic() + 5
+    while subscriber.stats()['connections_refused'] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert subscriber.stats()['connections_refused'] == 1
+    assert subscriber.stats()['handovers_received'] == 0  # never read
+    assert publisher.describe(pin, ledger) is None  # refused link: CPU bytes
+    assert publisher.stats()['links_refused'] == 1 and not publisher.stats()['peers_hung_up']
+    subscriber.expect(PUBLISHER_GID, os.getpid())
+    time.sleep(0.35)
+    packed = publisher.describe(pin, ledger)  # a new link, its segment accepted
+    assert packed is not None
+    got, hold = subscriber.open_descriptor(packed)
+    assert len(got) == 4096 and subscriber.stats()['handovers_received'] == 1
+
+
+def test_the_inbox_thread_accepts_without_a_take_and_bounds_each_process(pools, monkeypatch):
+    """Connections are accepted and screened by the inbox's thread with nobody taking: a full
+    backlog of silent connections from one undiscovered process clears at once but for
+    ``MAX_PENDING_PER_PROCESS``, which wait, unread, until ``PENDING_SECONDS``."""
+    monkeypatch.setattr(limits, 'PENDING_SECONDS', 0.3)
+    publisher, subscriber = pools
+    subscriber.forget(PUBLISHER_GID)
+    links = []
+    while len(links) < 200:  # the attack: fill the listen backlog
+        try:
+            links.append(handover.Link(subscriber.token))
+        except BlockingIOError:
+            break
+    deadline = time.monotonic() + 5
+    while True:  # cleared by the thread, nobody taking
+        try:
+            links.append(handover.Link(subscriber.token))
+            break
+        except BlockingIOError:
+            assert time.monotonic() < deadline, 'the backlog never cleared'
+            time.sleep(0.01)
+    while (subscriber.stats()['connections_refused'] < len(links) -
+           limits.MAX_PENDING_PER_PROCESS and time.monotonic() < deadline):
+        time.sleep(0.01)
+    assert subscriber.stats()['connections_refused'] == len(links) - \
+        limits.MAX_PENDING_PER_PROCESS
+    assert len(subscriber.inbox.pending) == limits.MAX_PENDING_PER_PROCESS
+    while subscriber.inbox.pending and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not subscriber.inbox.pending
+    assert subscriber.stats()['connections_refused'] == len(links)
+    for link in links:  # each was told, then closed
+        replies, hung_up = link.replies()
+        assert hung_up and [r.kind for r in replies] == [handover.ReplyKind.UNWANTED]
+        link.close()

@@ -294,14 +294,19 @@ def test_segment_cannot_be_shrunk_grown_or_written_under_a_reader(backend):
 
 _HOSTILE = textwrap.dedent('''
     # A process of our user (or, with a uid argument, of another) that connects to a
-    # subscriber's listener and pushes hostile records, one connection per case.
-    import array, fcntl, json, mmap, os, socket, struct, sys, tempfile
+    # subscriber's listener and pushes hostile records, one connection per case, each after
+    # the subscriber answered the one before (a reply record, or closing the connection). It
+    # prints its pid, then waits for a line on stdin (the subscriber may discover it as a
+    # publisher meanwhile) before it starts.
+    import array, fcntl, json, mmap, os, select, socket, struct, sys, tempfile
     token, uid = sys.argv[1], int(sys.argv[2])
     sys.path.insert(0, sys.argv[3])
     from demo_buffer_backend import handover, memory
     if uid:
         os.setgid(uid)
         os.setuid(uid)
+    print(json.dumps({'pid': os.getpid()}), flush=True)
+    sys.stdin.readline()
     H = memory.HEADER_SIZE
     SEALS = memory.SEALS
 
@@ -323,13 +328,27 @@ _HOSTILE = textwrap.dedent('''
         return handover.HANDOVER.pack(magic, 7, segment_id, reserved, capacity)
 
     def send(data, fds):
+        """Send one case on a new connection; return it and what the subscriber answered."""
         s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         s.connect('\\0rbpy_demo/' + token)
         if fds:
             socket.send_fds(s, [data], fds)
         else:
             s.send(data)
-        return s
+        answer = []
+        while select.select([s], [], [], 10)[0]:
+            try:
+                reply = s.recv(64)
+            except ConnectionResetError:  # closed with our record unread
+                reply = b''
+            if not reply:
+                answer.append('closed')
+                break
+            segment, kind, value = handover.REPLY.unpack(reply)
+            answer.append(f'{handover.ReplyKind(kind).name} {value}')
+            if kind == handover.ReplyKind.ACCEPTED:
+                break
+        return s, answer
 
     tmp = tempfile.TemporaryFile()
     tmp.write(memory.HEADER.pack(memory.MAGIC, 4096, 1, 0, 8) + bytes(2 * H))
@@ -365,24 +384,39 @@ _HOSTILE = textwrap.dedent('''
         cases = {'valid segment from another uid': (record(20), [memfd()])}
     else:
         cases['valid segment, then the same id again'] = (record(21), [memfd()])
-    conns = []
+    conns, answers = [], {}
     for label, (data, fds) in cases.items():
         try:
-            conns.append(send(data, fds))
+            conn, answers[label] = send(data, fds)
+            conns.append(conn)
         except OSError as exc:
             print(json.dumps({'error': f'{label}: {exc}'}), flush=True)
             raise
     if not uid:
-        conns.append(send(record(21), [memfd()]))  # the duplicate
-    print(json.dumps({'pid': os.getpid(), 'nonce': 7, 'cases': list(cases)}), flush=True)
+        conn, answers['the same id again'] = send(record(21), [memfd()])  # the duplicate
+        conns.append(conn)
+    print(json.dumps({'pid': os.getpid(), 'nonce': 7, 'cases': list(cases),
+                      'answers': answers}), flush=True)
     sys.stdin.read()
 ''')
 
 
-def _hostile(token, uid=0):
+def _hostile(token, uid=0, discovered_by=None):
+    """A hostile process of ``uid`` pushing its cases to ``token``'s listener; with
+    ``discovered_by`` (a demo_backend_peer), that subscriber first discovers it as a matched
+    buffer-aware publisher (as if it advertised itself on a topic the subscriber reads)."""
     proc = subprocess.Popen([sys.executable, '-c', _HOSTILE, token, str(uid),
                              os.path.dirname(os.path.dirname(os.path.abspath(__file__)))],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    line = proc.stdout.readline()
+    assert line, f'hostile process exited with {proc.poll()}'
+    pid = json.loads(line)['pid']
+    if discovered_by is not None:
+        domain = discovered_by.metadata.rpartition('.')[0]
+        assert discovered_by('expect_publisher', metadata=f'{domain}.{pid}_{7:016x}',
+                             gid=f'{pid:032x}')['compatible']
+    proc.stdin.write('go\n')
+    proc.stdin.flush()
     line = proc.stdout.readline()
     assert line, f'hostile process exited with {proc.poll()}'
     return proc, json.loads(line)
@@ -393,10 +427,13 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
     half-sealed, sparse or misdescribed memfds, non-memory descriptors, malformed records,
     another uid) and forged frame descriptors name memory (another pid's segments, segments
     never handed over, ranges and generations that do not match, the old /dev/shm names).
-    Every one is refused and counted, each cause logged once, and the subscriber keeps working
+    The hostile of our uid is one the subscriber discovered as a matched publisher (one it did
+    not discover is never read at all: test_attacks.py). Every one is refused and counted, its
+    connection closed with the reason, each cause logged once, and the subscriber keeps working
     (0 crashes, 0 accepted)."""
     from rosidl_buffer_py import EndpointInfo, EndpointKind
     from demo_buffer_backend import DemoBuffer, descriptor
+    from demo_buffer_backend.handover import Refusal
     be, started = backend
     taker = _peer(started, be, capture_stderr=True)
     token = taker.metadata.rpartition('.')[2]
@@ -405,7 +442,7 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
     good = be.create_descriptor_with_endpoint(buf, ep)
     d = descriptor.unpack(good)
     table = []
-    procs = [_hostile(token)]
+    procs = [_hostile(token, discovered_by=taker)]
     if os.geteuid() == 0:
         procs.append(_hostile(token, uid=65534))
     try:
@@ -455,7 +492,17 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
     assert not accepted, accepted
     n_handover = len(procs[0][1]['cases']) - 1  # (the valid one is accepted under its own pid)
     assert stats['handovers_rejected'] == n_handover + 1, stats  # + its duplicate
-    assert stats['connections_refused'] == len(procs) - 1, stats
+    # each refused case's connection closed (and the other uid's at once)
+    assert stats['connections_refused'] == n_handover + 1 + len(procs) - 1, stats
+    answers = procs[0][1]['answers']
+    print(json.dumps(answers, indent=1))
+    for label, answer in answers.items():
+        if label == 'valid segment, then the same id again':
+            assert answer == ['ACCEPTED 0'], (label, answer)
+        else:  # told why, then closed
+            assert answer[-1] == 'closed' and answer[-2] in (
+                f'UNWANTED {int(Refusal.INVALID)}', f'REFUSED {int(Refusal.INVALID)}'), \
+                (label, answer)
     assert stats['handovers_received'] == 2, stats  # the real publisher's and the hostile's own
     assert stats['views_held'] == 1, stats  # the hostile's own bytes, held under 'bad'
     assert taker.proc.poll() is None  # 0 crashes

@@ -5,6 +5,10 @@ Speaks JSON lines: one command per line on stdin, one reply per line on stdout. 
 ``{"ready": true, "pid": ..., "metadata": ...}``. Commands:
 
 - ``{"cmd": "discover", "metadata": M}``: the peer endpoint is now the process advertising M.
+- ``{"cmd": "expect_publisher", "metadata": M, "gid": G}``: discovery shows publisher G (hex)
+  of the process advertising M as buffer-aware and matched: that process may hand this one
+  segments. At start the process that started this one is expected so (its metadata in
+  ``RBPY_TEST_PUBLISHER_METADATA``), as publisher :data:`PUBLISHER_GID`.
 - ``{"cmd": "publish", "n": N, "fill": B, "keep": K}``: allocate N bytes, fill them with B,
   describe them for the peer endpoint; keep the buffer under key K (or drop it when K is null).
   Reply ``{"desc": hex, "segment": [pid, id], "gen": generation, "in_shm": bool, "gone": bool}``.
@@ -41,6 +45,10 @@ from demo_buffer_backend import DemoBackend, DemoBuffer, limits
 
 #: The GID both sides use for "the other endpoint".
 PEER_GID = bytes(range(16))
+#: The GID of the publisher (of the process that started this one) that the peer expects.
+PUBLISHER_GID = bytes(range(16, 32))
+#: Environment variable: the metadata of the process that starts a peer.
+PUBLISHER_METADATA = 'RBPY_TEST_PUBLISHER_METADATA'
 
 
 class Peer:
@@ -48,8 +56,9 @@ class Peer:
 
     def __init__(self, capture_stderr=False):
         """With ``capture_stderr``, its log is read by :meth:`exit` into ``self.log``."""
+        env = dict(os.environ, **{PUBLISHER_METADATA: DemoBackend().get_backend_metadata()})
         self.proc = subprocess.Popen([sys.executable, __file__], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True, bufsize=1,
+                                     stdout=subprocess.PIPE, text=True, bufsize=1, env=env,
                                      stderr=subprocess.PIPE if capture_stderr else None)
         self.log = None
         hello = self._read()
@@ -141,6 +150,13 @@ def main() -> int:
     backend.on_discovering_endpoint(peer, [], {'demo': backend.get_backend_metadata()})
     held = {}
 
+    def expect_publisher(gid: bytes, metadata: str) -> bool:
+        info = EndpointInfo(gid, '/demo_backend_test', EndpointKind.PUBLISHER)
+        return backend.on_discovering_endpoint(info, [], {'demo': metadata})[0]
+
+    if os.environ.get(PUBLISHER_METADATA):
+        expect_publisher(PUBLISHER_GID, os.environ[PUBLISHER_METADATA])
+
     def reply(obj):
         sys.stdout.write(json.dumps(obj) + '\n')
         sys.stdout.flush()
@@ -163,6 +179,9 @@ def main() -> int:
         elif cmd == 'discover':
             reply({'compatible': backend.on_discovering_endpoint(
                 peer, [], {'demo': request['metadata']})[0]})
+        elif cmd == 'expect_publisher':
+            reply({'compatible': expect_publisher(bytes.fromhex(request['gid']),
+                                                  request['metadata'])})
         elif cmd == 'attack':
             reply(_attack(held[request['key']]))
         elif cmd == 'memory':
