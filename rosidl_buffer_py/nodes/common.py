@@ -14,7 +14,7 @@ import json
 import signal
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, Optional, Sequence
+from typing import Any, Callable, Dict, Iterable, Optional, Sequence
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -238,3 +238,12 @@ def run_node(make_node: Callable, run: Callable, *, program: str = '', summary: 
         rclpy.try_shutdown()
         faulthandler.cancel_dump_traceback_later()
     return status
+
+
+def backend_stats(names: Iterable[str]) -> Dict[str, dict]:
+    """The process-wide counters of each named backend that keeps some (``stats()``), for a
+    node's report: what it sent, took, refused and why."""
+    from rosidl_buffer_py.registry import get_installed_backends
+    installed = get_installed_backends()
+    return {name: installed[name].stats() for name in sorted(set(names))
+            if callable(getattr(installed.get(name), 'stats', None))}

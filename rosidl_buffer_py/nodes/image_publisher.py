@@ -15,8 +15,8 @@ import rosidl_buffer_py
 from rosidl_buffer_py.backend import BufferBackend
 from rosidl_buffer_py.image import allocate_image_msg, encoding_info, supported_encodings
 from rosidl_buffer_py.nodes.common import (
-    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, qos_profile,
-    run_node, with_default)
+    QOS_PARAMETERS, Param, ParameterError, backend_stats, bad_parameter, declare_parameters,
+    qos_profile, run_node, with_default)
 from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
 from rosidl_buffer_py.nodes.report import print_report
 
@@ -175,6 +175,7 @@ class ImagePublisher(Node):
                   'params': self.params}
         if hasattr(self.publisher, 'statistics'):
             report['statistics'] = self.publisher.statistics().as_dict()
+            report['backend_stats'] = backend_stats([self.params['backend']])
         print_report(report)
 
 

@@ -19,8 +19,9 @@ import rosidl_buffer_py
 from rosidl_buffer_py import codec
 from rosidl_buffer_py.image import from_input_msg
 from rosidl_buffer_py.nodes.common import (
-    QOS_PARAMETERS, Param, ParameterError, bad_parameter, declare_parameters, qos_profile,
-    run_node, with_default)
+    QOS_PARAMETERS, Param, ParameterError, backend_stats, bad_parameter, declare_parameters,
+    qos_profile, run_node, with_default)
+from rosidl_buffer_py.registry import parse_acceptable_buffer_backends
 from rosidl_buffer_py.nodes.frames import check_frame, latency_ms
 from rosidl_buffer_py.nodes.report import print_report
 
@@ -222,6 +223,9 @@ class ImageSubscriber(Node):
         }
         if hasattr(self.subscription, 'statistics'):
             report['statistics'] = self.subscription.statistics().as_dict()
+            accepted = p['acceptable_buffer_backends']
+            report['backend_stats'] = backend_stats(parse_acceptable_buffer_backends(
+                None if accepted == DEFAULT_SENTINEL else accepted))
         return report
 
     def log_summary(self) -> None:
