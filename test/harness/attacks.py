@@ -42,7 +42,7 @@ BEFORE_PUBLISHER = ('mappings_first', 'backlog')
 SLACK_SECONDS = 60.0
 
 
-# --- the attacker ---------------------------------------------------------------------------------
+# --- the attacker --------------------------------------------------------------------------------
 
 def listener_token(pid: int) -> Optional[str]:
     """The demo listener token of process ``pid``, read from /proc/net/unix (None: none yet)."""
@@ -219,7 +219,7 @@ class Attacker:
         return json.loads(lines[-1]) if lines else {}
 
 
-# --- a case ---------------------------------------------------------------------------------------
+# --- a case --------------------------------------------------------------------------------------
 
 @dataclass
 class Outcome:
