@@ -158,7 +158,7 @@ def test_incompatible_qos_is_logged_once_per_peer(kind, tmp_path):
     topic as it was passed (relative here), as rclpy's does."""
     script = tmp_path / 'incompatible.py'
     script.write_text(textwrap.dedent(f'''
-        import time, rclpy
+        import select, sys, time, rclpy
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image
         import rosidl_buffer_py
@@ -265,7 +265,7 @@ def test_an_endpoints_warning_reaches_rosout_of_another_process(tmp_path):
     process sees the line on /rosout (rqt_console, a bag of /rosout), named after the node."""
     script = tmp_path / 'rejecting.py'
     script.write_text(textwrap.dedent('''
-        import time, rclpy
+        import select, sys, time, rclpy
         from rclpy.qos import QoSProfile
         from sensor_msgs.msg import Image
         import rosidl_buffer_py
@@ -283,8 +283,10 @@ def test_an_endpoints_warning_reaches_rosout_of_another_process(tmp_path):
         while time.monotonic() < end and sub.statistics()['rejected'] == 0:
             pub._planned.peers[0].channel.publish(bad, time.time_ns())
             rclpy.spin_once(node, timeout_sec=0.2)
-        end = time.monotonic() + 2
-        while time.monotonic() < end:
+        # stay (rosout keeps the line for late joiners while its publisher lives) until the
+        # listener got it and closes our stdin: discovery may take seconds on a loaded machine
+        end = time.monotonic() + 30
+        while time.monotonic() < end and not select.select([sys.stdin], [], [], 0)[0]:
             rclpy.spin_once(node, timeout_sec=0.1)
     '''))
     import rclpy
@@ -296,13 +298,13 @@ def test_an_endpoints_warning_reaches_rosout_of_another_process(tmp_path):
     from rclpy.qos import DurabilityPolicy, QoSProfile
     node.create_subscription(Log, '/rosout', lines.append, QoSProfile(
         depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL))  # as rosout's publishers
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, str(script)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        end = time.monotonic() + 30
+        end = time.monotonic() + 40
         while time.monotonic() < end and not any('rejected a message' in m.msg for m in lines):
             _spin_once(node, context)
-        proc.communicate(timeout=30)
+        proc.communicate('', timeout=30)  # closing its stdin lets it go
     finally:
         if proc.poll() is None:
             proc.kill()
