@@ -8,7 +8,7 @@ under the publisher's nonce, fake acknowledgments). Each asserts what the subscr
 (every frame, zero-copy as without the attacker, no CRC failure) and that the attacker's
 resources were released: the subscriber closed every connection it opened (which frees every
 descriptor queued in them) and never read one. Latency under attack against the control run
-is a figure of the harness's table (``python test/harness/attacks.py``), not an assert.
+is a figure of the harness's table (``.venv/bin/python test/harness/attacks.py``), not an assert.
 """
 import pytest
 

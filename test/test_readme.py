@@ -61,6 +61,7 @@ COVERAGE = {
     # the harnesses (docs/development.md)
     '.venv/bin/python test/harness/scenarios.py': 'test_transport.py',  # every scenario
     '.venv/bin/python test/harness/equivalence.py [names] [--echo]': 'test_equivalence.py',
+    '.venv/bin/python test/harness/attacks.py': 'test_attacks.py',  # 40 frames instead of 300
     # the user guide's nodes and tools
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
