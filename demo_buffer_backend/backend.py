@@ -11,13 +11,13 @@ from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
 from demo_buffer_backend.ledgers import EndpointLedger
 
 
-def _depth_of(endpoint_info: EndpointInfo) -> int:
-    """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL,
-    unknown, or when the local publisher is not named (its window would count other channels'
-    messages)."""
+def _depth_of(endpoint_info: EndpointInfo) -> Optional[int]:
+    """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL;
+    None when unknown, or when the local publisher is not named (its window would count other
+    channels' messages)."""
     if endpoint_info.local_gid is None:
-        return 0
-    return endpoint_info.history_depth or 0
+        return None
+    return endpoint_info.history_depth
 
 
 class DemoBackend(BufferBackend):

@@ -43,6 +43,7 @@ class Counters:
     released_window: int = 0
     released_skipped: int = 0
     released_share: int = 0
+    cpu_past_share: int = 0
     peers_gone: int = 0
     cpu_foreign_peer: int = 0
 

@@ -9,9 +9,13 @@ the endpoint cannot take it any more or has used up its share, never by sending 
   it out of the endpoint's reader history (``released_window``);
 - *in order*: the endpoint took a newer one, so it dropped this one (``released_skipped``);
 - *share*: the endpoint has ``endpoint_share`` descriptors (or a third of the pool's bytes) in
-  flight: its oldest are given up, as a KEEP_LAST history would drop them (``released_share``).
-  A slow endpoint keeps getting descriptors; a given-up one it takes later is refused as stale
-  only if its slot was reused meanwhile;
+  flight. When its history is known (it advertises KEEP_LAST N or KEEP_ALL), nothing it can
+  still take is given up: it gets its next messages as CPU bytes until it takes some
+  (:meth:`EndpointLedger.full`; ``cpu_past_share``), so a slow subscriber gets every frame its
+  reader holds, as from stock rclpy, and pins no more of the pool than its share. When its
+  history is not known, its oldest are given up (``released_share``): it keeps getting
+  descriptors, and a given-up one it takes later is refused as stale only if its slot was
+  reused meanwhile;
 - *gone*: the endpoint's process hung up its link: nothing it was sent pins anything (the slots
   leave such tokens out, see :meth:`.slots.Slot.pinning`).
 
@@ -20,7 +24,7 @@ endpoints of one process share those counts, which is why the in-order rule appl
 ledger of one channel (``per_channel``).
 """
 import collections
-from typing import Deque, List, NamedTuple
+from typing import Deque, List, NamedTuple, Optional
 
 from demo_buffer_backend import limits
 from demo_buffer_backend.diagnostics import Counters
@@ -38,13 +42,15 @@ class InFlight(NamedTuple):
 class EndpointLedger:
     """The descriptors in flight to one subscriber endpoint (see the module docstring).
 
-    ``token``: the endpoint's process. ``depth``: its KEEP_LAST history depth, 0 for KEEP_ALL or
-    unknown (or when the ledger may see the messages of several channels: not ``per_channel``).
+    ``token``: the endpoint's process. ``depth``: its KEEP_LAST history depth, 0 for KEEP_ALL,
+    None when unknown (or when the ledger may see the messages of several channels: not
+    ``per_channel``).
     """
 
     __slots__ = ('token', 'depth', 'per_channel', 'seq', 'inflight')
 
-    def __init__(self, token: str, depth: int = 0, per_channel: bool = True) -> None:
+    def __init__(self, token: str, depth: Optional[int] = None,
+                 per_channel: bool = True) -> None:
         self.token = token
         self.depth = depth
         self.per_channel = per_channel
@@ -62,8 +68,8 @@ class EndpointLedger:
 
     def settle(self, counters: Counters) -> None:
         """Bring the in-flight list up to date before message ``seq`` is sent: drop what the
-        endpoint took or what was reclaimed, give up what it can no longer take and what
-        exceeds its share."""
+        endpoint took or what was reclaimed, give up what it can no longer take and, when its
+        history is not known, what exceeds its share."""
         token = self.token
         kept: List[InFlight] = []
         for entry in self.inflight:
@@ -83,12 +89,15 @@ class EndpointLedger:
         if self.depth:  # seq is the message being described now
             while inflight and self.seq - inflight[0].seq >= self.depth:
                 counters.released_window += self._give_up(inflight.popleft())
-        share = limits.current.endpoint_share()
-        share_bytes = limits.current.endpoint_share_bytes()
-        while inflight and (len(inflight) >= share or sum(
-                e.slot.capacity for e in inflight) >= share_bytes):
-            counters.released_share += self._give_up(inflight.popleft())
+        if self.depth is None:  # it may no longer hold its oldest: give them up
+            while inflight and _past_share(inflight):
+                counters.released_share += self._give_up(inflight.popleft())
         self.inflight = inflight
+
+    def full(self) -> bool:
+        """The endpoint, whose history is known, has its share of the pool in flight, all of it
+        still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
+        return self.depth is not None and bool(self.inflight) and _past_share(self.inflight)
 
     def _give_up(self, entry: InFlight) -> bool:
         """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
@@ -97,3 +106,9 @@ class EndpointLedger:
             return False
         slot.released[self.token] = slot.released.get(self.token, 0) + 1
         return True
+
+
+def _past_share(inflight: Deque[InFlight]) -> bool:
+    """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes)."""
+    return (len(inflight) >= limits.current.endpoint_share() or
+            sum(e.slot.capacity for e in inflight) >= limits.current.endpoint_share_bytes())

@@ -86,9 +86,9 @@ class Pool:
         """Record one more descriptor of ``pin``'s slot for the ledger's endpoint and return it,
         its segment handed over first if need be (and the subscriber's verdict on it awaited,
         without the guard, for ``limits.VERDICT_SECONDS`` at most). None (CPU bytes for this
-        endpoint) when the pin is stale, the endpoint's process is not of our user, its queue
-        is full, or it refused the link or the segment; ``EndpointGone`` when that process is
-        gone."""
+        endpoint) when the pin is stale, the endpoint has its share of the pool in flight (and
+        can still take all of it), its process is not of our user, its queue is full, or it
+        refused the link or the segment; ``EndpointGone`` when that process is gone."""
         with self.guard:
             slot = pin.slot
             if pin.owner is not self.slots or not slot.current(pin.generation):
@@ -96,6 +96,11 @@ class Pool:
                 return None
             token = ledger.token
             ledger.seq += 1
+            ledger.settle(self.counters)
+            if ledger.full():  # all it can still take is in flight: a copy, not more memory
+                self.counters.cpu_past_share += 1
+                self.counters.descriptors_declined += 1
+                return None
             if token == self.token:
                 self.mappings.adopt_own(slot)
                 return self._record(pin, ledger, None)
@@ -150,7 +155,6 @@ class Pool:
         if verdict is not None and verdict.kind == ReplyKind.REFUSED:
             self.counters.descriptors_declined += 1
             return None
-        ledger.settle(self.counters)
         ledger.record(slot)
         slot.last_used = time.monotonic_ns()
         self.counters.descriptors_created += 1

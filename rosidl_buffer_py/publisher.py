@@ -49,7 +49,8 @@ from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.diagnostics import PublisherStatistics, SubscriptionPeer
 from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
-from rosidl_buffer_py.qos import incompatible_qos_once_per_peer, reliable_subscription
+from rosidl_buffer_py.qos import (
+    incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
 
 
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
@@ -532,8 +533,10 @@ class Publisher(rclpy.publisher.Publisher):
             self._route_timer, self._deadline and self._deadline.timer], self._logger)
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
-        # backends account per channel: which local publisher serves this peer
-        info = dataclasses.replace(info, local_gid=self._gid)
+        # backends account per channel: which local publisher serves this peer, and what its
+        # reader's history holds (it advertises it with its cpu entry)
+        info = dataclasses.replace(info, local_gid=self._gid,
+                                   history_depth=parse_history_metadata(backends.get(CPU_BACKEND)))
         depth = self.qos_profile.depth
         record = _SubscriptionPeer(info=info, backends=backends, route=self._table.add(
             info.gid, handshake=self._handshake and reliable_subscription(

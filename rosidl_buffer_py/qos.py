@@ -1,12 +1,13 @@
 """QoS of the endpoints on a topic, as the ROS graph reports them: which peers DDS would not
 match with ours, which subscriptions are reliable, and rclpy's incompatible-QoS event reported
-once per incompatible peer."""
+once per incompatible peer; and a subscription's history, which buffer-aware subscriptions
+advertise (the graph does not report it)."""
 import copy
-from typing import Set
+from typing import Optional, Set
 
 from rclpy.logging import get_logger
 from rclpy.qos import (
-    QoSCompatibility, QoSProfile, ReliabilityPolicy, qos_check_compatible,
+    HistoryPolicy, QoSCompatibility, QoSProfile, ReliabilityPolicy, qos_check_compatible,
     qos_policy_name_from_kind)
 
 from rosidl_buffer_py.backend import EndpointKind
@@ -78,3 +79,31 @@ def incompatible_qos_once_per_peer(event_callbacks, node, endpoint_impl, kind: E
     event_callbacks.incompatible_qos = once_per_peer(
         callback, lambda: incompatible_peers(node, resolved, gid, peer_kind))
     return event_callbacks
+
+
+#: A subscription's history, as its ``cpu`` advertisement entry carries it: ``keep_last.<N>``
+#: or ``keep_all``. DDS discovery does not carry a reader's history; a publisher needs it to
+#: know which descriptors the subscription can still take (its buffers' memory is kept that
+#: long, see ``EndpointInfo.history_depth``).
+KEEP_LAST_PREFIX = 'keep_last.'
+KEEP_ALL = 'keep_all'
+
+
+def history_metadata(qos: QoSProfile) -> str:
+    """``keep_last.<depth>`` or ``keep_all`` for a subscription's QoS."""
+    if qos.history == HistoryPolicy.KEEP_ALL:
+        return KEEP_ALL
+    return f'{KEEP_LAST_PREFIX}{qos.depth}'
+
+
+def parse_history_metadata(text: Optional[str]) -> Optional[int]:
+    """The history a subscription advertised: its KEEP_LAST depth (> 0), 0 for KEEP_ALL, None
+    when it said nothing usable (an older or foreign peer: the metadata comes from the
+    network)."""
+    if text == KEEP_ALL:
+        return 0
+    if isinstance(text, str) and text.startswith(KEEP_LAST_PREFIX):
+        digits = text[len(KEEP_LAST_PREFIX):]
+        if digits.isdigit() and len(digits) <= 9 and int(digits) > 0:
+            return int(digits)
+    return None

@@ -54,7 +54,7 @@ from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
 from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
-from rosidl_buffer_py.qos import incompatible_qos_once_per_peer
+from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
 
 
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
@@ -175,6 +175,9 @@ class Subscription(rclpy.subscription.Subscription):
         self._backends = {name: backends[name] for name in self._accepted}
         self._advertised = {name: backend.get_backend_metadata()
                             for name, backend in sorted(self._backends.items())}
+        # our history, which DDS discovery does not carry: publishers keep a descriptor's
+        # memory while it can still be taken from it (see EndpointInfo.history_depth)
+        self._advertised[CPU_BACKEND] = history_metadata(qos_profile)
         self._user_data = advertisement.append(
             get_user_data(reader, 'subscription'), self._advertised)
         self._peers: PeerTable[_PublisherPeer] = PeerTable(

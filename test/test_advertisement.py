@@ -1,7 +1,10 @@
 """USER_DATA advertisement format and channel names."""
 import pytest
 
+from rclpy.qos import HistoryPolicy, QoSProfile
+
 from rosidl_buffer_py import advertisement, channel
+from rosidl_buffer_py.qos import history_metadata, parse_history_metadata
 
 TYPEHASH = b'typehash=RIHS01_' + b'ab' * 32 + b';'
 
@@ -108,3 +111,19 @@ def test_channel_topic_uses_full_gids():
 def test_bad_channel_arguments(topic, pub, sub):
     with pytest.raises(ValueError):
         channel.channel_topic(topic, pub, sub)
+
+
+@pytest.mark.parametrize('qos, text, depth', [
+    (QoSProfile(depth=50), 'keep_last.50', 50),
+    (QoSProfile(depth=1), 'keep_last.1', 1),
+    (QoSProfile(depth=10, history=HistoryPolicy.KEEP_ALL), 'keep_all', 0),
+])
+def test_a_subscriptions_history_round_trips_in_its_cpu_entry(qos, text, depth):
+    assert history_metadata(qos) == text and parse_history_metadata(text) == depth
+    assert advertisement.decode(advertisement.encode({'cpu': text})) == {'cpu': text}
+
+
+@pytest.mark.parametrize('text', [None, '', 'keep_last.', 'keep_last.0', 'keep_last.-3',
+                                  'keep_last.1e3', 'keep_last.' + '9' * 12, 'KEEP_ALL', 'x'])
+def test_a_history_from_the_network_that_says_nothing_usable_is_unknown(text):
+    assert parse_history_metadata(text) is None  # the publisher then treats it as KEEP_ALL

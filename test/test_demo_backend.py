@@ -743,17 +743,19 @@ def test_keep_last_window_stops_pinning_what_the_peer_can_no_longer_take(backend
     for _ in range(3):
         assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(5000), unnamed)
     assert backend.peer_ledgers()[ep.gid_hex] == dict(
-        backend.peer_ledgers()[ep.gid_hex], depth=0, in_flight=3)
+        backend.peer_ledgers()[ep.gid_hex], depth=None, in_flight=3)
 
 
-def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers):
-    """A KEEP_ALL peer (another live process) that never takes keeps getting descriptors: past
-    its share its oldest are given up (as a KEEP_LAST history would drop them), so it pins no
-    more than its share; a peer that takes gets every frame zero-copy and the pool never falls
-    back."""
+@pytest.mark.parametrize('history', [None, 0], ids=['unknown', 'keep_all'])
+def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers, history):
+    """A peer (another live process) that never takes pins no more than its share; a peer that
+    takes gets every frame zero-copy and the pool never falls back. When the stuck peer's
+    history is not known, past its share its oldest are given up and it keeps getting
+    descriptors; when it is known (KEEP_ALL here), nothing it can still take is given up: its
+    next frames go as CPU bytes, and what it was sent stays valid."""
     demo_buffer_backend.configure(max_slots=4, max_inflight_per_peer=1, reclaim_timeout=3600)
     stuck_peer = peers()
-    stuck = _discovered(backend, b'\x31' * 16, depth=0, metadata=stuck_peer.metadata)
+    stuck = _discovered(backend, b'\x31' * 16, depth=history, metadata=stuck_peer.metadata)
     healthy = _discovered(backend, b'\x32' * 16, depth=0)
     to_stuck = []
     for i in range(30):
@@ -769,14 +771,21 @@ def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers)
         assert backend.peer_ledgers()[f'{stuck.gid_hex}/{PUBLISHER_GID.hex()}'][
             'in_flight'] == 1
     stats = demo_buffer_backend.stats()
-    assert stats['released_share'] == 29 and stats['fallbacks'] == 0, stats
-    assert stats['reclaimed'] == 0 and stats['descriptors_declined'] == 0, stats
-    assert all(d is not None for _, _, d in to_stuck)
-    # its share (the last frame) is protected: never reused, and it can still take it
-    segment, generation, last = to_stuck[-1]
+    assert stats['fallbacks'] == stats['reclaimed'] == 0, stats
+    if history is None:
+        assert stats['released_share'] == 29 and stats['descriptors_declined'] == 0, stats
+        assert all(d is not None for _, _, d in to_stuck)
+        kept, fill = to_stuck[-1], 29  # its share (the last frame) is protected
+    else:
+        assert stats['released_share'] == 0, stats
+        assert stats['cpu_past_share'] == stats['descriptors_declined'] == 29, stats
+        assert to_stuck[0][2] is not None and all(d is None for _, _, d in to_stuck[1:])
+        kept, fill = to_stuck[0], 0  # what it was sent first, never given up
+    # never reused, and it can still take it
+    segment, generation, desc = kept
     assert lifecycle.get_pool().slots.by_id[segment[1]].generation == generation
-    assert stuck_peer('take', desc=last.hex(), key='last')['sha'] == \
-        hashlib.sha256(bytes([29]) * 3000).hexdigest()
+    assert stuck_peer('take', desc=desc.hex(), key='kept')['sha'] == \
+        hashlib.sha256(bytes([fill]) * 3000).hexdigest()
 
 
 def test_in_order_takes_release_what_the_peer_skipped(backend):
@@ -807,7 +816,9 @@ def test_slow_peer_keeps_getting_descriptors(backend):
     """Being slow is no reason for CPU bytes: a peer that took nothing for a while still gets
     descriptors (the "not taking for 2 s gets CPU bytes" rule is gone)."""
     demo_buffer_backend.configure(max_slots=16, max_inflight_per_peer=4, reclaim_timeout=3600)
-    ep = _discovered(backend, b'\x51' * 16, depth=0)
+    # its history unknown: past its share its oldest are given up (a known one would get CPU
+    # bytes past its share, see test_share_caps_what_one_peer_pins_the_others_keep_zero_copy)
+    ep = _discovered(backend, b'\x51' * 16)
     first = DemoBuffer.allocate(100)
     assert backend.create_descriptor_with_endpoint(first, ep) is not None
     time.sleep(0.3)

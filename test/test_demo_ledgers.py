@@ -1,5 +1,6 @@
 """Unit tests of the demo backend's per-endpoint ledgers (demo_buffer_backend/ledgers.py): what
-an endpoint gives up by its KEEP_LAST window, by taking in order and past its share."""
+an endpoint gives up by its KEEP_LAST window, by taking in order and, when its history is not
+bounded or not known, past its share."""
 import os
 
 import pytest
@@ -67,7 +68,32 @@ def test_past_its_share_an_endpoint_gives_up_its_oldest(new_slot):
         _send(ledger, slot, counters)
     assert [e.slot for e in ledger.inflight] == slots[3:]
     assert counters.released_share == 3
-    assert ledger.summary() == {'token': TOKEN, 'depth': 0, 'messages': 5, 'in_flight': 2}
+    assert ledger.summary() == {'token': TOKEN, 'depth': None, 'messages': 5, 'in_flight': 2}
+
+
+def test_an_endpoint_whose_history_is_known_keeps_it_and_is_full_at_its_share(new_slot):
+    """What a subscription whose history is known (KEEP_LAST N, KEEP_ALL) can still take is
+    never given up: at its share it is *full* (its next messages go as CPU bytes) until it
+    takes; its KEEP_LAST window still gives up what its reader can no longer hold."""
+    limits.configure(max_inflight_per_peer=2)
+    for depth in (4, 0):
+        ledger, counters = EndpointLedger(TOKEN, depth=depth), Counters()
+        slots = [new_slot() for _ in range(2)]
+        for slot in slots:
+            _send(ledger, slot, counters)
+        ledger.seq += 1
+        ledger.settle(counters)
+        assert ledger.full() and [e.slot for e in ledger.inflight] == slots
+        assert counters.released_share == 0
+        slots[0].taken[TOKEN] = 1  # it took one: room for the next
+        ledger.settle(counters)
+        assert not ledger.full()
+    ledger, counters = EndpointLedger(TOKEN, depth=2), Counters()
+    limits.configure(max_inflight_per_peer=10)
+    slots = [new_slot() for _ in range(4)]
+    for slot in slots:
+        _send(ledger, slot, counters)
+    assert [e.slot for e in ledger.inflight] == slots[2:] and counters.released_window == 2
 
 
 def test_reused_slots_leave_the_ledger_and_are_not_given_up(new_slot):

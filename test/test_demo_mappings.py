@@ -156,7 +156,7 @@ def pools():
 
 def _ledger(token):
     from demo_buffer_backend.ledgers import EndpointLedger
-    return EndpointLedger(token, 0, per_channel=False)
+    return EndpointLedger(token, None, per_channel=False)
 
 
 def test_a_refused_segment_goes_as_cpu_bytes_never_as_a_descriptor(pools, monkeypatch, caplog):

@@ -126,9 +126,10 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
     flow: it never takes again) and `slow` (0.15 s per callback, so it keeps up with a fifth of
     the frames and loses the others from its history, as a stock subscriber would). The healthy
     one gets every frame, at least 95 % of them as demo Buffers; the others what they get
-    intact, once and in order; being slow or stopped costs them no descriptor (only what
-    their KEEP_LAST history drops). Then the publisher is SIGKILLed: nothing of it was ever in
-    /dev/shm (its memory is memfds, mapped by the subscribers that use them).
+    intact, once and in order; being slow or stopped costs them nothing their KEEP_LAST history
+    holds (past their share of the pool they get CPU bytes, never a descriptor given up under
+    them). Then the publisher is SIGKILLed: nothing of it was ever in /dev/shm (its memory is
+    memfds, mapped by the subscribers that use them).
 
     The graph runs in a /dev/shm of its own when a mount namespace can be made (else the
     machine's, where any process starting the demo backend may clean up first)."""
@@ -162,8 +163,11 @@ def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publishe
             assert report['out_of_order'] == 0, report  # what it gets, in publish order
     slow = reports['slow']
     assert slow and slow['distinct'] >= 20 and slow['backends'].get('demo', 0) > 0, slow
-    # slow is not punished with CPU bytes: everything it got came as descriptors
-    assert slow['backends'].get('cpu', 0) == 0, slow
+    # its history is KEEP_LAST 100: past its share of the pool it gets CPU bytes rather than
+    # descriptors whose slots would be reused under it (nothing went stale while the publisher
+    # lived: test_transport.py's slow subscriber; after the SIGKILL, what is left in its history
+    # of the dead publisher's segments goes once they are unused for ORPHAN_SECONDS)
+    assert slow['backends'].get('cpu', 0) < slow['distinct'], slow
 
 
 # --- backend-level cases ------------------------------------------------------------------------

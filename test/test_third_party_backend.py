@@ -255,8 +255,11 @@ def test_end_to_end_across_processes_with_the_real_nodes(plugin_site, store, tmp
     assert elsewhere['checksum_failures'] == elsewhere['wrong_backend'] == 0, elsewhere
 
     # discovered in each child and advertised in USER_DATA (what each side read of the other)
-    assert sub['statistics']['advertised_backends'] == {'cpu': '', 'filestore': store_meta}
-    assert elsewhere['statistics']['advertised_backends'] == {'cpu': '', 'filestore': other_meta}
+    # (a subscription's cpu entry carries its history, KEEP_LAST 10: see rosidl_buffer_py.qos)
+    assert sub['statistics']['advertised_backends'] == {'cpu': 'keep_last.10',
+                                                        'filestore': store_meta}
+    assert elsewhere['statistics']['advertised_backends'] == {'cpu': 'keep_last.10',
+                                                              'filestore': other_meta}
     assert pub['statistics']['advertised_backends']['filestore'] == store_meta
     [peer_seen_by_sub] = sub['statistics']['peers']
     assert peer_seen_by_sub['advertised_backends']['filestore'] == store_meta

@@ -71,24 +71,29 @@ def test_publisher_restarted():
 
 @pytest.mark.parametrize('kind', ['stock', 'ours'])
 def test_a_slow_subscriber_gets_every_frame_its_publisher_sent_before_exiting(kind):
-    """A publisher that exits right after its last frame, a subscriber spending 0.15 s per
-    frame: stock's gets all 20 from its reader's history after the writer left, and so does a
-    zero-copy one (its channel is drained when the publisher goes, and the frames' memory
-    outlives the publisher)."""
-    topic, count = f'/exit_{kind}_image', 20
+    """A publisher of 30 frames at 30 Hz that exits 0.5 s after its last one, a subscriber
+    spending 0.2 s per frame (RELIABLE KEEP_LAST 50): stock's gets all 30 from its reader's
+    history after the writer left, and so does a buffer-aware one: its channel is drained when
+    the publisher goes, the frames' memory outlives the publisher, and no slot is reused while
+    its descriptor is within the subscription's history (up to 27 wait there, more than its
+    share of the pool, a third of 64 slots: past it, frames go to it as CPU bytes)."""
+    topic, count = f'/exit_{kind}_image', 30
     ours = kind == 'ours'
     with Run() as run:
         run.start('sub', 'image_subscriber', **_sub_params(
-            topic, count, depth=50, work_sec=0.15, legacy=not ours,
+            topic, count, depth=50, work_sec=0.2, legacy=not ours,
             **({'acceptable_buffer_backends': 'demo', 'expected_backend': 'demo'}
                if ours else {})))
         run.start('pub', 'image_publisher', **_pub_params(
-            topic, count, depth=50, rate_hz=30.0, linger_sec=0.0, legacy=not ours,
+            topic, count, depth=50, rate_hz=30.0, linger_sec=0.5, legacy=not ours,
             **({'backend': 'demo', 'wait_for_buffer_peers': 1} if ours else {})))
         assert run.wait(['pub', 'sub'], 60), run.diagnostics()
         report = run.nodes['sub'].report
     assert report['distinct'] == report['received'] == count, (report, run.diagnostics())
     assert report['checksum_failures'] == report['gaps'] == 0, report
+    if ours:
+        assert report['statistics']['rejected'] == 0, report['statistics']  # none went stale
+        assert report['backends'].get('demo', 0) >= 20, report
 
 
 def test_beside_a_legacy_listener_served_subscriptions_take_no_main_topic_copies():
