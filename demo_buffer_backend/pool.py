@@ -97,20 +97,22 @@ class Pool:
             token = ledger.token
             ledger.seq += 1
             ledger.settle(self.counters)
+            link = None
+            if token != self.token:
+                link = self.links.get(token)
+                if link is None:
+                    self.counters.descriptors_declined += 1
+                    return None
+                self.links.drain(link)
+                if token in self.links.gone:  # before anything else: a dead peer gets nothing
+                    raise gone_error(token)
             if ledger.full():  # all it can still take is in flight: a copy, not more memory
                 self.counters.cpu_past_share += 1
                 self.counters.descriptors_declined += 1
                 return None
-            if token == self.token:
+            if link is None:
                 self.mappings.adopt_own(slot)
                 return self._record(pin, ledger, None)
-            link = self.links.get(token)
-            if link is None:
-                self.counters.descriptors_declined += 1
-                return None
-            self.links.drain(link)
-            if token in self.links.gone:
-                raise gone_error(token)
             if self.links.by_token.get(token) is not link:  # it refused the link just now
                 self.counters.descriptors_declined += 1
                 return None

@@ -788,6 +788,21 @@ def test_share_caps_what_one_peer_pins_the_others_keep_zero_copy(backend, peers,
         hashlib.sha256(bytes([fill]) * 3000).hexdigest()
 
 
+def test_a_dead_peer_with_its_share_in_flight_gets_nothing_not_cpu_bytes(backend, peers):
+    """A peer whose history is known and whose share is in flight gets CPU bytes while it
+    lives; once its process is gone, it gets nothing (EndpointGone), as any dead peer."""
+    demo_buffer_backend.configure(max_slots=8, max_inflight_per_peer=1, reclaim_timeout=3600)
+    peer = peers()
+    ep = _discovered(backend, b'\x35' * 16, depth=0, metadata=peer.metadata)
+    first = DemoBuffer.allocate(100)
+    assert backend.create_descriptor_with_endpoint(first, ep) is not None
+    assert backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep) is None
+    peer.kill9()
+    with pytest.raises(EndpointGone):
+        backend.create_descriptor_with_endpoint(DemoBuffer.allocate(100), ep)
+    assert demo_buffer_backend.stats()['cpu_past_share'] == 1
+
+
 def test_in_order_takes_release_what_the_peer_skipped(backend):
     demo_buffer_backend.configure(max_slots=8, max_inflight_per_peer=3, reclaim_timeout=3600)
     ep = _discovered(backend, b'\x41' * 16, depth=0)
