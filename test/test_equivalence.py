@@ -5,6 +5,8 @@ A failure lists every difference between the two outcomes (see test/harness/equi
 for what is compared and the tolerances). One scenario by hand:
 ``.venv/bin/python test/harness/equivalence.py <name> [--echo]``.
 """
+import os
+import re
 import subprocess
 import sys
 
@@ -35,6 +37,24 @@ def test_command_line_runs_named_scenarios():
     unknown = subprocess.run([sys.executable, equivalence.__file__, 'nope'],
                              capture_output=True, text=True, timeout=60)
     assert unknown.returncode == 2 and 'reliable_pub_first_wait' in unknown.stderr
+
+
+def test_stress_prints_each_scenarios_rate_ours_and_stock_against_itself():
+    """docs/development.md's ./dev stress, one round of one scenario beside one busy process:
+    a row with how many runs differed each way and the verdict; a bad argument is refused."""
+    script = os.path.join(os.path.dirname(equivalence.__file__), 'stress.py')
+    done = subprocess.run([sys.executable, script, 'keep_last_1_mixed', '--runs', '1',
+                           '--load', '1'], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert '1 runs each, 1 busy processes beside them' in done.stdout, done.stdout
+    row = re.search(r'^\| keep_last_1_mixed \| ([01]) of 1 \| ([01]) of 1 \| '
+                    r'(stable|ours differs more|stock unstable) \|', done.stdout, re.M)
+    assert row, done.stdout
+    assert (row.group(3) == 'stable') == (row.group(1) == row.group(2) == '0'), done.stdout
+    for bad in (['nope'], ['--runs', '0']):
+        refused = subprocess.run([sys.executable, script, *bad], capture_output=True,
+                                 text=True, timeout=60)
+        assert refused.returncode == 2, refused.stderr
 
 
 # The comparison itself, on outcomes made up for the purpose ----------------------------------
