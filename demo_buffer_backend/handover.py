@@ -54,7 +54,7 @@ class Refusal(enum.IntEnum):
     """Why a subscriber process refused a segment or a connection."""
 
     PROCESS_LIMIT = 1  #: the sender has as many segments mapped as one process may
-    TOTAL_LIMIT = 2    #: this process has as many segments mapped as it may
+    TOTAL_LIMIT = 2    #: this process has as many segments mapped as it may, or cannot map more
     INVALID = 3        #: not a segment as the demo backend makes them
     UNMATCHED = 4      #: the sender is not a buffer-aware publisher this process discovered
 
@@ -65,7 +65,8 @@ class Refusal(enum.IntEnum):
 _REFUSAL_TEXT = {
     Refusal.PROCESS_LIMIT: 'it maps at most limits.MAX_MAPPINGS_PER_PROCESS segments of one '
                            'publisher process',
-    Refusal.TOTAL_LIMIT: 'it maps at most limits.MAX_MAPPINGS segments in all',
+    Refusal.TOTAL_LIMIT: 'it has no room for more segments (limits.MAX_MAPPINGS in all, or '
+                         'its memory or descriptors ran out)',
     Refusal.INVALID: 'the segment is not one the demo backend makes',
     Refusal.UNMATCHED: 'discovery did not show this process as a buffer-aware publisher '
                        'matched to it',

@@ -170,7 +170,6 @@ class Mappings:
             if mapping is not None and mapping.conn is conn:
                 mapping.retired = True
             return True
-        refusal = None
         if key in self.by_key:
             problem, refusal = (f'segment {record.segment_id} was handed over already',
                                 Refusal.INVALID)
@@ -186,8 +185,10 @@ class Mappings:
                 self.counters.handovers_received += 1
                 handover.send_reply(conn, ReplyKind.ACCEPTED, record.segment_id)
                 return True
-            except (ValueError, OSError) as exc:
+            except ValueError as exc:  # not a segment as the demo backend makes them
                 problem, refusal = str(exc), Refusal.INVALID
+            except OSError as exc:  # ours: out of descriptors or address space
+                problem, refusal = f'cannot map it here: {exc}', Refusal.TOTAL_LIMIT
         os.close(record.fd)
         self._refuse_handover(pid, problem)
         handover.send_reply(conn, ReplyKind.REFUSED, record.segment_id, refusal)

@@ -130,8 +130,8 @@ class Received(NamedTuple):
 def open_received(fd: int, capacity: int) -> Received:
     """Map a received segment descriptor after checking that it is one as :class:`Segment`
     creates them: a sealed memfd of ``HEADER_SIZE + capacity`` bytes, all backed, with our
-    header. ``ValueError`` naming what is wrong otherwise; ``fd`` stays the caller's to close
-    on error."""
+    header. ``ValueError`` naming what is wrong otherwise; ``OSError`` when this process lacks
+    the memory or descriptors to map it; ``fd`` stays the caller's to close on error."""
     try:
         seals = fcntl.fcntl(fd, fcntl.F_GET_SEALS)
     except OSError:
@@ -152,6 +152,8 @@ def open_received(fd: int, capacity: int) -> Received:
         mapped = mmap.mmap(fd, st.st_size, prot=mmap.PROT_READ,  # page tables filled now
                            flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
     except OSError as exc:
+        if exc.errno in (errno.ENOMEM, errno.EAGAIN, errno.EMFILE, errno.ENFILE):
+            raise  # this process lacks the memory or descriptors, not the segment's fault
         raise ValueError(f'cannot map it: {exc}') from None
     magic, recorded, _, _, _ = HEADER.unpack_from(mapped, 0)
     if (magic, recorded) != (MAGIC, capacity):
