@@ -9,7 +9,9 @@ the first channel message. They are their own encoding, which no message can be 
     bytes 2-3  'R' 'B'     encapsulation options: 0x0000 in every CDR message rmw or the codec
                            writes, so these two bytes alone tell a control message apart
     byte  4    kind        1: probe, 2: route fence
-    bytes 5-7  0
+    byte  5    flags       fence: bit 0 set when its message had reached every reader
+                           (``Fence.delivered``); 0 otherwise
+    bytes 6-7  0
     bytes 8-15 value       uint64 little endian: the fence's last main-topic timestamp (probe: 0)
 
 A sample with those options that is not exactly this is malformed (rejected, never delivered).
@@ -21,7 +23,9 @@ from typing import NamedTuple, Optional, Union
 from rosidl_buffer_py.routes import Fence
 
 _HEADER = b'\x00\x01RB'
-_FORM = struct.Struct('<4sB3xQ')
+_FORM = struct.Struct('<4sBB2xQ')
+#: Fence flags (byte 5).
+DELIVERED = 0x01
 SIZE = _FORM.size
 
 
@@ -40,7 +44,7 @@ class Probe(NamedTuple):
 
 #: The only probe there is.
 PROBE = Probe()
-PROBE_BYTES = _FORM.pack(_HEADER, Kind.PROBE, 0)
+PROBE_BYTES = _FORM.pack(_HEADER, Kind.PROBE, 0, 0)
 
 
 def encode(message: Union[Probe, Fence]) -> bytes:
@@ -48,7 +52,8 @@ def encode(message: Union[Probe, Fence]) -> bytes:
     if isinstance(message, Fence):
         if not 0 <= message.last_main < 1 << 64:
             raise ValueError(f'a fence names a uint64 timestamp, got {message.last_main!r}')
-        return _FORM.pack(_HEADER, Kind.FENCE, message.last_main)
+        return _FORM.pack(_HEADER, Kind.FENCE, DELIVERED if message.delivered else 0,
+                          message.last_main)
     if isinstance(message, Probe):
         return PROBE_BYTES
     raise TypeError(f'expected a Probe or a Fence, got {type(message).__name__}')
@@ -63,11 +68,12 @@ def decode(raw) -> Union[Probe, Fence]:
     """The control message ``raw`` holds; :class:`ControlError` if it is not a valid one."""
     if len(raw) != SIZE:
         raise ControlError(f'a control message is {SIZE} bytes, got {len(raw)}')
-    header, kind, value = _FORM.unpack(bytes(raw))
-    if header != _HEADER or bytes(raw[5:8]) != b'\0\0\0':
+    header, kind, flags, value = _FORM.unpack(bytes(raw))
+    if header != _HEADER or bytes(raw[6:8]) != b'\0\0' or \
+            flags & ~(DELIVERED if kind == Kind.FENCE else 0):
         raise ControlError(f'malformed control message header {bytes(raw[:8]).hex()}')
     if kind == Kind.FENCE:
-        return Fence(value)
+        return Fence(value, bool(flags & DELIVERED))
     if kind == Kind.PROBE and value == 0:
         return PROBE
     raise ControlError(f'unknown control message kind {kind} (value {value}); known: '

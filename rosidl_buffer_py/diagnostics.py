@@ -88,4 +88,7 @@ class SubscriptionStatistics(_Record):
     fences: int = 0
     fence_timeouts: int = 0
     fenced_lost: int = 0
+    #: publishers whose stream waits now for a fenced main-topic message (its channel's
+    #: messages queued meanwhile): the waits that have not ended yet
+    waiting_for_fence: int = 0
     peers: List[PublisherPeer] = field(default_factory=list)

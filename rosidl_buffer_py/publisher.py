@@ -53,6 +53,8 @@ from rosidl_buffer_py.qos import (
     incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
 
 
+#: ``wait_for_all_acked`` that only checks.
+_NO_WAIT = Duration(seconds=0)
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
@@ -312,10 +314,16 @@ class Publisher(rclpy.publisher.Publisher):
         and, when ``main``, to the main topic, whose sample the ``withheld`` subscriptions (their
         channels carry this message) do not get. True when a route changed state meanwhile."""
         changed = False
+        delivered = None  # whether every main-topic reader acknowledged what it was sent
         for peer in peers:
             fence = peer.route.take_fence()
             if fence is not None:
                 changed = True
+                if delivered is None:  # the main topic's writer alone, without waiting
+                    delivered = super().wait_for_all_acked(_NO_WAIT)
+                # its message reached the subscription's reader: if that history has nothing
+                # left, the message was lost there, and the subscription need not wait for it
+                fence = fence._replace(delivered=delivered)
                 self._logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message '
                               f'{fence.last_main})')
                 peer.channel.publish(control.encode(fence), timestamp)

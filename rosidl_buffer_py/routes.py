@@ -31,7 +31,8 @@ Subscription side: one :class:`Stream` per publisher::
 
     MAIN --channel message--> CHANNEL
       \\--fence--> WAITING --fenced main-topic message delivered, or known lost (a newer
-                            main-topic copy came), or FENCE_TIMEOUT--> CHANNEL
+                            main-topic copy came, or it was delivered to the reader and the
+                            reader has nothing left), or FENCE_TIMEOUT--> CHANNEL
 
 Every copy of a message carries its publisher's source timestamp, increasing per publisher; a
 stream delivers each timestamp at most once and in increasing order. In WAITING, channel
@@ -83,6 +84,11 @@ class Fence(NamedTuple):
 
     #: Source timestamp of the last message the main topic carried for the subscription (0: none).
     last_main: int
+    #: Every reader of the main topic, the subscription's included, had acknowledged that
+    #: message when the fence was written: it reached the subscription's reader history, so once
+    #: that history has nothing left to take, a fenced message not delivered is lost (KEEP_LAST
+    #: overwrite, a startup race), not late, and nothing waits for it.
+    delivered: bool = False
 
 
 @dataclass
@@ -338,6 +344,8 @@ class Stream(Generic[T]):
     #: main-topic copies from ``switch`` on duplicate channel messages.
     fence: int = 0
     switch: Optional[int] = None
+    #: The fence said its message reached our reader (:attr:`Fence.delivered`).
+    fence_delivered: bool = False
     waiting: Deque[Tuple[int, T]] = field(default_factory=collections.deque)
     waiting_since: float = 0.0
     timeouts: int = 0
@@ -371,6 +379,7 @@ class Stream(Generic[T]):
     def fenced(self, timestamp: int, fence: Fence, now: float) -> None:
         """The publisher switched us to its channel from message ``timestamp`` on."""
         self.switch, self.fence = timestamp, fence.last_main
+        self.fence_delivered = fence.delivered
         self._enter_waiting_or_channel(now)
 
     def channel(self, timestamp: int, item: T, now: float) -> Verdict:
@@ -388,15 +397,21 @@ class Stream(Generic[T]):
 
     def release(self, now: float, main_drained: bool = True) -> Optional[T]:
         """The next queued channel message that may be delivered now, or None. Ends WAITING once
-        the fenced message was delivered, or once ``FENCE_TIMEOUT_SECONDS`` passed while the
-        main topic had nothing left to take (it was lost on the way: counted). A subscription
-        that was slow to take never loses a message that is there."""
+        the fenced message was delivered; at once when the main topic has nothing left to take
+        and the fence said its message had reached our reader (it was lost there: counted);
+        else once ``FENCE_TIMEOUT_SECONDS`` passed while the main topic had nothing left to take
+        (it was lost on the way: counted). A subscription that was slow to take never loses a
+        message that is there."""
         if self.state is StreamState.WAITING:
-            if self.last < self.fence and (
-                    not main_drained or now - self.waiting_since < FENCE_TIMEOUT_SECONDS):
-                return None
             if self.last < self.fence:
-                self.timeouts += 1  # the fenced message was lost on the way
+                if not main_drained:
+                    return None
+                if self.fence_delivered:
+                    self.lost_fenced += 1  # overwritten in our reader's history, or never ours
+                elif now - self.waiting_since < FENCE_TIMEOUT_SECONDS:
+                    return None
+                else:
+                    self.timeouts += 1  # the fenced message was lost on the way
             self.state = StreamState.CHANNEL
         while self.waiting:
             timestamp, item = self.waiting.popleft()
@@ -470,6 +485,10 @@ class StreamTable(Generic[T]):
             self._ended[0] += stream.timeouts
             self._ended[1] += stream.lost_fenced
         return stream
+
+    def waiting(self) -> int:
+        """Streams waiting now for a fenced message (their channel messages queued)."""
+        return sum(s.state is StreamState.WAITING for s in self.streams.values())
 
     def fence_counts(self) -> Tuple[int, int]:
         """Fenced messages given up after FENCE_TIMEOUT_SECONDS, and known lost, so far."""

@@ -243,7 +243,7 @@ class Subscription(rclpy.subscription.Subscription):
                     'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
                     'rejected', 'fences')},
                 fence_timeouts=fence_timeouts, fenced_lost=fenced_lost,
-                peers=self.buffer_peers())
+                waiting_for_fence=self._streams.waiting(), peers=self.buffer_peers())
 
     # the delivery path ----------------------------------------------------------------------
 

@@ -13,7 +13,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
     CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_TIMEOUT_SECONDS, PROBE_INTERVAL_SECONDS,
-    Fence, Route, RouteState, RouteTable, Stream, StreamState, Verdict)
+    Fence, Route, RouteState, RouteTable, Stream, StreamState, StreamTable, Verdict)
 
 S = RouteState
 
@@ -226,6 +226,43 @@ def test_a_newer_main_topic_copy_proves_the_fenced_message_lost():
     assert stream.main(3) is Verdict.DUPLICATE  # too late now: older than what was delivered
 
 
+def test_a_fenced_message_delivered_to_the_reader_and_not_there_is_lost_without_a_wait():
+    """The fence said its message had reached the reader (every main-topic reader had
+    acknowledged it): once the reader has nothing left to take, a fenced message not delivered
+    was lost there (KEEP_LAST overwrite, or never the reader's: a startup race), and the
+    queued channel messages go at once, not after FENCE_TIMEOUT_SECONDS."""
+    stream = Stream()
+    stream.main(1)
+    stream.fenced(5, Fence(3, delivered=True), now=0.0)
+    assert stream.state is StreamState.WAITING
+    assert stream.channel(5, 'm5', now=0.0) is Verdict.QUEUED
+    assert stream.release(0.0, main_drained=False) is None  # it may still be there: take it
+    assert stream.release(0.0, main_drained=True) == 'm5'
+    assert stream.state is StreamState.CHANNEL
+    assert stream.lost_fenced == 1 and stream.timeouts == 0
+    assert stream.main(3) is Verdict.DUPLICATE  # never delivered out of order or twice
+
+
+def test_a_delivered_fenced_message_still_in_the_reader_comes_first():
+    stream = Stream()
+    stream.fenced(5, Fence(3, delivered=True), now=0.0)
+    stream.channel(5, 'm5', now=0.0)
+    assert stream.release(0.0, main_drained=False) is None
+    assert stream.main(3) is Verdict.DELIVER  # taken from the reader first
+    assert stream.release(0.0) == 'm5' and stream.lost_fenced == 0
+
+
+def test_the_table_shows_the_streams_waiting_now():
+    """statistics()'s waiting_for_fence: a wait shows while it lasts, not only once it ended."""
+    table = StreamTable()
+    table['a'].fenced(3, Fence(2), now=0.0)
+    table['a'].channel(3, 'm3', now=0.0)
+    table['b'].main(1)
+    assert table.waiting() == 1 and table.fence_counts() == (0, 0)
+    assert table['a'].main(2) is Verdict.DELIVER and table['a'].release(0.0) == 'm3'
+    assert table.waiting() == 0
+
+
 def test_best_effort_stream_never_waits():
     stream = Stream(reliable=False)
     stream.fenced(3, Fence(2), now=0.0)
@@ -243,7 +280,8 @@ def test_stream_channel_without_fence_switches_and_lost_channel_goes_back_to_mai
 # --- control messages -------------------------------------------------------------------------
 
 def test_control_messages_round_trip_and_are_told_from_messages():
-    for message in (control.PROBE, Fence(0), Fence(2 ** 64 - 1), Fence(123456789)):
+    for message in (control.PROBE, Fence(0), Fence(2 ** 64 - 1), Fence(123456789),
+                    Fence(7, delivered=True)):
         raw = control.encode(message)
         assert control.is_control(raw) and control.parse(raw) == message
     cdr = b'\x00\x01\x00\x00' + bytes(12)  # every CDR message rmw or the codec writes
@@ -253,7 +291,9 @@ def test_control_messages_round_trip_and_are_told_from_messages():
 @pytest.mark.parametrize('raw', [
     b'\x00\x01RB', b'\x00\x01RB' + bytes(13), b'\x00\x01RB\x03' + bytes(11),
     b'\x00\x01RB\x01\x00\x00\x00' + (1).to_bytes(8, 'little'),
-    b'\x00\x01RB\x02\x01\x00\x00' + bytes(8)])
+    b'\x00\x01RB\x01\x01\x00\x00' + bytes(8),  # a probe has no flags
+    b'\x00\x01RB\x02\x02\x00\x00' + bytes(8),  # a fence flag nobody defined
+    b'\x00\x01RB\x02\x00\x01\x00' + bytes(8)])
 def test_malformed_control_messages_are_rejected(raw):
     with pytest.raises(control.ControlError):
         control.parse(raw)
@@ -311,10 +351,13 @@ class RouteProtocol(RuleBasedStateMachine):
 
     # the publisher side -----------------------------------------------------------------
 
-    @rule(fresh=st.booleans())
-    def publish(self, fresh):
+    @rule(fresh=st.booleans(), acked=st.booleans())
+    def publish(self, fresh, acked):
         """Publish one message; with ``fresh`` False, by the plan of the last publish (the
-        publisher caches its plan while the matched counts it was made with hold)."""
+        publisher caches its plan while the matched counts it was made with hold). A fence
+        says its message reached the reader when the main topic's writer knows it was
+        acknowledged: the modelled links deliver at once, so that is true whenever the
+        writer knows, which ``acked`` says (False: the acknowledgment is not in yet)."""
         self.timestamp += 1
         ts = self.timestamp
         self.published.append(ts)
@@ -335,6 +378,7 @@ class RouteProtocol(RuleBasedStateMachine):
                 self.written_after_gone += 1
             fence = self.route.take_fence()
             if fence is not None:
+                fence = fence._replace(delivered=acked)
                 self.channel.write(('control', control.encode(fence), ts))
                 self.cached_plan = None  # the publisher plans again after a fence
             self.channel.write(('data', None, ts))
@@ -345,6 +389,14 @@ class RouteProtocol(RuleBasedStateMachine):
                 self.main.write(('data', None, ts))
             if self.table.main_written(plan.main_served, ts):
                 self.cached_plan = None
+
+    @rule(count=st.integers(1, 2 * LINK_DEPTH))
+    def another_publisher_writes(self, count):
+        """A second publisher of the keyless topic writes ``count`` samples while the
+        subscription does not take: they share its main reader history, and push this
+        publisher's untaken ones out of it (KEEP_LAST), as in the startup of a real graph."""
+        for _ in range(count):
+            self.main.write(('other', None, 0))
 
     @rule()
     def channel_matches(self):
@@ -380,7 +432,10 @@ class RouteProtocol(RuleBasedStateMachine):
     @precondition(lambda self: self.main.queue and not self.dead)
     @rule()
     def take_main(self):
-        _, _, ts = self.main.queue.popleft()
+        kind, _, ts = self.main.queue.popleft()
+        if kind == 'other':  # the other publisher's stream: not this one's business
+            self._release()
+            return
         if self.stream.main(ts) is Verdict.DELIVER:
             self.delivered.append(ts)
         self._release()
@@ -430,6 +485,15 @@ class RouteProtocol(RuleBasedStateMachine):
             if ts in self.stream_waiting_timestamps():
                 assert self.now - since < FENCE_TIMEOUT_SECONDS + 1e-9, (ts, since, self.now)
 
+    @invariant()
+    def nothing_waits_for_what_the_reader_lost(self):
+        """A fence whose message reached the reader (acknowledged) waits only while the reader
+        has something left to take: once empty, the message was overwritten there, and the
+        channel's messages go at once, with no timeout."""
+        self._release()
+        if not self.main.queue and self.stream.fence_delivered:
+            assert self.stream.state is not StreamState.WAITING, self.stream
+
     def stream_waiting_timestamps(self):
         return {ts for ts, _ in self.stream.waiting}
 
@@ -462,6 +526,32 @@ class RouteProtocol(RuleBasedStateMachine):
         self.now += FENCE_TIMEOUT_SECONDS
         self._release()
         assert self.delivered == sorted(set(self.delivered))
+
+
+def test_model_trace_a_fenced_message_lost_to_another_publishers_samples():
+    """The ordering a CI run met (issue 27): the fenced message (the last main-topic one) is
+    pushed out of the subscription's KEEP_LAST reader history by another publisher's samples
+    before the subscription took it, and every later main-topic sample of its publisher is
+    withheld from it. The fence said its message had reached the reader: once the reader has
+    nothing left, the channel's messages go at once (before: held FENCE_TIMEOUT_SECONDS)."""
+    model = RouteProtocol()
+    model.channel_matches()
+    model.publish(fresh=True, acked=True)  # message 1 on the main topic; probes written
+    while model.channel.queue:
+        model.take_channel()  # the probes
+    model.channel_acknowledges()
+    model.publish(fresh=True, acked=True)  # message 2: the last main-topic one
+    model.publish(fresh=True, acked=True)  # message 3: fence (last main 2), on the channel
+    assert model.route.state is RouteState.CONFIRMED and model.main.queue
+    model.another_publisher_writes(count=RouteProtocol.LINK_DEPTH)  # 1 and 2 pushed out
+    model.take_channel()  # the fence
+    model.take_channel()  # message 3: queued behind the fenced message 2
+    assert model.stream.state is StreamState.WAITING
+    while model.main.queue:
+        model.take_main()  # the other publisher's samples only
+    model.nothing_waits_for_what_the_reader_lost()
+    assert model.delivered == [3] and model.stream.lost_fenced == 1
+    assert model.now == 0.0 and model.stream.timeouts == 0  # no time passed, no timeout
 
 
 TestRouteProtocol = RouteProtocol.TestCase
