@@ -32,7 +32,8 @@ domain (peers are compatible when it is equal) then the token that names the pro
 Pool limits: ``configure(max_pool_bytes=, max_slots=, reclaim_timeout=,
 max_inflight_per_peer=)``, the environment variables ``RBPY_DEMO_MAX_POOL_BYTES``,
 ``RBPY_DEMO_MAX_SLOTS``, ``RBPY_DEMO_RECLAIM_TIMEOUT``, ``RBPY_DEMO_MAX_INFLIGHT_PER_PEER``, or
-``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 64 slots, 5 s, a third of the slots.
+``DemoBackend(...)`` keyword arguments. Defaults: 512 MiB, 64 slots, 5 s, a third of the slots
+(half for a subscriber whose history is known).
 
 Trust: a received descriptor is mapped only if it is a memfd carrying every seal, of the size
 its record announces, all backed, with our header, handed over by a process of our uid; a frame

@@ -8,10 +8,11 @@ the endpoint cannot take it any more or has used up its share, never by sending 
 - *KEEP_LAST depth N* (``EndpointInfo.history_depth``): N newer messages on the channel pushed
   it out of the endpoint's reader history (``released_window``);
 - *in order*: the endpoint took a newer one, so it dropped this one (``released_skipped``);
-- *share*: the endpoint has ``endpoint_share`` descriptors (or a third of the pool's bytes) in
-  flight. When its history is known (it advertises KEEP_LAST N or KEEP_ALL), nothing it can
-  still take is given up: it gets its next messages as CPU bytes until it takes some
-  (:meth:`EndpointLedger.full`; ``cpu_past_share``), so a slow subscriber gets every frame its
+- *share*: the endpoint has ``endpoint_share`` descriptors (or that part of the pool's bytes:
+  a third, half when its history is known) in flight. When its history is known (it
+  advertises KEEP_LAST N or KEEP_ALL), nothing it can still take is given up: it gets its
+  next messages as CPU bytes until it takes some (:meth:`EndpointLedger.full`;
+  ``cpu_past_share``), so a slow subscriber gets every frame its
   reader holds, as from stock rclpy, and pins no more of the pool than its share. When its
   history is not known, its oldest are given up (``released_share``): it keeps getting
   descriptors, and a given-up one it takes later is refused as stale only if its slot was
@@ -90,14 +91,15 @@ class EndpointLedger:
             while inflight and self.seq - inflight[0].seq >= self.depth:
                 counters.released_window += self._give_up(inflight.popleft())
         if self.depth is None:  # it may no longer hold its oldest: give them up
-            while inflight and _past_share(inflight):
+            while inflight and _past_share(inflight, history_known=False):
                 counters.released_share += self._give_up(inflight.popleft())
         self.inflight = inflight
 
     def full(self) -> bool:
         """The endpoint, whose history is known, has its share of the pool in flight, all of it
         still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
-        return self.depth is not None and bool(self.inflight) and _past_share(self.inflight)
+        return (self.depth is not None and bool(self.inflight) and
+                _past_share(self.inflight, history_known=True))
 
     def _give_up(self, entry: InFlight) -> bool:
         """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
@@ -108,7 +110,8 @@ class EndpointLedger:
         return True
 
 
-def _past_share(inflight: Deque[InFlight]) -> bool:
+def _past_share(inflight: Deque[InFlight], history_known: bool) -> bool:
     """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes)."""
-    return (len(inflight) >= limits.current.endpoint_share() or
-            sum(e.slot.capacity for e in inflight) >= limits.current.endpoint_share_bytes())
+    share = limits.current
+    return (len(inflight) >= share.endpoint_share(history_known) or
+            sum(e.slot.capacity for e in inflight) >= share.endpoint_share_bytes(history_known))

@@ -90,15 +90,17 @@ class Limits:
         self.reclaim_timeout = _env_number(ENV_RECLAIM_TIMEOUT, DEFAULT_RECLAIM_TIMEOUT, float)
         self.max_inflight_per_peer = _env_number(ENV_MAX_INFLIGHT_PER_PEER, 0, int)
 
-    def endpoint_share(self) -> int:
-        """In-flight descriptors one subscriber endpoint may have (its share of the pool)."""
-        return self.max_inflight_per_peer or max(1, self.max_slots // 3)
+    def endpoint_share(self, history_known: bool = False) -> int:
+        """In-flight descriptors one subscriber endpoint may have (its share of the pool): a
+        third of the slots, or half when its history is known (then nothing it can still take
+        is given up, and a slow reader of a deep history holds what stock's reader would)."""
+        return self.max_inflight_per_peer or max(1, self.max_slots // _divisor(history_known))
 
-    def endpoint_share_bytes(self) -> int:
-        """Bytes of slots one subscriber endpoint may pin (a third of the pool unless the share
-        is set)."""
+    def endpoint_share_bytes(self, history_known: bool = False) -> int:
+        """Bytes of slots one subscriber endpoint may pin (the same part of the pool's bytes
+        unless the share is set)."""
         return (self.max_pool_bytes if self.max_inflight_per_peer
-                else max(1, self.max_pool_bytes // 3))
+                else max(1, self.max_pool_bytes // _divisor(history_known)))
 
     def as_dict(self) -> dict:
         """The configurable limits, as :func:`configure` takes them."""
@@ -111,6 +113,11 @@ class Limits:
 current = Limits()
 
 
+def _divisor(history_known: bool) -> int:
+    """One endpoint's share is this part of the pool (see :meth:`Limits.endpoint_share`)."""
+    return 2 if history_known else 3
+
+
 def configure(*, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] = None,
               reclaim_timeout: Optional[float] = None,
               max_inflight_per_peer: Optional[int] = None) -> dict:
@@ -121,7 +128,8 @@ def configure(*, max_pool_bytes: Optional[int] = None, max_slots: Optional[int] 
     :param reclaim_timeout: Seconds after which, at the limits, a slot whose descriptors were
         never all taken may be reused.
     :param max_inflight_per_peer: Descriptors one subscriber endpoint may have in flight before
-        its oldest are given up; 0 means a third of ``max_slots`` (at least 1).
+        its oldest are given up; 0 means a third of ``max_slots`` (at least 1), half for an
+        endpoint whose history is known.
     """
     for name, value in (('max_pool_bytes', max_pool_bytes), ('max_slots', max_slots),
                         ('reclaim_timeout', reclaim_timeout),
