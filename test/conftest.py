@@ -18,8 +18,12 @@ import pytest
 # Under `colcon test` pytest runs in the source tree, whose rosidl_buffer_py/ has no compiled
 # extension (colcon built it into the install space): let the installed package be imported.
 _ROOT = Path(__file__).resolve().parent.parent
+# The processes tests start (`python -m ...` from the source tree, scripts in test/harness)
+# must import the installed package too: PYTHONSAFEPATH keeps their working directory and
+# script directory off sys.path (harness scripts add test/ themselves).
 if not list((_ROOT / 'rosidl_buffer_py').glob('_native*.so')):
     sys.path[:] = [p for p in sys.path if Path(p or '.').resolve() != _ROOT]
+    os.environ['PYTHONSAFEPATH'] = '1'
 
 from launch_free_demos.domains import claim_domain_ids  # noqa: E402 (after the path fix)
 

@@ -486,18 +486,24 @@ def test_to_msg_resizes_cpu_storage():
 
 # --- the demo (shared-memory) backend -------------------------------------------------------
 
+def _demo_mappings() -> set:
+    with open('/proc/self/maps') as f:
+        return {line for line in f if '/memfd:rbpy_demo' in line}
+
+
 @pytest.fixture
 def demo():
     """The registry's demo backend over a fresh process-wide pool; nothing left afterwards."""
     import demo_buffer_backend
     demo_buffer_backend.shutdown()
+    gc.collect()
+    before = _demo_mappings()  # an earlier test file's (one process under `colcon test`)
     backend = registry.get_backend('demo')
     yield backend
     gc.collect()
     demo_buffer_backend.shutdown()
     # its memory is memfds: none left open or mapped, nothing of ours in /dev/shm
-    with open('/proc/self/maps') as f:
-        assert not [line for line in f if '/memfd:rbpy_demo' in line]
+    assert not _demo_mappings() - before
     assert not [n for n in os.listdir('/dev/shm')
                 if n.startswith('rbpy_') and f'_{os.getpid()}_' in n]
 
