@@ -133,3 +133,29 @@ def test_compare_volatile_late_joiner_history_is_one_unbroken_run_of_the_retaine
     split = _outcome(live=range(7, 13), history=range(3, 7))
     assert compare(graph, none, split) == [] and compare(graph, split, whole) == []
     assert compare(graph, split, _outcome(live=range(6, 13), history=[3, 4]))  # gap: 5
+
+
+def test_spread_measures_what_each_tolerance_had_to_cover():
+    """./dev stress prints how far runs were apart where compare() has tolerances: the
+    largest event count difference per kind, the live messages a promised subscription got
+    fewer (where its counterpart missed some too), the lowest share of a not-promised one's,
+    and the first messages a racing start missed."""
+    graph = _graph()
+    a = _outcome(live=[0, 1, 2, 4, 5, 6], events={'deadline@silent': 6, 'liveliness@run': 1})
+    b = _outcome(live=[0, 1, 2], events={'deadline@silent': 9})
+    found = equivalence.spread(graph, a, b)
+    assert found.events == {'deadline': 3, 'liveliness': 1}
+    assert (found.missing, found.fraction, found.startup) == (3, 1.0, 0)
+    assert equivalence.spread(graph, a, a) == equivalence.Spread(
+        {'deadline': 0, 'liveliness': 0})
+    # a whole stream is compared exactly, not with a tolerance: no missing counted
+    assert equivalence.spread(graph, _outcome(live=range(0, 7)), b).missing == 0
+    best_effort = Scenario('made_up', '', {'p': pub('t', {'reliability': 'best_effort'}),
+                                           's': sub('t', {'reliability': 'best_effort'})},
+                           {'x': []})
+    assert equivalence.spread(best_effort, a, b).fraction == 0.5
+    raced = _graph(startup_race=True)
+    assert equivalence.spread(raced, _outcome(live=range(0, 30)),
+                              _outcome(live=range(4, 30))).startup == 4
+    assert found.widen(equivalence.Spread({'deadline': 5}, 1, 0.4, 2)) == \
+        equivalence.Spread({'deadline': 5, 'liveliness': 1}, 3, 0.4, 2)

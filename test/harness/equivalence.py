@@ -696,6 +696,64 @@ def _compare_endpoint(scenario: Scenario, eid: str, s: dict, o: dict) -> List[st
     return diffs
 
 
+@dataclass
+class Spread:
+    """How far two outcomes of one scenario are apart where :func:`compare` has a tolerance:
+    stock against stock, that is what each tolerance must cover, and no more is needed.
+
+    ``events``: event kind -> the largest difference in a count (what TOLERANCES allows);
+    ``missing``: the most live messages a subscription whose QoS promises delivery got fewer
+    than its counterpart, where that one missed some too (LENIENT_MISSING); ``fraction``: the
+    lowest share of its counterpart's live messages a subscription got where delivery is not
+    promised (LENIENT_FRACTION); ``startup``: the most first messages a subscription missed in
+    a scenario whose publishers race the match (STARTUP_RACE_MESSAGES)."""
+
+    events: Dict[str, int] = field(default_factory=dict)
+    missing: int = 0
+    fraction: float = 1.0
+    startup: int = 0
+
+    def widen(self, other: 'Spread') -> 'Spread':
+        """The spread that covers both."""
+        events = dict(self.events)
+        for kind, n in other.events.items():
+            events[kind] = max(n, events.get(kind, 0))
+        return Spread(events, max(self.missing, other.missing),
+                      min(self.fraction, other.fraction), max(self.startup, other.startup))
+
+
+def spread(scenario: Scenario, a: dict, b: dict) -> Spread:
+    """The :class:`Spread` of outcome ``b`` from outcome ``a`` (taken both ways by callers
+    that do not know which is the reference)."""
+    result = Spread()
+    for key, ea in a['endpoints'].items():
+        eb = b['endpoints'].get(key)
+        if eb is None:
+            continue
+        eid = key.split('.')[-1]
+        for event in set(ea['events']) | set(eb['events']):
+            kind = event.split('@')[0]
+            gap = abs(ea['events'].get(event, 0) - eb['events'].get(event, 0))
+            result.events[kind] = max(gap, result.events.get(kind, 0))
+        if ea['kind'] != 'sub':
+            continue
+        for pid in set(ea['live']) | set(eb['live']):
+            la, lb = ea['live'].get(pid, []), eb['live'].get(pid, [])
+            history = ea['history'].get(pid)
+            first = max(history) + 1 if history else 0
+            if scenario.startup_race:
+                missed = [min(x) - first for x in (la, lb) if x and min(x) >= first]
+                result.startup = max([result.startup, *missed])
+                first += STARTUP_RACE_MESSAGES
+                la, lb = [x for x in la if x >= first], [x for x in lb if x >= first]
+            if not _promises_everything(scenario, eid, pid):
+                if la:
+                    result.fraction = min(result.fraction, len(lb) / len(la))
+            elif la != list(range(first, first + len(la))):
+                result.missing = max(result.missing, len(la) - len(lb))
+    return result
+
+
 def _buffer_aware_peers(scenario: Scenario, eid: str) -> int:
     """How many endpoints of ours are peers (same topic, opposite kind) of endpoint ``eid``."""
     spec = scenario.endpoints[eid]

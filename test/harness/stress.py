@@ -12,7 +12,9 @@ scenario how many runs differed each way, with a verdict:
 - ``stock unstable``: stock against stock differed (the scenario or its tolerances are wrong:
   choose rates and depths at which stock loses nothing, or compare what timing cannot change).
 
-The first difference seen each way is printed under the table.
+The first difference seen each way is printed under the table, then what the comparison's
+tolerances had to cover each way (:class:`harness.equivalence.Spread`): stock against stock is
+what timing alone changes, so each tolerance should cover that and no more.
 
 ``./dev stress [names] [--runs 10] [--load 0]``
 """
@@ -21,14 +23,15 @@ import multiprocessing
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
 
 if __package__ in (None, ''):  # run as a file: harness is a package of test/
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from harness.equivalence import run_scenario, scenarios  # noqa: E402 (after the path fix)
+from harness import equivalence  # noqa: E402 (after the path fix)
+from harness.equivalence import Spread, run_scenario, scenarios, spread  # noqa: E402
 from launch_free_demos.domains import claim_domain_ids  # noqa: E402
 
 
@@ -48,6 +51,9 @@ class Rate:
     seconds: float = 0.0
     first_ours: Optional[str] = None
     first_oracle: Optional[str] = None
+    #: what the tolerances had to cover: ours against stock, stock against stock
+    spread_ours: Spread = field(default_factory=Spread)
+    spread_oracle: Spread = field(default_factory=Spread)
 
     @property
     def verdict(self) -> str:
@@ -74,6 +80,13 @@ def measure(name: str, runs: int, domains) -> Rate:
         for variants, attribute in ((('stock', 'ours'), 'ours'),
                                     (('stock', 'stock'), 'oracle')):
             result = run_scenario(scenario, domains, False, variants)
+            if attribute == 'ours':
+                rate.spread_ours = rate.spread_ours.widen(
+                    spread(scenario, result.stock, result.ours))
+            else:  # neither run is the reference: both ways
+                rate.spread_oracle = rate.spread_oracle.widen(
+                    spread(scenario, result.stock, result.ours)).widen(
+                    spread(scenario, result.ours, result.stock))
             if result.differences:
                 setattr(rate, attribute, getattr(rate, attribute) + 1)
                 first = f'first_{attribute}'
@@ -81,6 +94,25 @@ def measure(name: str, runs: int, domains) -> Rate:
                     setattr(rate, first, '; '.join(result.differences[:3]))
     rate.seconds = time.monotonic() - started
     return rate
+
+
+def spread_table(rates: List[Rate]) -> str:
+    """What each tolerance of the comparison had to cover, per scenario and way, and the
+    tolerances in force (a stock-against-stock figure above its tolerance is a difference)."""
+    kinds = list(equivalence.TOLERANCES)
+    lines = ['| scenario | compared | ' + ' | '.join(kinds) +
+             ' | missing | fraction | startup |',
+             '|---|---|' + '---|' * (len(kinds) + 3)]
+    for rate in rates:
+        for label, value in (('stock vs stock', rate.spread_oracle),
+                             ('ours vs stock', rate.spread_ours)):
+            cells = [str(value.events.get(kind, 0)) for kind in kinds]
+            lines.append(f'| {rate.name} | {label} | ' + ' | '.join(cells) +
+                         f' | {value.missing} | {value.fraction:.2f} | {value.startup} |')
+    lines.append(f'\ntolerances: deadline 2 + stock // 4, liveliness 1, message_lost '
+                 f'max(2, stock // 5); missing {equivalence.LENIENT_MISSING}, fraction '
+                 f'{equivalence.LENIENT_FRACTION}, startup {equivalence.STARTUP_RACE_MESSAGES}')
+    return '\n'.join(lines)
 
 
 def main(argv=None) -> int:
@@ -122,6 +154,7 @@ def main(argv=None) -> int:
                              ('stock vs stock', rate.first_oracle)):
             if first:
                 print(f'\n{rate.name}, {label}: {first}')
+    print('\n' + spread_table(rates))
     stable = sum(r.verdict == 'stable' for r in rates)
     print(f'\n{stable} of {len(rates)} stable')
     return 0
