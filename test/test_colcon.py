@@ -52,11 +52,22 @@ def _underlay() -> Path:
     return venv
 
 
+#: What a source tree holds that is not source: left out when it is not a git checkout.
+BUILD_OUTPUTS = ('.git', '.venv', 'build', 'install', 'log', '*.egg-info', '__pycache__',
+                 '.pytest_cache', '_native*.so')
+
+
 def _copy_source(destination: Path) -> None:
-    """Copy what git would ship, plus untracked files not ignored (work in progress)."""
-    listed = subprocess.run(
+    """Copy what git would ship, plus untracked files not ignored (work in progress); a source
+    tree that is no git checkout (copied into a workspace's src/) without its build outputs."""
+    listing = subprocess.run(
         ['git', 'ls-files', '-z', '--cached', '--others', '--exclude-standard'], cwd=ROOT,
-        capture_output=True, check=True).stdout.decode().split('\0')
+        capture_output=True)
+    if listing.returncode != 0:
+        shutil.copytree(ROOT, destination, ignore=shutil.ignore_patterns(*BUILD_OUTPUTS),
+                        dirs_exist_ok=True)
+        return
+    listed = listing.stdout.decode().split('\0')
     for name in filter(None, listed):
         source = ROOT / name
         if not source.is_file():  # deleted in the working tree
