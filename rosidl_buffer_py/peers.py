@@ -47,6 +47,11 @@ class PeerOwner(Protocol[R]):
         """Discovery: an endpoint of the peer kind on the topic appeared or changed, a legacy
         one too: what routes a message takes may change."""
 
+    def _channels_checked(self) -> None:
+        """The re-announcer looked at the peers' channels (a few times a second while one is
+        unmatched, and once when all are): one may have matched, which no DDS event tells
+        the owner, so what depends on it (a publisher's routes) is due for a look."""
+
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
         """A new buffer-aware peer: create its record and its channel."""
 
@@ -89,7 +94,8 @@ class PeerTable(Generic[R]):
         self._records: Dict[bytes, R] = {}
         self._discovery = discovery.for_node(node)
         self._discovery_guard = None
-        self.reannouncer = Reannouncer(node, callback_group, self, owner._announce)
+        self.reannouncer = Reannouncer(node, callback_group, self, owner._announce,
+                                       owner._channels_checked)
 
     # the records ----------------------------------------------------------------------------
 
@@ -185,12 +191,10 @@ class PeerTable(Generic[R]):
                 known = self._owner._add_peer(info, dict(peer.backends))
                 known.created_at = time.monotonic()
                 self._records[peer.gid] = known
+                # a new buffer-aware peer whose QoS matches ours may have discovered us before
+                # its tap existed: the re-announcer announces once if its channel stays
+                # unmatched (soon, but not now: see NEW_PEER_REANNOUNCE_SECONDS)
                 self.reannouncer.rearm()
-                if not peer.local:
-                    # a new buffer-aware peer whose QoS matches ours may have discovered us
-                    # before its tap existed (its node was created well before its endpoint):
-                    # announce once now rather than after a second of unmatched channel
-                    self._owner._announce()
             known.backends = dict(peer.backends)
             self._owner._update_peer(known, compatible)
 

@@ -559,6 +559,11 @@ class Publisher(rclpy.publisher.Publisher):
         # any subscription of our topic coming or changing, legacy ones too, may change routes
         self._planned = None
 
+    def _channels_checked(self) -> None:
+        # a channel that matched since the last plan moves its route on (probes, settling):
+        # a publisher that is not publishing (waiting for its subscribers) plans on the timer
+        self._arm_route_timer(True)
+
     def _peer_gone(self, gid: bytes) -> None:
         # any subscription of our topic going, legacy ones too, may change routes (the table
         # also remembers legacy subscriptions' last main-topic message)

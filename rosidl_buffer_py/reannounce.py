@@ -14,6 +14,15 @@ from typing import Callable
 #: (at most this often).
 UNMATCHED_REANNOUNCE_SECONDS = 1.0
 
+#: A new peer's channel still unmatched this long after the peer appeared: its node probably
+#: discovered us before its tap existed (a node created well before its endpoint, as
+#: buffer_play's): announce once, sooner than the second above. Never at once: a USER_DATA
+#: change while the peer's participant is still matching our main endpoint made Fast DDS
+#: leave that match (and the first frames) pending until the next announcement, about 0.9 s,
+#: in 5 of 7 runs of ``test/harness/first_frame.py``; when both taps saw each other, the
+#: channel matches within this time and nothing is announced.
+NEW_PEER_REANNOUNCE_SECONDS = 0.25
+
 #: How recently the re-announce timer must have run for the node to count as spinning.
 SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
 
@@ -21,17 +30,22 @@ SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
 class Reannouncer:
     """The re-announce check of one endpoint over its :class:`~rosidl_buffer_py.peers.PeerTable`.
 
-    The timer is created with the first peer, retires (cancels itself) once every channel is
+    The timer is created with the first peer, calls ``checked`` at each run (a channel may
+    have matched: no DDS event says so), retires (cancels itself) once every channel is
     matched, and a new peer re-arms it. An endpoint without buffer-aware peers never wakes its
     executor, as a stock one; each wake-up costs a node about half a millisecond of CPU, which
     at camera rates was most of what a publisher spent beyond stock rclpy's.
     """
 
-    def __init__(self, node, callback_group, peers, announce: Callable[[], None]) -> None:
+    def __init__(self, node, callback_group, peers, announce: Callable[[], None],
+                 checked: Callable[[], None]) -> None:
         self._node = node
         self._callback_group = callback_group
         self._peers = peers
         self._announce = announce
+        #: called under the peers' lock after each look at the channels (see
+        #: PeerOwner._channels_checked)
+        self._checked = checked
         self._announced_at = time.monotonic()
         self._spun_at = 0.0
         self._retired = False
@@ -43,7 +57,7 @@ class Reannouncer:
         only a spun node retires its timer, and a spun node handles discovery there)."""
         if self.timer is None:
             self.timer = self._node.create_timer(
-                UNMATCHED_REANNOUNCE_SECONDS, self._on_timer, self._callback_group)
+                NEW_PEER_REANNOUNCE_SECONDS, self._on_timer, self._callback_group)
         elif self._retired:
             self._retired = False
             self.timer.reset()
@@ -67,7 +81,7 @@ class Reannouncer:
                 return
             for peer in self._peers:
                 if (peer.channel is not None and peer.channel.matched_count() == 0 and
-                        now - peer.created_at >= UNMATCHED_REANNOUNCE_SECONDS):
+                        now - peer.created_at >= NEW_PEER_REANNOUNCE_SECONDS):
                     self._announced_at = now
                     self._announce()
                     return
@@ -76,8 +90,10 @@ class Reannouncer:
         self._spun_at = time.monotonic()  # evidence that an executor spins our node
         self.reannounce_if_unmatched()
         with self._peers.lock:
-            if not self._peers.closed and all(
-                    peer.channel is None or peer.channel.matched_count() > 0
-                    for peer in self._peers):
+            if self._peers.closed:
+                return
+            self._checked()
+            if all(peer.channel is None or peer.channel.matched_count() > 0
+                   for peer in self._peers):
                 self.timer.cancel()
                 self._retired = True

@@ -514,6 +514,9 @@ class Subscription(rclpy.subscription.Subscription):
     def _peer_seen(self) -> None:
         """Nothing to do: a subscription's streams change with its peers' channels only."""
 
+    def _channels_checked(self) -> None:
+        """Nothing to do: a subscription's streams follow what its channels deliver."""
+
     def _peer_gone(self, gid: bytes) -> None:
         """A publisher went away: what its channel had delivered to our reader stays
         deliverable, in order (as a stock reader keeps the samples of a writer that left).

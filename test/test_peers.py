@@ -101,6 +101,9 @@ class Owner:
     def _peer_seen(self):
         self.seen = getattr(self, 'seen', 0) + 1
 
+    def _channels_checked(self):
+        self.checks = getattr(self, 'checks', 0) + 1
+
     def _add_peer(self, info, backends):
         self.calls.append(('add', info.gid))
         return Record(info, backends)
@@ -153,7 +156,8 @@ def test_a_buffer_aware_peer_gets_a_record_and_the_owner_hears_of_it(table):
     assert discovery.watching == {'rt' + TOPIC} and discovery.wakeups
     gid = b'\x01' * 16
     t._on_peer(peer(gid, {'cpu': '', 'demo': 'meta'}))
-    assert owner.calls == [('add', gid), 'announce', ('update', gid, frozenset({'demo'}))]
+    # no announcement at once (see test_a_new_peers_unmatched_channel_is_announced_soon)
+    assert owner.calls == [('add', gid), ('update', gid, frozenset({'demo'}))]
     assert gid in t and len(t) == 1 and t[gid].created_at > 0
     assert t.reannouncer.timer is not None  # the first peer brings the unmatched check
     t._on_peer(peer(b'\x02' * 16, {'cpu': ''}, kind=EndpointKind.PUBLISHER))  # other kind
@@ -193,7 +197,8 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     t, owner, _, _, _ = table
     now = [1000.0]
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
-    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce)
+    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce,
+                                           owner._channels_checked)
     gid = b'\x01' * 16
     t._on_peer(peer(gid, {'cpu': ''}, local=True))
     t[gid].created_at = now[0]
@@ -207,3 +212,36 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     assert t.reannouncer.timer.canceled  # retired: every channel is matched
     now[0] += 10 * reannounce.SPIN_EVIDENCE_SECONDS
     assert t.reannouncer.spinning(now[0])  # only a spun node retires its timer
+
+
+def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, monkeypatch):
+    """A new remote peer may have missed our advertisement: if its channel is still unmatched
+    NEW_PEER_REANNOUNCE_SECONDS after it appeared, we announce once; not when it appears (a
+    USER_DATA change while its participant matches our main endpoint delays that match), and
+    not when its channel matched meanwhile (both taps saw each other)."""
+    t, owner, _, _, _ = table
+    now = [1000.0]
+    monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
+    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce,
+                                           owner._channels_checked)
+    now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS  # the endpoint is not brand new
+    missed, seen = b'\x01' * 16, b'\x02' * 16
+    for gid in (missed, seen):
+        t._on_peer(peer(gid, {'cpu': ''}))
+    assert 'announce' not in owner.calls
+    t[seen].channel.matched = 1
+    now[0] += reannounce.NEW_PEER_REANNOUNCE_SECONDS / 2
+    t.reannouncer._on_timer()
+    assert 'announce' not in owner.calls  # too soon
+    now[0] += reannounce.NEW_PEER_REANNOUNCE_SECONDS / 2
+    t.reannouncer._on_timer()
+    assert owner.calls.count('announce') == 1
+    t.reannouncer._on_timer()
+    assert owner.calls.count('announce') == 1  # then at most once a second
+    now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS
+    t.reannouncer._on_timer()
+    assert owner.calls.count('announce') == 2
+    t[missed].channel.matched = 1
+    t.reannouncer._on_timer()
+    assert t.reannouncer.timer.canceled
+    assert owner.checks == 5  # each run: a channel may have matched (a publisher re-plans)
