@@ -33,3 +33,21 @@ def test_every_new_subscriber_reaches_zero_copy_with_nothing_lost_on_the_way():
         for column in ('lost', 'duplicated', 'corrupt', 'rejected', 'fence timeouts'):
             assert trial[column] == '0', (column, completed.stdout)
         assert trial['problem'] == '', completed.stdout
+
+
+def test_first_frame_command_prints_stock_and_ours_for_each_subscriber():
+    """docs/development.md's first-frame comparison, one short run: a row per publisher and
+    run, and a summary per publisher, for a stock and a buffer-aware subscriber."""
+    script = ROOT / 'test' / 'harness' / 'first_frame.py'
+    completed = subprocess.run(
+        [sys.executable, str(script), '--runs', '1', '--frames', '15'], cwd=ROOT,
+        capture_output=True, text=True, timeout=180, env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    out = completed.stdout
+    assert out.count('subscriber, 15 frames at 30 Hz') == 2, out
+    for publisher in ('stock', 'ours'):
+        runs = [line for line in out.splitlines() if line.startswith(f'| 1 | {publisher} |')]
+        assert len(runs) == 2, out
+        summaries = [line for line in out.splitlines()
+                     if line.startswith(f'| {publisher} | ') and ' of 1 |' in line]
+        assert len(summaries) == 2, out

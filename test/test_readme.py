@@ -63,6 +63,7 @@ COVERAGE = {
     '.venv/bin/python test/harness/equivalence.py [names] [--echo]': 'test_equivalence.py',
     '.venv/bin/python test/harness/attacks.py': 'test_attacks.py',  # 40 frames instead of 300
     './dev stress [SCENARIO...] [--runs N] [--load K]': 'test_equivalence.py',  # one round
+    '.venv/bin/python test/harness/first_frame.py --runs 20': 'test_bringup.py',  # 1 run
     # the user guide's nodes and tools
     '.venv/lib/rosidl_buffer_py/image_publisher --ros-args -p backend:=demo -p width:=1920 '
     '-p height:=1080': 'here',
