@@ -7,10 +7,10 @@ to the buffer-aware publishers and subscriptions that watch that topic. Processi
 Python threads only (publish(), executor callbacks), never in DDS threads.
 
 Fast DDS cannot replay USER_DATA of endpoints discovered before the tap was installed. So a
-buffer-aware endpoint re-announces its USER_DATA once when it first finds a new remote
-buffer-aware peer whose QoS matches its own (that peer may have missed it), and again while a
-peer's channel stays unmatched (see :mod:`rosidl_buffer_py.reannounce`); the peer sees
-it as a 'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
+buffer-aware endpoint re-announces its USER_DATA while the channel of a buffer-aware peer whose
+QoS matches its own stays unmatched (that peer may have missed it: soon after the peer
+appeared, then once a second, see :mod:`rosidl_buffer_py.reannounce`); the peer sees it as a
+'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
 matching at every peer, and stock endpoints with incompatible QoS report it again.
 """
 import threading
