@@ -14,7 +14,6 @@ appeared, then once a second, see :mod:`rosidl_buffer_py.reannounce`); the peer 
 matching at every peer, and stock endpoints with incompatible QoS report it again.
 """
 import threading
-import time
 import weakref
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping, Optional
@@ -44,7 +43,6 @@ class PeerEndpoint:
     backends: Optional[Mapping[str, str]]  #: None for a legacy endpoint
     local: bool
     new: bool = False  #: True on the event that first reports it (not on 'changed'/'known')
-    participant_gid: bytes = b''  #: its DomainParticipant's GID
 
     @property
     def buffer_aware(self) -> bool:
@@ -70,8 +68,6 @@ class ParticipantDiscovery:
         self._lock = threading.RLock()
         self._nodes: 'weakref.WeakSet' = weakref.WeakSet()
         self._endpoints: Dict[bytes, PeerEndpoint] = {}
-        #: participant GID -> when its first endpoint was processed (see participant_age)
-        self._participants: Dict[bytes, float] = {}
         self._watches: Dict[str, _Watch] = {}
         self._installed = install_discovery(node) or True
         self._nodes.add(node)
@@ -94,13 +90,6 @@ class ParticipantDiscovery:
             watch = self._watches.get(dds_topic)
             if watch is not None:
                 watch.watchers.discard(watcher)
-
-    def participant_age(self, participant_gid: bytes) -> float:
-        """Seconds since the first endpoint of this participant was processed here (0 for one
-        not seen): a participant seen a while ago has long exchanged its endpoints with ours."""
-        with self._lock:
-            seen = self._participants.get(participant_gid)
-        return 0.0 if seen is None else time.monotonic() - seen
 
     def remote_writers(self) -> Dict[str, str]:
         """DDS topic -> DDS type name of every known writer of other participants (what a
@@ -152,19 +141,13 @@ class ParticipantDiscovery:
         if is_channel_topic(event.topic) or event.kind not in _KINDS:
             return None
         if event.status in _GONE:
-            gone = self._endpoints.pop(event.gid, None)
-            if gone is None:
+            if self._endpoints.pop(event.gid, None) is None:
                 return None
-            if not any(p.participant_gid == gone.participant_gid
-                       for p in self._endpoints.values()):
-                self._participants.pop(gone.participant_gid, None)
             return (event.topic, None, event.gid)
-        self._participants.setdefault(event.participant_gid, time.monotonic())
         peer = PeerEndpoint(gid=event.gid, kind=_KINDS[event.kind], dds_topic=event.topic,
                             type_name=event.type_name,
                             backends=advertisement.decode(event.user_data), local=event.local,
-                            new=event.status == 'discovered',
-                            participant_gid=event.participant_gid)
+                            new=event.status == 'discovered')
         self._endpoints[event.gid] = peer
         return (event.topic, peer, event.gid)
 

@@ -18,7 +18,7 @@ from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import dds_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.qos import incompatible_peers
-from rosidl_buffer_py.reannounce import SETTLED_PARTICIPANT_SECONDS, Reannouncer
+from rosidl_buffer_py.reannounce import Reannouncer
 
 
 class PeerRecord(Protocol):
@@ -192,12 +192,9 @@ class PeerTable(Generic[R]):
                 known.created_at = time.monotonic()
                 self._records[peer.gid] = known
                 # a new buffer-aware peer whose QoS matches ours may have discovered us before
-                # its tap existed: announce now if its participant is not new, else the
-                # re-announcer does if its channel stays unmatched (see reannounce's constants)
+                # its tap existed: the re-announcer announces once if its channel stays
+                # unmatched (soon, but not now: see NEW_PEER_REANNOUNCE_SECONDS)
                 self.reannouncer.rearm()
-                if (not peer.local and self._discovery.participant_age(peer.participant_gid)
-                        >= SETTLED_PARTICIPANT_SECONDS):
-                    self._owner._announce()
             known.backends = dict(peer.backends)
             self._owner._update_peer(known, compatible)
 

@@ -8,25 +8,21 @@ peer's channel is to be watched; the timer's runs are also the evidence that an 
 the node (:meth:`Reannouncer.spinning`).
 """
 import time
-from typing import Callable
+from typing import Callable, Set
 
 #: A channel unmatched this long means the peer probably missed our advertisement: re-announce
 #: (at most this often).
 UNMATCHED_REANNOUNCE_SECONDS = 1.0
 
 #: A new peer's channel still unmatched this long after the peer appeared: it probably
-#: discovered us before its tap existed: announce once, sooner than the second above. Not at
-#: once when its participant is new (see SETTLED_PARTICIPANT_SECONDS): a USER_DATA change while
-#: that participant is still receiving our main endpoint made Fast DDS leave the match (and
-#: the first frames) pending until the next announcement, about 0.9 s, in 5 of 7 runs of
-#: ``test/harness/first_frame.py``; when both taps saw each other, the channel matches within
-#: this time and nothing is announced.
+#: discovered us before its tap existed: announce once, sooner than the second above (and
+#: whenever the last announcement was). Never at once: a USER_DATA change while the new
+#: participant was still matching our main endpoint made Fast DDS leave the match (and the
+#: first frames) pending until the next announcement, about 0.9 s, in 5 of 7 runs of
+#: ``test/harness/first_frame.py`` (and in 2 of 5 when only the side that was there first
+#: announced at once); when both taps saw each other, the channel matches within this time
+#: and nothing is announced.
 NEW_PEER_REANNOUNCE_SECONDS = 0.25
-
-#: A new peer whose participant we have known this long (its node was created well before its
-#: endpoint, as buffer_play's, whose tap came with the endpoint) probably discovered us before
-#: its tap existed, and its participant has long received our endpoint: announce at once.
-SETTLED_PARTICIPANT_SECONDS = 0.2
 
 #: How recently the re-announce timer must have run for the node to count as spinning.
 SPIN_EVIDENCE_SECONDS = 2.5 * UNMATCHED_REANNOUNCE_SECONDS
@@ -52,6 +48,8 @@ class Reannouncer:
         #: PeerOwner._channels_checked)
         self._checked = checked
         self._announced_at = time.monotonic()
+        #: peers that were there at an announcement since they appeared
+        self._greeted: Set[bytes] = set()
         self._spun_at = 0.0
         self._retired = False
         #: the timer (None until the first peer): the owner's node entity
@@ -82,12 +80,16 @@ class Reannouncer:
             if self._peers.closed:
                 return
             now = time.monotonic()
-            if now - self._announced_at < UNMATCHED_REANNOUNCE_SECONDS:
-                return
+            current = {peer.info.gid for peer in self._peers}
+            self._greeted &= current
+            rested = now - self._announced_at >= UNMATCHED_REANNOUNCE_SECONDS
             for peer in self._peers:
+                # a peer's first announcement is not held back by the last one's
                 if (peer.channel is not None and peer.channel.matched_count() == 0 and
-                        now - peer.created_at >= NEW_PEER_REANNOUNCE_SECONDS):
+                        now - peer.created_at >= NEW_PEER_REANNOUNCE_SECONDS and
+                        (rested or peer.info.gid not in self._greeted)):
                     self._announced_at = now
+                    self._greeted = current  # every peer there now gets this one
                     self._announce()
                     return
 

@@ -52,10 +52,6 @@ class Node:
 class Discovery:
     def __init__(self):
         self.watching, self.wakeups, self.known = set(), set(), []
-        self.ages = {}  # participant GID -> seconds known (0 when absent)
-
-    def participant_age(self, participant_gid):
-        return self.ages.get(participant_gid, 0.0)
 
     def watch(self, topic, watcher):
         self.watching.add(topic)
@@ -151,10 +147,8 @@ def table(monkeypatch):
     t.close()
 
 
-def peer(gid: bytes, backends=None, kind=EndpointKind.SUBSCRIPTION, local=False,
-         participant=b'P' * 16):
-    return PeerEndpoint(gid, kind, 'rt' + TOPIC, 'T', backends, local,
-                        participant_gid=participant)
+def peer(gid: bytes, backends=None, kind=EndpointKind.SUBSCRIPTION, local=False):
+    return PeerEndpoint(gid, kind, 'rt' + TOPIC, 'T', backends, local)
 
 
 def test_a_buffer_aware_peer_gets_a_record_and_the_owner_hears_of_it(table):
@@ -247,23 +241,15 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS
     t.reannouncer._on_timer()
     assert owner.calls.count('announce') == 2
-    t[missed].channel.matched = 1
+    # a peer that appears right after an announcement gets its own, not a second later
+    late = b'\x03' * 16
+    t._on_peer(peer(late, {'cpu': ''}))
+    t[late].created_at = now[0]
+    now[0] += reannounce.NEW_PEER_REANNOUNCE_SECONDS
+    t.reannouncer._on_timer()
+    assert owner.calls.count('announce') == 3
+    t[missed].channel.matched = t[late].channel.matched = 1
     t.reannouncer._on_timer()
     assert t.reannouncer.timer.canceled
-    assert owner.checks == 5  # each run: a channel may have matched (a publisher re-plans)
+    assert owner.checks == 6  # each run: a channel may have matched (a publisher re-plans)
 
-
-def test_a_new_peer_of_a_settled_participant_is_announced_to_at_once(table):
-    """A peer whose participant we have known for a while (its node long predates its
-    endpoint, whose tap came with it) probably missed our advertisement, and its participant
-    has long received our endpoint: announce now. A peer of a new participant is left to the
-    re-announcer (see the test above)."""
-    t, owner, _, discovery, _ = table
-    old, new = b'O' * 16, b'N' * 16
-    discovery.ages[old] = reannounce.SETTLED_PARTICIPANT_SECONDS
-    t._on_peer(peer(b'\x01' * 16, {'cpu': ''}, participant=new))
-    assert 'announce' not in owner.calls
-    t._on_peer(peer(b'\x02' * 16, {'cpu': ''}, participant=old))
-    assert owner.calls.count('announce') == 1
-    t._on_peer(peer(b'\x03' * 16, {'cpu': ''}, participant=old, local=True))
-    assert owner.calls.count('announce') == 1  # our own participant's endpoints saw us

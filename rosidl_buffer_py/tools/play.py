@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass
 from typing import Dict, List, Optional
 
+from rosidl_buffer_py import _dds, discovery
 from rosidl_buffer_py.nodes.report import print_report
 from rosidl_buffer_py.tools.bag import BagError, BagReader, qos_from_yaml
 from rosidl_buffer_py.tools.message_definition import import_message_type
@@ -31,8 +32,10 @@ from rosidl_buffer_py.tools.native_output import native_stdout_to_stderr
 
 __all__ = ['main']
 
-#: --wait-for-subscribers: how long every subscription must look served before playback starts.
-SERVED_SETTLE_SECONDS = 0.5
+#: --wait-for-subscribers: how long every subscription must look served before playback starts
+#: (a subscription whose advertisement our tap missed announces it again 0.25 to 0.5 s after it
+#: found us: see rosidl_buffer_py.reannounce).
+SERVED_SETTLE_SECONDS = 1.0
 
 EXIT_USAGE = 2
 
@@ -287,6 +290,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('buffer_play')
+    if _dds.is_supported():
+        # the discovery tap from the node's first moment, not from its first publisher's
+        # (which comes after the message types are imported): subscriptions that its
+        # participant discovers meanwhile show it their advertisements
+        discovery.for_node(node)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     status = 0
