@@ -335,10 +335,13 @@ _HOSTILE = textwrap.dedent('''
         """Send one case on a new connection; return it and what the subscriber answered."""
         s = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         s.connect('\\0rbpy_demo/' + token)
-        if fds:
-            socket.send_fds(s, [data], fds)
-        else:
-            s.send(data)
+        try:
+            if fds:
+                socket.send_fds(s, [data], fds)
+            else:
+                s.send(data)
+        except (BrokenPipeError, ConnectionResetError):  # refused at accept (another uid)
+            return s, ['closed before the record was sent']
         answer = []
         while select.select([s], [], [], 10)[0]:
             try:
@@ -423,7 +426,9 @@ def _hostile(token, uid=0, discovered_by=None):
     proc.stdin.flush()
     line = proc.stdout.readline()
     assert line, f'hostile process exited with {proc.poll()}'
-    return proc, json.loads(line)
+    info = json.loads(line)
+    assert 'cases' in info, info  # {'error': ...}: a case could not be sent
+    return proc, info
 
 
 def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
@@ -504,7 +509,7 @@ def test_hostile_suite_every_planted_or_forged_descriptor_is_refused(backend):
         if label == 'valid segment, then the same id again':
             assert answer == ['ACCEPTED 0'], (label, answer)
         else:  # told why, then closed
-            assert answer[-1] == 'closed' and answer[-2] in (
+            assert len(answer) >= 2 and answer[-1] == 'closed' and answer[-2] in (
                 f'UNWANTED {int(Refusal.INVALID)}', f'REFUSED {int(Refusal.INVALID)}'), \
                 (label, answer)
     assert stats['handovers_received'] == 2, stats  # the real publisher's and the hostile's own
