@@ -12,11 +12,10 @@ the endpoint cannot take it any more or has used up its share, never by sending 
   a third, half when its history is known) in flight. When its history is known (it
   advertises KEEP_LAST N or KEEP_ALL), nothing it can still take is given up: it gets its
   next messages as CPU bytes until it takes some (:meth:`EndpointLedger.full`;
-  ``cpu_past_share``), so a slow subscriber gets every frame its
-  reader holds, as from stock rclpy, and pins no more of the pool than its share. When its
-  history is not known, its oldest are given up (``released_share``): it keeps getting
-  descriptors, and a given-up one it takes later is refused as stale only if its slot was
-  reused meanwhile;
+  ``cpu_past_share``), so a slow subscriber gets every frame its reader holds, as from stock
+  rclpy, and pins no more of the pool than its share. When its history is not known, its
+  oldest are given up (``released_share``): it keeps getting descriptors, and a given-up one
+  it takes later is refused as stale only if its slot was reused meanwhile;
 - *gone*: the endpoint's process hung up its link: nothing it was sent pins anything (the slots
   leave such tokens out, see :meth:`.slots.Slot.pinning`).
 

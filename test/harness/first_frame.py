@@ -20,6 +20,7 @@ prints a table per subscriber kind: each run's figures, then median and worst pe
 import argparse
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -178,6 +179,8 @@ def main(argv=None) -> int:
     parser.add_argument('--rate', type=float, default=30.0, help='frames per second')
     parser.add_argument('--frames', type=int, default=60, help='frames per run')
     args = parser.parse_args(argv)
+    # SIGTERM (a timeout's) takes Ctrl-C's path: the nodes and probes it started are reaped
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     subscribers = KINDS if args.subscriber == 'both' else (args.subscriber,)
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     with fresh_domain():

@@ -11,6 +11,7 @@ advertisements, and the channel.
 import json
 import os
 import random
+import signal
 import subprocess
 import sys
 import time
@@ -26,6 +27,8 @@ from launch_free_demos.runner import Run  # noqa: E402
 
 def main(argv) -> int:
     runs, extra = int(argv[0]), argv[1:]
+    # SIGTERM (a timeout's) takes Ctrl-C's path: the nodes and probes it started are reaped
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(101, 200)))
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     topic = '/measure_inspector'
