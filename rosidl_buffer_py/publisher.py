@@ -25,7 +25,7 @@ import dataclasses
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, NamedTuple, Optional, Set, Tuple, Union
+from typing import Dict, List, Optional, Set, Tuple, Union
 
 import functools
 
@@ -76,14 +76,35 @@ class _SubscriptionPeer:
     backend_in_use: Optional[str] = None
 
 
-class _Planned(NamedTuple):
-    """The route table's plan, cached while the matched counts it was made with hold (asking
-    the middleware for the matched subscriptions' GIDs takes tens of microseconds)."""
+class _RouteView:
+    """What DDS says of one publisher's routes (:class:`rosidl_buffer_py.routes.RouteView`),
+    read from its main DataWriter and its peers' channels."""
 
-    plan: routes.Plan
-    peers: Tuple[_SubscriptionPeer, ...]
-    #: matched counts of the main topic and of every channel when the plan was made
-    signature: tuple
+    __slots__ = ('_writer', '_peers')
+
+    def __init__(self, writer: 'Publisher', peers: PeerTable) -> None:
+        self._writer = writer
+        self._peers = peers
+
+    def signature(self) -> tuple:
+        """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
+        return (self._writer.get_subscription_count(),
+                tuple(-1 if peer.channel is None else peer.channel.matched_count()
+                      for peer in self._peers))
+
+    def matched_subscriptions(self) -> List[bytes]:
+        return matched_subscription_gids(self._writer)
+
+    def channel_matched(self, key: bytes) -> bool:
+        channel = self._peers[key].channel
+        return channel is not None and channel.matched_count() > 0
+
+    def channel_acknowledged(self, key: bytes) -> bool:
+        return self._peers[key].channel.wait_for_all_acked(0.0)
+
+    def main_acknowledged(self) -> bool:
+        # the main DataWriter alone (Publisher.wait_for_all_acked also waits for channels)
+        return rclpy.publisher.Publisher.wait_for_all_acked(self._writer, _NO_WAIT)
 
 
 class _Encoder:
@@ -187,7 +208,6 @@ class Publisher(rclpy.publisher.Publisher):
         self._exclusions: Optional[bool] = None
         #: the last exclusion registered was not empty (the next main write must re-register)
         self._excluding = False
-        self._planned: Optional[_Planned] = None
         self._route_timer = None
         self._peers_added = 0
         self._peers_removed = 0
@@ -222,6 +242,7 @@ class Publisher(rclpy.publisher.Publisher):
             self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
+        self._view = _RouteView(self, self._peers)
         self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
@@ -266,11 +287,9 @@ class Publisher(rclpy.publisher.Publisher):
     def publish(self, msg) -> None:
         """Publish ``msg`` to every subscription, each by the cheapest route it can take.
 
-        One pipeline: write to the routes the last call found (see :class:`_Routes`), then
-        re-check them, off the path the subscribers' latency sees. A target that became needed
-        meanwhile (a channel that settled, a new legacy subscriber) gets the message then, with
-        the same source timestamp; a route no longer needed costs at most one extra copy, which
-        buffer-aware subscriptions drop as a duplicate.
+        The route table decides where it goes, with the probes and route fences due
+        (:meth:`~rosidl_buffer_py.routes.RouteTable.dispatch`); this method writes exactly
+        that, every copy with the same source timestamp.
         """
         if isinstance(msg, (bytes, bytearray, memoryview)):
             serialized = msg
@@ -294,39 +313,34 @@ class Publisher(rclpy.publisher.Publisher):
         with self._lock:
             if self._peers.closed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
-            planned = self._current_plan()
+            previous = self._last_timestamp
             timestamp = self._next_timestamp()
-            plan = planned.plan
-            if self._write(encoder, timestamp, planned.peers, plan.main, plan.withheld):
-                self._planned = None  # a route changed state (fenced, gone): plan again
-            if plan.main:
+            dispatch = self._table.dispatch(time.monotonic(), timestamp, self._view)
+            if dispatch.probes:
+                self._write_probes(dispatch.probes, previous or timestamp - 1)
+            if dispatch.timer is not None:
+                self._arm_route_timer(dispatch.timer)
+            self._write(encoder, timestamp, dispatch)
+            if dispatch.main:
                 self._sent_main += 1
-                if self._table.main_written(plan.main_served, timestamp):
-                    self._planned = None  # a route may serve from the next message on
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         if self._deadline is not None:
             self._deadline.activity()
 
-    def _write(self, encoder: '_Encoder', timestamp: int, peers, main: bool,
-               withheld: Tuple[bytes, ...] = ()) -> bool:
-        """Write one message to ``peers``' channels (after their route fence, if one is due)
-        and, when ``main``, to the main topic, whose sample the ``withheld`` subscriptions (their
-        channels carry this message) do not get. True when a route changed state meanwhile."""
-        changed = False
-        delivered = None  # whether every main-topic reader acknowledged what it was sent
-        for peer in peers:
-            fence = peer.route.take_fence()
+    def _write(self, encoder: '_Encoder', timestamp: int, dispatch: routes.Dispatch) -> None:
+        """Write one message as ``dispatch`` says: on its routes' channels (after the route
+        fence where one is given) and, when it says so, on the main topic, whose sample the
+        withheld subscriptions (their channels carry this message) do not get."""
+        peers = []
+        for key, fence in dispatch.channel:
+            peer = self._peers[key]
             if fence is not None:
-                changed = True
-                if delivered is None:  # the main topic's writer alone, without waiting
-                    delivered = super().wait_for_all_acked(_NO_WAIT)
-                # its message reached the subscription's reader: if that history has nothing
-                # left, the message was lost there, and the subscription need not wait for it
-                fence = fence._replace(delivered=delivered)
                 self._logger.debug(f'route fence to {peer.info.gid_hex} (last main-topic message '
-                              f'{fence.last_main})')
+                                   f'{fence.last_main})')
                 peer.channel.publish(control.encode(fence), timestamp)
+            peers.append(peer)
+        main, withheld = dispatch.main, dispatch.withheld
         if encoder.cpu_message:
             # CPU payload: one conversion to C, rmw serializes into each target, as rclpy's
             # publish does (no Python-level CDR work)
@@ -338,7 +352,7 @@ class Publisher(rclpy.publisher.Publisher):
             for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
-            return changed
+            return
         cpu_targets = []
         for peer in peers:
             if encoder.buffers and peer.compatible:
@@ -348,8 +362,7 @@ class Publisher(rclpy.publisher.Publisher):
                     # its process is gone (the backend knows before DDS does): nothing more
                     # is written to it, neither this message nor a CPU copy
                     self._logger.debug(f'{peer.info.gid_hex} is gone: its route ends')
-                    peer.route.gone()
-                    changed = True
+                    self._table.gone(peer.info.gid)
                     continue
                 if described:
                     peer.channel.publish(encoder.with_descriptors(described), timestamp)
@@ -365,19 +378,18 @@ class Publisher(rclpy.publisher.Publisher):
             cpu_targets.append(self)
             self._exclude_from_main(withheld)
         if not cpu_targets:
-            return changed
+            return
         if encoder.host_buffer:
             # a Buffer in host memory: converted to C through its buffer protocol and
             # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
             write_message(encoder.msg, timestamp, cpu_targets)
-            return changed
+            return
         data = encoder.cpu_bytes()
         for target in cpu_targets:
             if target is self:
                 publish_serialized(self, data, timestamp)
             else:
                 target.publish(data, timestamp)
-        return changed
 
     def _exclude_from_main(self, withheld: Tuple[bytes, ...]) -> None:
         """Keep the next main-topic sample from the subscriptions ``withheld`` (their channels
@@ -398,42 +410,22 @@ class Publisher(rclpy.publisher.Publisher):
                 'main-topic samples from subscriptions served on channels; they receive and '
                 'drop them (costs CPU, loses nothing)', once=True)
 
-    def _current_plan(self) -> _Planned:
-        """The cached plan while it holds, else the route table's new one (see :meth:`_plan`)."""
-        planned = self._planned
-        if (planned is None or time.monotonic() >= planned.plan.recheck_at or
-                self._route_signature() != planned.signature):
-            planned = self._plan()
-        return planned
+    def _write_probes(self, probes: Tuple[Tuple[bytes, int], ...], timestamp: int) -> None:
+        """Write the probes the route table asked for, stamped ``timestamp`` (the last message's
+        or older: nothing takes them for a newer message). Under the lock."""
+        for key, count in probes:
+            channel = self._peers[key].channel
+            for _ in range(count):
+                channel.publish(control.PROBE_BYTES, timestamp)
 
-    def _route_signature(self) -> tuple:
-        """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
-        return (self.get_subscription_count(),
-                tuple(-1 if peer.channel is None else peer.channel.matched_count()
-                      for peer in self._peers))
-
-    def _plan(self) -> _Planned:
-        """Feed the route table what DDS says now (matched channels, acknowledged samples),
-        write the probes it asks for, and cache its plan. Under the lock."""
-        now = time.monotonic()
-        signature = self._route_signature()
-        for peer, matched in zip(self._peers, signature[1]):
-            route = peer.route
-            route.channel_matched(matched > 0, now)
-            if route.awaits_acknowledgment and peer.channel.wait_for_all_acked(0.0):
-                route.acknowledged(self._last_timestamp)
-                self._logger.debug(f'channel to {peer.info.gid_hex} acknowledged '
-                              f'({route.state.value})')
-            probes = route.probes_due(now)
-            if probes:
-                timestamp = self._last_timestamp or time.time_ns()
-                for _ in range(probes):
-                    peer.channel.publish(control.PROBE_BYTES, timestamp)
-        plan = self._table.plan(now, matched_subscription_gids(self))
-        peers = tuple(self._peers[gid] for gid in plan.channel)
-        self._planned = _Planned(plan, peers, signature)
-        self._arm_route_timer(plan.recheck_at - now < routes.RECHECK_SECONDS)
-        return self._planned
+    def _advance(self) -> None:
+        """Bring the routes up to date between messages (the route timer). Under the lock."""
+        probes, timer = self._table.advance(time.monotonic(), self._view)
+        if probes:
+            self._write_probes(probes, self._last_timestamp or time.time_ns())
+        for key, _ in probes:
+            self._logger.debug(f'probes to {self._peers[key].info.gid_hex}')
+        self._arm_route_timer(timer)
 
     def _arm_route_timer(self, needed: bool) -> None:
         """Routes in bring-up (probes, settle time, confirmation) advance on the executor too,
@@ -450,7 +442,7 @@ class Publisher(rclpy.publisher.Publisher):
     def _on_route_timer(self) -> None:
         with self._lock:
             if not self._peers.closed:
-                self._plan()
+                self._advance()
 
     # diagnostics ----------------------------------------------------------------------------
 
@@ -545,19 +537,19 @@ class Publisher(rclpy.publisher.Publisher):
         # reader's history holds (it advertises it with its cpu entry)
         info = dataclasses.replace(info, local_gid=self._gid,
                                    history_depth=parse_history_metadata(backends.get(CPU_BACKEND)))
-        depth = self.qos_profile.depth
-        record = _SubscriptionPeer(info=info, backends=backends, route=self._table.add(
-            info.gid, handshake=self._handshake and reliable_subscription(
-                self._node, self._topic_name, info.gid), depth=depth))
-        record.channel_topic = channel_topic(self._topic_name, self._gid, info.gid)
-        record.channel = _dds.create_channel_publisher(
-            self._node, self.msg_type, record.channel_topic, self.qos_profile)
+        topic = channel_topic(self._topic_name, self._gid, info.gid)
+        channel = _dds.create_channel_publisher(self._node, self.msg_type, topic,
+                                                self.qos_profile)
+        # the route last: the route table never has a route without its channel
+        route = self._table.add(info.gid, handshake=self._handshake and reliable_subscription(
+            self._node, self._topic_name, info.gid), depth=self.qos_profile.depth)
         self._peers_added += 1
-        return record
+        return _SubscriptionPeer(info=info, backends=backends, route=route, channel=channel,
+                                 channel_topic=topic)
 
     def _peer_seen(self) -> None:
         # any subscription of our topic coming or changing, legacy ones too, may change routes
-        self._planned = None
+        self._table.invalidate()
 
     def _channels_checked(self) -> None:
         # a channel that matched since the last plan moves its route on (probes, settling):
@@ -567,19 +559,17 @@ class Publisher(rclpy.publisher.Publisher):
     def _peer_gone(self, gid: bytes) -> None:
         # any subscription of our topic going, legacy ones too, may change routes (the table
         # also remembers legacy subscriptions' last main-topic message)
-        self._planned = None
         self._table.remove(gid)
         self._peers.drop(gid)
 
     def _update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
         record.compatible = compatible
-        self._planned = None
+        self._table.invalidate()
         self._arm_route_timer(True)  # its route advances on the executor, publishing or not
 
     def _forget_peer(self, record: _SubscriptionPeer) -> None:
         self._peers_removed += 1
         self._table.remove(record.info.gid)
-        self._planned = None
 
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,

@@ -6,6 +6,14 @@ Pure logic (no DDS, no rclpy): :class:`rosidl_buffer_py.publisher.Publisher` and
 acknowledged, a sample taken, time passing, a peer gone) and carry out its decisions (write here,
 withhold there, deliver, queue, drop).
 
+The publisher asks its :class:`RouteTable` one question per message, :meth:`RouteTable.dispatch`
+("what do I write, where, and what do I withhold"), answering the table's questions about DDS
+through a :class:`RouteView`, and writes what the answer says in its order: probes, then per
+channel the route fence (if any) and the message, then the main topic. Between messages, a timer
+calls :meth:`RouteTable.advance` while a route is being brought up. The table owns the order of
+the steps and its cached plan; the route model test (``test/test_routes.py``) drives the same
+two entry points.
+
 Publisher side: one :class:`Route` per buffer-aware subscription, the route of its private
 channel, and one :class:`RouteTable` per publisher::
 
@@ -42,8 +50,8 @@ topic delivered the fenced message; main-topic messages are never held.
 import collections
 import enum
 from dataclasses import dataclass, field
-from typing import Deque, Dict, Generic, Hashable, Iterable, NamedTuple, Optional, Tuple, \
-    TypeVar
+from typing import Deque, Dict, Generic, Hashable, Iterable, NamedTuple, Optional, Protocol, \
+    Tuple, TypeVar
 
 #: How long a channel must have been matched before it serves its subscription, when its
 #: reader's readiness cannot be acknowledged (BEST_EFFORT, KEEP_ALL or a deep KEEP_LAST).
@@ -250,6 +258,52 @@ class Plan(NamedTuple):
     recheck_at: float
 
 
+class RouteView(Protocol[K]):
+    """What DDS says now, as the publisher reads it for :meth:`RouteTable.advance` and
+    :meth:`RouteTable.dispatch` (each asked only when the table needs it)."""
+
+    def signature(self) -> Hashable:
+        """A cheap summary of what is matched (the main topic's and every channel's matched
+        counts): while it holds, so does the cached plan (until its ``recheck_at``)."""
+
+    def matched_subscriptions(self) -> Iterable[K]:
+        """Keys of the main topic's matched subscriptions, legacy ones included."""
+
+    def channel_matched(self, key: K) -> bool:
+        """The channel of ``key``'s route has a matched reader."""
+
+    def channel_acknowledged(self, key: K) -> bool:
+        """Every sample written on ``key``'s channel so far was acknowledged by its reader."""
+
+    def main_acknowledged(self) -> bool:
+        """Every sample written on the main topic so far was acknowledged by every reader."""
+
+
+class Advance(NamedTuple):
+    """What :meth:`RouteTable.advance` asks the publisher to do."""
+
+    #: Probes to write now, ``(key, count)`` per route being brought up.
+    probes: Tuple[Tuple[Hashable, int], ...]
+    #: Some route needs attention before ``RECHECK_SECONDS``: advance on a timer (every
+    #: ``PROBE_INTERVAL_SECONDS``) too, publishing or not.
+    timer: bool
+
+
+class Dispatch(NamedTuple):
+    """Where one message goes (:meth:`RouteTable.dispatch`), in the order to write it."""
+
+    #: First, probes: ``(key, count)`` per route being brought up.
+    probes: Tuple[Tuple[Hashable, int], ...]
+    #: Then the message on these routes' channels, each preceded by its route fence if one is
+    #: given: ``(key, fence or None)``.
+    channel: Tuple[Tuple[Hashable, Optional[Fence]], ...]
+    #: Then, when True, the main topic, its sample kept from the ``withheld`` subscriptions.
+    main: bool
+    withheld: Tuple[Hashable, ...]
+    #: Whether the route timer runs from now on (see :attr:`Advance.timer`); None: unchanged.
+    timer: Optional[bool]
+
+
 class RouteTable(Generic[K]):
     """The routes of one publisher, by subscription key (its GID)."""
 
@@ -259,18 +313,85 @@ class RouteTable(Generic[K]):
         self.routes: Dict[K, Route] = {}
         #: Last main-topic message per subscription not (yet) known as a buffer-aware peer.
         self._last_main: Dict[K, int] = {}
+        #: Source timestamp of the last message dispatched (0: none yet).
+        self.last_published = 0
+        #: The plan of the next messages and the view's signature it was made with (None:
+        #: plan again; asking DDS for the matched subscriptions takes tens of microseconds).
+        self._cached: Optional[Tuple[Plan, Hashable]] = None
 
     def add(self, key: K, *, handshake: bool, depth: int = 0) -> Route:
         """A buffer-aware subscription was discovered: its route starts UNMATCHED."""
         route = Route(handshake=handshake and 0 < depth <= MAX_PROBE_DEPTH,
                       first_probes=depth + 1, last_main=self._last_main.pop(key, None))
         self.routes[key] = route
+        self._cached = None
         return route
 
     def remove(self, key: K) -> None:
         """A subscription went away (or stopped being buffer-aware)."""
         self.routes.pop(key, None)
         self._last_main.pop(key, None)
+        self._cached = None
+
+    def gone(self, key: K) -> None:
+        """``key``'s process is known to be gone (its backend said so before DDS): nothing
+        more is written to it."""
+        route = self.routes.get(key)
+        if route is not None:
+            route.gone()
+        self._cached = None
+
+    def invalidate(self) -> None:
+        """Something the signature does not show changed (a subscription of the topic came,
+        changed or went): the next message is planned again."""
+        self._cached = None
+
+    def advance(self, now: float, view: 'RouteView[K]',
+                signature: Optional[Hashable] = None) -> Advance:
+        """Bring the routes up to date with DDS (matched channels, acknowledged probes and
+        channel samples, time passed) and plan the next messages."""
+        if signature is None:
+            signature = view.signature()
+        probes = []
+        for key, route in self.routes.items():
+            route.channel_matched(view.channel_matched(key), now)
+            if route.awaits_acknowledgment and view.channel_acknowledged(key):
+                route.acknowledged(self.last_published)
+            count = route.probes_due(now)
+            if count:
+                probes.append((key, count))
+        plan = self.plan(now, view.matched_subscriptions())
+        self._cached = (plan, signature)
+        return Advance(tuple(probes), plan.recheck_at - now < RECHECK_SECONDS)
+
+    def dispatch(self, now: float, timestamp: int, view: 'RouteView[K]') -> Dispatch:
+        """Where message ``timestamp`` goes, the routes' transitions it makes (a fence goes
+        out, the main topic's last message for a subscription) already taken: the publisher
+        writes exactly what the answer says, in its order. The cached plan serves while the
+        view's signature holds and its ``recheck_at`` has not passed."""
+        cached = self._cached
+        probes, timer = (), None
+        if cached is None or now >= cached[0].recheck_at or view.signature() != cached[1]:
+            probes, timer = self.advance(now, view)
+            cached = self._cached
+        plan = cached[0]
+        channel = []
+        delivered = None  # whether the main topic's readers acknowledged all they were sent
+        for key in plan.channel:
+            fence = self.routes[key].take_fence()
+            if fence is not None:
+                if delivered is None:
+                    delivered = view.main_acknowledged()
+                # its message reached the subscription's reader: if that history has nothing
+                # left, the message was lost there, and the subscription need not wait for it
+                fence = fence._replace(delivered=delivered)
+                self._cached = None  # the route's state changed: plan the next message again
+            channel.append((key, fence))
+        main, withheld, main_served = plan.main, plan.withheld, plan.main_served
+        if main and self.main_written(main_served, timestamp):
+            self._cached = None  # a route may serve from the next message on
+        self.last_published = timestamp
+        return Dispatch(probes, tuple(channel), main, withheld, timer)
 
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's

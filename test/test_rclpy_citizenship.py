@@ -291,7 +291,7 @@ def test_an_endpoints_warning_reaches_rosout_of_another_process(tmp_path):
             rclpy.spin_once(node, timeout_sec=0.05)
         bad = codec.encode(Image(), ('demo', b'not a demo descriptor'))
         while time.monotonic() < end and sub.statistics()['rejected'] == 0:
-            pub._planned.peers[0].channel.publish(bad, time.time_ns())
+            next(iter(pub._peers)).channel.publish(bad, time.time_ns())
             rclpy.spin_once(node, timeout_sec=0.2)
         # stay (rosout keeps the line for late joiners while its publisher lives) until the
         # listener got it and closes our stdin: discovery may take seconds on a loaded machine

@@ -12,8 +12,9 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
-    CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_TIMEOUT_SECONDS, PROBE_INTERVAL_SECONDS,
-    Fence, Route, RouteState, RouteTable, Stream, StreamState, StreamTable, Verdict)
+    CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_TIMEOUT_SECONDS,
+    PROBE_INTERVAL_SECONDS, Fence, Route, RouteState, RouteTable, Stream, StreamState,
+    StreamTable, Verdict)
 
 S = RouteState
 
@@ -156,6 +157,85 @@ def test_deep_or_unbounded_histories_settle_instead_of_probing():
     assert table.add('deep', handshake=True, depth=101).handshake is False
     assert table.add('all', handshake=True, depth=0).handshake is False
     assert table.add('five', handshake=True, depth=5).first_probes == 6
+
+
+@dataclass
+class FakeView:
+    """A RouteView with answers set by the test (what DDS would say)."""
+
+    channels: Dict[str, bool] = field(default_factory=dict)
+    acknowledged: Dict[str, bool] = field(default_factory=dict)
+    matched: List[str] = field(default_factory=list)
+    main_acked: bool = True
+    asked: List[str] = field(default_factory=list)
+
+    def signature(self):
+        self.asked.append('signature')
+        return (tuple(self.matched), tuple(sorted(self.channels.items())))
+
+    def matched_subscriptions(self):
+        self.asked.append('matched')
+        return list(self.matched)
+
+    def channel_matched(self, key):
+        return self.channels.get(key, False)
+
+    def channel_acknowledged(self, key):
+        return self.acknowledged.get(key, False)
+
+    def main_acknowledged(self):
+        self.asked.append('main_acknowledged')
+        return self.main_acked
+
+
+def test_dispatch_brings_a_route_up_in_the_order_the_publisher_writes():
+    """Probes first, the main topic until the channel is acknowledged, then the fence with the
+    message on the channel, the main-topic sample kept from the subscription from then on."""
+    table, view = RouteTable(), FakeView(matched=['a'])
+    table.add('a', handshake=True, depth=2)
+    first = table.dispatch(0.0, 1, view)
+    assert first.probes == () and first.channel == () and first.main and first.withheld == ()
+    view.channels['a'] = True  # the signature changes: planned again
+    second = table.dispatch(0.001, 2, view)
+    assert second.probes == (('a', 3),) and second.timer is True and second.main
+    view.acknowledged['a'] = True
+    third = table.dispatch(0.002, 3, view)  # cached plan: the acknowledgment is not asked yet
+    assert third.channel == () and third.main and table.routes['a'].state is S.PROBING
+    fourth = table.dispatch(0.002 + PROBE_INTERVAL_SECONDS, 4, view)  # recheck: acknowledged,
+    assert fourth.main and table.routes['a'].state is S.FENCING  # fenced after this message
+    fifth = table.dispatch(0.02, 5, view)
+    assert fifth.channel == (('a', Fence(4, delivered=True)),)
+    assert fifth.withheld == ('a',) and not fifth.main  # no other reader: no main-topic write
+    assert table.routes['a'].state is S.CONFIRMED and table.last_published == 5
+    sixth = table.dispatch(0.03, 6, view)
+    assert sixth.channel == (('a', None),) and not sixth.main and sixth.probes == ()
+
+
+def test_dispatch_uses_its_cached_plan_until_the_signature_or_recheck_time_changes():
+    table, view = RouteTable(), FakeView(matched=['legacy'])
+    table.dispatch(0.0, 1, view)
+    view.asked.clear()
+    table.dispatch(0.1, 2, view)
+    assert view.asked == ['signature']  # no GID list asked for: the plan holds
+    view.matched.append('other')
+    table.dispatch(0.2, 3, view)
+    assert 'matched' in view.asked
+    view.asked.clear()
+    table.invalidate()  # a subscription changed in a way the counts do not show
+    table.dispatch(0.3, 4, view)
+    assert 'matched' in view.asked
+
+
+def test_gone_and_removed_routes_are_planned_again_at_once():
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True})
+    route = table.add('a', handshake=False, depth=0)
+    route.state = S.SERVING
+    assert table.dispatch(0.0, 1, view).channel == (('a', None),)
+    table.gone('a')
+    after = table.dispatch(0.0, 2, view)
+    assert after.channel == () and after.withheld == ('a',) and not after.main
+    table.remove('a')
+    assert table.dispatch(0.0, 3, view).main  # planned again: an unknown matched reader
 
 
 # --- the stream -------------------------------------------------------------------------------
@@ -323,9 +403,36 @@ class Link:
             self.queue.popleft()
 
 
+class ModelView:
+    """What the modelled DDS says, answered for the route table as the publisher's
+    ``_RouteView`` answers from real DataWriters (:class:`rosidl_buffer_py.routes.RouteView`)."""
+
+    def __init__(self, model: 'RouteProtocol') -> None:
+        self.model = model
+
+    def signature(self):
+        return (1, (1 if self.model.channel_up else 0,))
+
+    def matched_subscriptions(self):
+        return ['s']
+
+    def channel_matched(self, key):
+        self.model.seen_up = self.model.channel_up  # what the table last heard
+        return self.model.channel_up
+
+    def channel_acknowledged(self, key):
+        return self.model.channel_acked
+
+    def main_acknowledged(self):
+        return self.model.main_acked
+
+
 class RouteProtocol(RuleBasedStateMachine):
     """A publisher's RouteTable and a subscription's Stream connected by two modelled links;
-    random publishes, matches, acknowledgments, takes, time and death."""
+    random publishes, matches, acknowledgments, takes, time and death. The publisher side is
+    driven through the entry points the real publisher uses (``RouteTable.dispatch`` per
+    message, ``RouteTable.advance`` on its route timer), and writes what they answer, in
+    their order."""
 
     #: the QoS depth (RELIABLE KEEP_LAST 5: routes probe), and how much a link holds
     DEPTH = 5
@@ -338,57 +445,70 @@ class RouteProtocol(RuleBasedStateMachine):
         self.timestamp = 0
         self.table = RouteTable()
         self.route = self.table.add('s', handshake=True, depth=self.DEPTH)
+        self.view = ModelView(self)
         self.stream = Stream()
         self.main = Link(self.LINK_DEPTH)
         self.channel = Link(self.LINK_DEPTH)
         self.channel_up = self.seen_up = False
+        #: the channel's reader acknowledged every sample written on it (DDS's answer)
+        self.channel_acked = False
+        #: the main topic's readers acknowledged every sample (the writer knows it)
+        self.main_acked = False
+        self.timer_armed = False
         self.published: List[int] = []
         self.delivered: List[int] = []
         self.queued_at: Dict[int, float] = {}
         self.written_after_gone = 0
         self.dead = False
-        self.cached_plan = None
 
     # the publisher side -----------------------------------------------------------------
 
-    @rule(fresh=st.booleans(), acked=st.booleans())
-    def publish(self, fresh, acked):
-        """Publish one message; with ``fresh`` False, by the plan of the last publish (the
-        publisher caches its plan while the matched counts it was made with hold). A fence
-        says its message reached the reader when the main topic's writer knows it was
-        acknowledged: the modelled links deliver at once, so that is true whenever the
+    def _write_channel(self, item) -> None:
+        if self.route.state is RouteState.GONE:
+            self.written_after_gone += 1
+        self.channel.write(item)
+        self.channel_acked = False
+
+    def _write_probes(self, probes, timestamp) -> None:
+        for key, count in probes:
+            assert key == 's'
+            for _ in range(count):
+                self._write_channel(('control', control.encode(control.PROBE), timestamp))
+
+    @rule(acked=st.booleans())
+    def publish(self, acked):
+        """Publish one message as ``Publisher.publish`` does: ask the table, write what it
+        says. A fence says its message reached the reader when the main topic's writer knows
+        it was acknowledged: the modelled links deliver at once, so that is true whenever the
         writer knows, which ``acked`` says (False: the acknowledgment is not in yet)."""
+        self.main_acked = acked
+        if self.dead and self.route.state is not RouteState.GONE:
+            self.table.gone('s')  # the backend said so; DDS still matches it
+        previous = self.timestamp
         self.timestamp += 1
         ts = self.timestamp
         self.published.append(ts)
-        cached = self.cached_plan
-        if fresh or cached is None or cached[1] != self.channel_up:
-            self.route.channel_matched(self.channel_up, self.now)
-            self.seen_up = self.channel_up
-            for _ in range(self.route.probes_due(self.now)):
-                self.channel.write(('control', control.encode(control.PROBE), ts - 1))
-            if self.dead and self.route.state is not RouteState.GONE:
-                self.route.gone()  # the backend said so; DDS still matches it
-            plan = self.table.plan(self.now, ['s'])
-            self.cached_plan = (plan, self.channel_up)
-        else:
-            plan = cached[0]
-        for key in plan.channel:
+        dispatch = self.table.dispatch(self.now, ts, self.view)
+        self._write_probes(dispatch.probes, previous or ts - 1)
+        if dispatch.timer is not None:
+            self.timer_armed = dispatch.timer
+        for key, fence in dispatch.channel:
+            if fence is not None:
+                self._write_channel(('control', control.encode(fence), ts))
+            self._write_channel(('data', None, ts))
+        if dispatch.main and 's' not in dispatch.withheld:
             if self.route.state is RouteState.GONE:
                 self.written_after_gone += 1
-            fence = self.route.take_fence()
-            if fence is not None:
-                fence = fence._replace(delivered=acked)
-                self.channel.write(('control', control.encode(fence), ts))
-                self.cached_plan = None  # the publisher plans again after a fence
-            self.channel.write(('data', None, ts))
-        if plan.main:
-            if 's' not in plan.withheld:
-                if self.route.state is RouteState.GONE:
-                    self.written_after_gone += 1
-                self.main.write(('data', None, ts))
-            if self.table.main_written(plan.main_served, ts):
-                self.cached_plan = None
+            self.main.write(('data', None, ts))
+
+    @precondition(lambda self: self.timer_armed)
+    @rule()
+    def route_timer_fires(self):
+        """The publisher's route timer (armed while a route is being brought up) runs between
+        messages, as ``Publisher._advance`` does."""
+        probes, timer = self.table.advance(self.now, self.view)
+        self._write_probes(probes, self.timestamp)
+        self.timer_armed = timer
 
     @rule(count=st.integers(1, 2 * LINK_DEPTH))
     def another_publisher_writes(self, count):
@@ -408,16 +528,16 @@ class RouteProtocol(RuleBasedStateMachine):
         """The channel's reader goes (what it had not taken is lost with it); the subscription
         forgets the channel and its publisher's next messages come on the main topic."""
         self.channel_up = False
+        self.channel_acked = False
         self.channel.queue.clear()
         self.stream.channel_lost()
 
-    @precondition(lambda self: self.route.awaits_acknowledgment and self.channel_up and
-                  not self.channel.queue)
+    @precondition(lambda self: self.channel_up and not self.channel_acked)
     @rule()
     def channel_acknowledges(self):
-        """DDS says every channel sample was acknowledged: the reader took them into its
-        history (here: the subscription took them)."""
-        self.route.acknowledged(self.timestamp)
+        """DDS learns that the channel's reader has every sample written on it so far (they
+        are in its history; taken or not). The route table hears it when it next asks."""
+        self.channel_acked = True
 
     @rule(seconds=st.sampled_from([0.005, 0.05, 0.3, 1.2]))
     def time_passes(self, seconds):
@@ -501,7 +621,7 @@ class RouteProtocol(RuleBasedStateMachine):
     def main_topic_serves_until_the_channel_does(self):
         route = self.route
         if route.state in (RouteState.FENCING, RouteState.SERVING, RouteState.CONFIRMED):
-            assert self.seen_up  # as the publisher last saw it
+            assert self.seen_up  # as the table last heard it from DDS
         if route.withheld:
             assert route.handshake  # only an acknowledged channel keeps main-topic samples away
 
@@ -536,12 +656,13 @@ def test_model_trace_a_fenced_message_lost_to_another_publishers_samples():
     nothing left, the channel's messages go at once (before: held FENCE_TIMEOUT_SECONDS)."""
     model = RouteProtocol()
     model.channel_matches()
-    model.publish(fresh=True, acked=True)  # message 1 on the main topic; probes written
+    model.publish(acked=True)  # message 1 on the main topic; probes written
     while model.channel.queue:
         model.take_channel()  # the probes
     model.channel_acknowledges()
-    model.publish(fresh=True, acked=True)  # message 2: the last main-topic one
-    model.publish(fresh=True, acked=True)  # message 3: fence (last main 2), on the channel
+    model.route_timer_fires()  # the table hears of it: ACKNOWLEDGED
+    model.publish(acked=True)  # message 2: the last main-topic one
+    model.publish(acked=True)  # message 3: fence (last main 2), on the channel
     assert model.route.state is RouteState.CONFIRMED and model.main.queue
     model.another_publisher_writes(count=RouteProtocol.LINK_DEPTH)  # 1 and 2 pushed out
     model.take_channel()  # the fence

@@ -35,7 +35,7 @@ import rosidl_buffer_py
 from demo_buffer_backend import DemoBuffer, backend as demo_backend, links, mappings
 from launch_free_demos.domains import claim_domain_ids
 from launch_free_demos.runner import Run
-from rosidl_buffer_py import codec, publisher, subscription
+from rosidl_buffer_py import codec, publisher, routes, subscription
 
 #: Frames left out of the latency medians (the first after bring-up); calls left out of the
 #: warm and cold medians.
@@ -84,7 +84,7 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
         return
     stages.wrap(publisher.Publisher, 'publish', 'publish()')
     stages.wrap(publisher.Publisher, '_write', '  writes (descriptor or CPU message)')
-    stages.wrap(publisher.Publisher, '_current_plan', '  route plan (cached while current)')
+    stages.wrap(routes.RouteTable, 'dispatch', '  route dispatch (plan cached while current)')
     if transport == 'demo':
         stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
         stages.wrap(links.Links, 'drain', '      acks and hang-ups from the peer')
