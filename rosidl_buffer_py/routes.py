@@ -28,7 +28,9 @@ Until FENCING the main topic serves the subscription. A route becomes FENCING on
 its channel carries from then on reaches the subscription's reader: the reader acknowledged the
 probes (so it matched the channel writer), or the channel has been matched for the settle time.
 Its first channel message is preceded by a *route fence* naming the last message the main topic
-carried for it, which the subscription delivers first. Once serving, a route stays on its
+carried for it, which the subscription delivers first. The fence waits (the main topic serving a
+while longer, at most ``FENCE_DEFER_SECONDS``) until the main topic's readers acknowledged all
+they were sent, so that it can say its message reached the subscription's reader. Once serving, a route stays on its
 channel while the channel is matched (the subscription drops main-topic copies from the fence
 on). CONFIRMED: the channel's samples were acknowledged too, so main-topic samples are withheld
 from that subscription (the DataWriter sends it a GAP instead of the payload). A route whose
@@ -68,6 +70,10 @@ RECHECK_SECONDS = 0.5
 #: How long channel messages wait for a fenced main-topic message before it counts as lost
 #: (as DDS's KEEP_LAST loses a sample when the reader's history overflows).
 FENCE_TIMEOUT_SECONDS = 1.0
+#: How long a due route fence waits for the main topic's readers to acknowledge what they were
+#: sent, the main topic serving the subscription meanwhile: a fence written after that
+#: acknowledgment lets the subscription tell a lost fenced message from a late one at once.
+FENCE_DEFER_SECONDS = 0.25
 
 
 class RouteState(enum.Enum):
@@ -119,6 +125,8 @@ class Route:
     last_main: Optional[int] = None
     #: When the channel's own samples were last asked about (SERVING with a handshake).
     asked_at: float = 0.0
+    #: When the fence became due and was first deferred (see :meth:`RouteTable.dispatch`).
+    fence_due_since: Optional[float] = None
 
     @property
     def on_channel(self) -> bool:
@@ -153,6 +161,7 @@ class Route:
                     self.handshake = False
                 self.state = RouteState.UNMATCHED
                 self.probed_at, self.acknowledged_probes = None, False
+                self.fence_due_since = None
             return
         if state is RouteState.UNMATCHED:
             self.matched_since = now
@@ -219,7 +228,16 @@ class Route:
         if self.state is not RouteState.FENCING:
             return None
         self.state = RouteState.CONFIRMED if self.acknowledged_probes else RouteState.SERVING
+        self.fence_due_since = None
         return Fence(self.last_main or 0)
+
+    def defer_fence(self, now: float) -> bool:
+        """The main topic's readers have not acknowledged all they were sent: whether the due
+        fence waits (the main topic serving this message), for at most
+        ``FENCE_DEFER_SECONDS``."""
+        if self.fence_due_since is None:
+            self.fence_due_since = now
+        return now - self.fence_due_since < FENCE_DEFER_SECONDS
 
     def main_written(self, timestamp: int) -> bool:
         """The main topic carried message ``timestamp`` for this subscription (whatever the
@@ -375,19 +393,30 @@ class RouteTable(Generic[K]):
             probes, timer = self.advance(now, view)
             cached = self._cached
         plan = cached[0]
-        channel = []
+        channel, deferred = [], []
         delivered = None  # whether the main topic's readers acknowledged all they were sent
         for key in plan.channel:
-            fence = self.routes[key].take_fence()
-            if fence is not None:
+            route = self.routes[key]
+            if route.state is RouteState.FENCING:
                 if delivered is None:
                     delivered = view.main_acknowledged()
-                # its message reached the subscription's reader: if that history has nothing
-                # left, the message was lost there, and the subscription need not wait for it
-                fence = fence._replace(delivered=delivered)
+                # the fence says whether its message reached the subscription's reader: if so,
+                # and that history has nothing left, the message was lost there and nothing
+                # waits for it; if not known yet, the main topic serves a while longer
+                if not delivered and route.defer_fence(now):
+                    deferred.append(key)
+                    continue
+                fence = route.take_fence()._replace(delivered=delivered)
                 self._cached = None  # the route's state changed: plan the next message again
+            else:
+                fence = None
             channel.append((key, fence))
         main, withheld, main_served = plan.main, plan.withheld, plan.main_served
+        if deferred:
+            matched = set(view.matched_subscriptions())
+            main = True
+            withheld = tuple(key for key in withheld if key not in deferred)
+            main_served += tuple(key for key in deferred if key in matched)
         if main and self.main_written(main_served, timestamp):
             self._cached = None  # a route may serve from the next message on
         self.last_published = timestamp

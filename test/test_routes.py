@@ -12,7 +12,7 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
-    CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_TIMEOUT_SECONDS,
+    CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_DEFER_SECONDS, FENCE_TIMEOUT_SECONDS,
     PROBE_INTERVAL_SECONDS, Fence, Route, RouteState, RouteTable, Stream, StreamState,
     StreamTable, Verdict)
 
@@ -224,6 +224,30 @@ def test_dispatch_uses_its_cached_plan_until_the_signature_or_recheck_time_chang
     table.invalidate()  # a subscription changed in a way the counts do not show
     table.dispatch(0.3, 4, view)
     assert 'matched' in view.asked
+
+
+def test_a_due_fence_waits_for_the_main_topics_acknowledgment_then_names_the_last_message():
+    """Written while the main topic's readers had not acknowledged the fenced message, a fence
+    could not tell the subscription whether that message was lost: the main topic serves the
+    subscription meanwhile, for at most FENCE_DEFER_SECONDS."""
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True}, main_acked=False)
+    route = table.add('a', handshake=True, depth=2)
+    route.state, route.acknowledged_probes, route.last_main = S.FENCING, True, 1
+    deferred = table.dispatch(1.0, 2, view)
+    assert deferred.channel == () and deferred.main and deferred.withheld == ()
+    assert route.state is S.FENCING and route.last_main == 2
+    view.main_acked = True
+    fenced = table.dispatch(1.01, 3, view)
+    assert fenced.channel == (('a', Fence(2, delivered=True)),) and fenced.withheld == ('a',)
+    # never acknowledged (a reader that stopped answering): the fence goes out unconfirmed
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True}, main_acked=False)
+    route = table.add('a', handshake=False, depth=0)
+    route.state, route.last_main = S.FENCING, 1
+    assert table.dispatch(1.0, 2, view).channel == ()
+    assert table.dispatch(1.0 + FENCE_DEFER_SECONDS / 2, 3, view).channel == ()
+    late = table.dispatch(1.0 + FENCE_DEFER_SECONDS, 4, view)
+    assert late.channel == (('a', Fence(3, delivered=False)),) and not late.main
+    assert route.state is S.SERVING
 
 
 def test_gone_and_removed_routes_are_planned_again_at_once():
