@@ -25,6 +25,8 @@ DRAIN_SEC = 3.0
 #: The publisher stays this long after its last frame while the subscriber is matched
 #: (reliable delivery of the last frames).
 LINGER_SEC = 2.0
+#: The demo's topic.
+TOPIC = '/demo/image'
 
 DESCRIPTION = ('The cross-process image demo: an image_publisher fills frames in place in '
                'shared memory (the demo backend) and an image_subscriber in another process '
@@ -96,11 +98,11 @@ def main(argv=None) -> int:
     drained = True
     with Run(echo=True) as run:
         try:
-            run.start('demo_subscriber', 'image_subscriber', topic='/demo/image',
+            run.start('demo_subscriber', 'image_subscriber', topic=TOPIC,
                       acceptable_buffer_backends=args.accept, expected_count=count,
                       timeout_sec=args.seconds + 60.0, report_period_sec=1.0, depth=args.depth,
                       work_sec=max(0.0, args.slow_subscriber))
-            run.start('demo_publisher', 'image_publisher', topic='/demo/image',
+            run.start('demo_publisher', 'image_publisher', topic=TOPIC,
                       backend=args.backend, rate_hz=args.rate, count=count,
                       wait_for_subscribers=1, wait_for_buffer_peers=1, linger_sec=LINGER_SEC,
                       depth=args.depth, **frame)
@@ -134,6 +136,8 @@ def main(argv=None) -> int:
         print('\nThe demo did not finish:\n' + run.diagnostics(), file=sys.stderr)
         return 1
     print_summary(args, pub, sub)
+    if sub.get('publishers', 1) > 1:
+        print('\n' + explain_other_publishers(sub['publishers']))
     lost = lost_frames(pub, sub)
     if lost:
         print('\n' + explain_loss(args, lost, pub['published'] - sub['distinct'], drained))
@@ -149,6 +153,15 @@ def lost_frames(pub: dict, sub: dict) -> List[int]:
     last = sub.get('last_frame')
     after_last = range(last + 1 if last is not None else 0, published)
     return sorted(set(sub.get('missing', [])) | set(after_last))
+
+
+def explain_other_publishers(count: int) -> str:
+    """The subscriber matched ``count`` publishers of /demo/image: what that does to the
+    counts, in words."""
+    return (f'demo: the subscriber matched {count} publishers on {TOPIC}: another demo (or '
+            'image_publisher) runs in this ROS domain, and its frames, numbered from 0 too, count '
+            "as this demo's duplicates. Run one demo at a time, or each in a domain of its own "
+            '(ROS_DOMAIN_ID=<n> ./dev demo).')
 
 
 def explain_loss(args: argparse.Namespace, lost: List[int], total: int, drained: bool) -> str:

@@ -256,6 +256,40 @@ class Publisher(rclpy.publisher.Publisher):
         """Fully qualified topic name."""
         return self._topic_name
 
+    def wait_for_buffer_peers(self, count: int = 1, timeout_sec: Optional[float] = None
+                              ) -> bool:
+        """Wait until ``count`` buffer-aware subscriptions are served on their channels (their
+        next messages go zero-copy where they share a backend); True when they are in time.
+
+        Frames published before a new buffer-aware subscription's channel is up reach it as CPU
+        bytes: a camera that wants its first frames zero-copy waits here first. Plain
+        subscriptions (rviz, recorders) need no wait and are not counted. Works whether an
+        executor spins the node or not (discovery and the routes are moved on here too, as
+        ``publish`` does); ``timeout_sec`` None waits forever, 0 only checks.
+        """
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise ValueError(f'count must be an int of at least 1, got {count!r}')
+        if timeout_sec is not None and not timeout_sec >= 0:
+            raise ValueError(f'timeout_sec must be None or >= 0, got {timeout_sec!r}')
+        if not self._transport:
+            return False  # a stock publisher (unsupported middleware, no uint8[] field)
+        deadline = None if timeout_sec is None else time.monotonic() + timeout_sec
+        while True:
+            now = time.monotonic()
+            if not self._peers.reannouncer.spinning(now):
+                self._peers.poll()  # nobody else processes discovery for this node
+            with self._lock:
+                if self._peers.closed:
+                    raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
+                self._advance()
+                served = sum(peer.route.on_channel for peer in self._peers)
+            if served >= count:
+                return True
+            if deadline is not None and now >= deadline:
+                return False
+            time.sleep(routes.PROBE_INTERVAL_SECONDS if deadline is None else
+                       max(0.0, min(routes.PROBE_INTERVAL_SECONDS, deadline - now)))
+
     def wait_for_all_acked(self, timeout: Duration = Duration(seconds=-1)) -> bool:
         """Wait until every subscription acknowledged every message, on every route.
 

@@ -78,6 +78,18 @@ def test_lost_frames_end_the_demo_with_the_publisher_and_are_named():
     assert 'The table: frames the publisher sent' in out  # the legend under the table
 
 
+def test_two_demos_in_one_domain_are_told_apart():
+    """Two demos at once in one ROS domain: each subscriber matches both publishers and counts
+    the other's frames (numbered from 0 too) as duplicates; each demo says so and how to run
+    them apart, instead of an unexplained failure."""
+    small = ('--width', '64', '--height', '48', '--rate', '10', '--seconds', '3')
+    processes = [_start(*small), _start(*small)]
+    outs = [_finish(process, 120) for process in processes]
+    told = [out for out, _ in outs if 'demo: the subscriber matched 2 publishers on /demo/image'
+            in out and 'ROS_DOMAIN_ID=<n> ./dev demo' in out]
+    assert told, [out[-1500:] + err[-1500:] for out, err in outs]
+
+
 def test_options_are_validated_and_help_is_plain():
     for option, value in (('--rate', '0'), ('--seconds', '-1'), ('--depth', '0'),
                           ('--width', 'x')):

@@ -102,6 +102,48 @@ def test_wait_for_all_acked_covers_the_channels(context):
     node.destroy_node()
 
 
+def test_wait_for_buffer_peers_returns_once_the_channels_serve(context):
+    """A publisher whose node nobody spins waits for a buffer-aware subscription (spun by an
+    executor in another thread, as in another process) to be served on its channel; the next
+    frame goes zero-copy. More peers than exist: False at the timeout. Plain subscriptions do
+    not count; a bad count or timeout is refused."""
+    import threading
+    from std_msgs.msg import String
+    camera = rclpy.create_node('camera_waits', context=context)
+    viewer = rclpy.create_node('viewer_waits', context=context)
+    got = []
+    pub = rosidl_buffer_py.create_publisher(camera, Image, '/waits', RELIABLE)
+    viewer.create_subscription(Image, '/waits', lambda msg: None, RELIABLE)  # plain: no wait
+    assert pub.wait_for_buffer_peers(1, timeout_sec=0.3) is False
+    rosidl_buffer_py.create_subscription(viewer, Image, '/waits', got.append, RELIABLE,
+                                         acceptable_buffer_backends='demo')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(viewer)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    try:
+        assert pub.wait_for_buffer_peers(1, timeout_sec=15.0) is True
+        assert pub.wait_for_buffer_peers(timeout_sec=0) is True  # served: no wait
+        pub.publish(frame(0, 'demo'))
+        end = time.monotonic() + 10
+        while not got and time.monotonic() < end:
+            time.sleep(0.01)
+        assert [type(m.data).__name__ for m in got] == ['DemoBuffer']
+        started = time.monotonic()
+        assert pub.wait_for_buffer_peers(2, timeout_sec=0.3) is False
+        assert time.monotonic() - started < 5
+    finally:
+        executor.shutdown()
+        thread.join(5)
+    for bad in ({'count': 0}, {'count': 1.5}, {'count': True}, {'timeout_sec': -1}):
+        with pytest.raises(ValueError, match='count|timeout_sec'):
+            pub.wait_for_buffer_peers(**bad)
+    plain_type = rosidl_buffer_py.create_publisher(camera, String, '/waits_plain', RELIABLE)
+    assert plain_type.wait_for_buffer_peers(timeout_sec=0) is False  # no uint8[]: stock
+    viewer.destroy_node()
+    camera.destroy_node()
+
+
 def test_raw_subscriptions_are_refused_with_the_alternative(context):
     node = rclpy.create_node('raw', context=context)
     with pytest.raises(ValueError, match=r'node\.create_subscription\(\.\.\., raw=True\)'):

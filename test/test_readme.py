@@ -352,11 +352,11 @@ def test_camera_publishes_for_a_plain_subscriber_alone(tmp_path):
     """README's camera with only a plain rclpy subscriber (rviz's case): it does not wait for a
     buffer-aware peer forever, the frames go out as CPU bytes."""
     camera = _write_snippet(tmp_path, 'camera.py')
-    # the subscriber stops after 12 s: camera.py's frames are not image_publisher's, whose
-    # count it would wait for
+    # the subscriber stops after 20 s (camera.py waits 5 s for a buffer-aware one first):
+    # camera.py's frames are not image_publisher's, whose count it would wait for
     processes = [
         _popen([str(executable('legacy_image_subscriber')), '--ros-args', '-p',
-                'topic:=/camera/image', '-p', 'timeout_sec:=12']),
+                'topic:=/camera/image', '-p', 'timeout_sec:=20']),
         _popen([sys.executable, str(camera)], cwd=tmp_path)]
     (scode, sout, serr), (ccode, cout, cerr) = _communicate_all(processes, 150)
     assert ccode == 0, cerr[-2000:]

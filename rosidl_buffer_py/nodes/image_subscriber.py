@@ -1,7 +1,7 @@
 """image_subscriber: receive and verify the frames of image_publisher, then report.
 
 The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
-frames), the first and last frame seen, checksum failures, backends seen, wrong-backend frames,
+frames), the most publishers matched at once, the first and last frame seen, checksum failures, backends seen, wrong-backend frames,
 latency percentiles and the time from the callback's start to a readable numpy array over the
 image (``view_ms``). The
 parameters are listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
@@ -110,6 +110,8 @@ class ImageSubscriber(Node):
             self.create_timer(p['report_period_sec'], self.log_summary)
         #: why run() ended: 'expected_count', 'timeout_sec', or None (a signal, or not yet)
         self.stopped_by = None
+        #: the most publishers matched at once: frames of two publishers share counters
+        self.publishers = 0
         self.get_logger().info(self.start_line())
 
     def start_line(self) -> str:
@@ -185,6 +187,7 @@ class ImageSubscriber(Node):
 
     def done(self) -> bool:
         p = self.params
+        self.publishers = max(self.publishers, self.subscription.get_publisher_count())
         if p['expected_count'] and len(self.seen) >= p['expected_count']:
             self.stopped_by = 'expected_count'
         elif p['timeout_sec'] and time.monotonic() - self.start > p['timeout_sec']:
@@ -208,6 +211,7 @@ class ImageSubscriber(Node):
             'role': 'subscriber', 'node': self.get_name(), 'params': p,
             'received': self.counters['received'], 'distinct': len(self.seen),
             'duplicates': self.counters['duplicates'], 'gaps': len(missing),
+            'publishers': self.publishers,
             'out_of_order': self.counters['out_of_order'],
             'missing': missing[:20],
             'first_frame': min(self.seen) if self.seen else None,
