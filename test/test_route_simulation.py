@@ -8,7 +8,8 @@ subscription (a :class:`~rosidl_buffer_py.routes.StreamTable`, taking samples in
 its duplicates dropped before they are taken), a second publisher on the keyless topic and
 optionally a legacy subscription, connected by simulated DDS links that do what Fast DDS does:
 
-- RELIABLE, in order per writer, each sample arriving after a latency of its own;
+- RELIABLE, in order per writer, each sample arriving after a latency of its own (or, in a
+  fifth of the worlds, BEST_EFFORT: samples lost on the way, nothing repaired or awaited);
 - volatile matching: a writer sends nothing before it matched the reader, and samples sent
   before the reader matched the writer are lost or repaired (startup race), both seen;
 - KEEP_LAST reader histories shared by every writer of the topic (the oldest untaken sample is
@@ -84,6 +85,9 @@ class Link:
     #: a sample sent before the reader matched the writer is lost (else: repaired later)
     lose_early: bool
     latency: Tuple[float, float]
+    #: BEST_EFFORT: each sample may be lost on the way (this often), nothing is repaired and
+    #: nothing waits for acknowledgments
+    loss: float = 0.0
     last_arrival: float = 0.0
     #: when the writer will know each sample sent so far was acknowledged (the latest)
     acked_at: float = 0.0
@@ -96,6 +100,8 @@ class Link:
         if now < self.writer_matched_at:
             return  # the writer does not know this reader yet: not sent
         rng = self.sim.rng
+        if self.loss and (now < self.reader_matched_at or rng.random() < self.loss):
+            return  # BEST_EFFORT: lost for good
         if now < self.reader_matched_at and self.lose_early:
             # the reader dropped it (unknown writer); its first ACKNACK skips it
             self.acked_at = max(self.acked_at, self.reader_matched_at + rng.uniform(0.001, 0.03))
@@ -114,7 +120,7 @@ class Link:
         self.sim.subscriber.data_arrived()
 
     def acknowledged(self, now: float) -> bool:
-        return now >= self.acked_at
+        return bool(self.loss) or now >= self.acked_at  # (no BEST_EFFORT reader acknowledges)
 
 
 class SimView:
@@ -211,11 +217,12 @@ class Subscriber:
     """The buffer-aware subscription 's': one main reader (shared by every publisher of the
     topic) and the camera's channel, taken in ``Subscription._next``'s order."""
 
-    def __init__(self, sim: 'Simulation', main: History, channel: History) -> None:
+    def __init__(self, sim: 'Simulation', main: History, channel: History,
+                 reliable: bool) -> None:
         self.sim = sim
         self.main = main
         self.channel = channel
-        self.streams: StreamTable[Sample] = StreamTable(reliable=True)
+        self.streams: StreamTable[Sample] = StreamTable(reliable=reliable)
         self.stalled_until = 0.0
         self.wake_pending = False
         self.delivered: Dict[str, List[int]] = {'p': [], 'o': []}
@@ -292,6 +299,7 @@ class World:
 
     seed: int
     depth: int
+    reliable: bool
     legacy_subscription: bool
     other_publisher_hz: float
     camera_hz: float
@@ -318,6 +326,7 @@ class World:
         return cls(
             seed=seed,
             depth=rng.choice([50, 10_000] if lossless else [1, 2, 5, 10, 50]),
+            reliable=lossless or rng.random() < 0.8,
             legacy_subscription=rng.random() < 0.5,
             other_publisher_hz=0.0 if lossless else rng.choice([0.0, 30.0, 100.0, 300.0]),
             camera_hz=rng.choice([10.0, 30.0, 100.0]),
@@ -343,15 +352,20 @@ class Simulation:
         depth = world.depth
         self.main_history = History(depth)
         self.channel_history = History(depth)
-        self.subscriber = Subscriber(self, self.main_history, self.channel_history)
-        self.camera = Camera(self, depth, handshake=depth <= routes.MAX_PROBE_DEPTH)
+        self.subscriber = Subscriber(self, self.main_history, self.channel_history,
+                                     world.reliable)
+        self.camera = Camera(self, depth,
+                             handshake=world.reliable and depth <= routes.MAX_PROBE_DEPTH)
+        #: BEST_EFFORT links lose this share of samples on the way
+        self.loss = 0.0 if world.reliable else 0.05
         self.camera.main_links['s'] = Link(
             self, self.main_history, *world.main_matched, world.lose_early,
-            latency=(0.0002, 0.002))  # the main topic over shared memory
+            latency=(0.0002, 0.002), loss=self.loss)  # the main topic over shared memory
         if world.legacy_subscription:
             self.camera.main_links['legacy'] = Link(
                 self, History(depth), 0.0, 0.0, False, latency=(0.0002, 0.002))
-        self.other = Link(self, self.main_history, 0.0, 0.0, False, latency=(0.0002, 0.002))
+        self.other = Link(self, self.main_history, 0.0, 0.0, False, latency=(0.0002, 0.002),
+                          loss=self.loss)
         self.violations: List[str] = []
 
     # scheduling -------------------------------------------------------------------------
@@ -365,7 +379,7 @@ class Simulation:
     def open_channel(self) -> None:
         self.camera.channel = Link(
             self, self.channel_history, *self.world.channel_matched, self.world.lose_early,
-            latency=(0.0005, 0.004))  # channels over UDP
+            latency=(0.0005, 0.004), loss=self.loss)  # channels over UDP
 
     def _publisher_free(self, when: float) -> float:
         for start, end in self.world.publisher_stalls:
