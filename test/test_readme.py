@@ -190,6 +190,48 @@ def test_readme_links_every_document_of_docs():
     assert ROOT / 'CHANGELOG.md' in linked
 
 
+def layout_paths(text: str) -> list:
+    """The paths the first column of development.md's layout table names: a path with a
+    folder sets the folder for the bare file names after it in the same cell."""
+    section = text.split('\n## Layout\n', 1)[1].split('\n## ', 1)[0]
+    paths = []
+    for line in section.splitlines():
+        if not line.startswith('| `'):
+            continue
+        folder = ''
+        for token in re.findall(r'`([^`]+)`', line.split(' | ')[0]):
+            if '/' in token.rstrip('/'):
+                folder = token if token.endswith('/') else token.rsplit('/', 1)[0] + '/'
+                paths.append(token)
+            elif token.endswith('/'):
+                folder = token
+                paths.append(token)
+            else:
+                paths.append(folder + token)
+    return paths
+
+
+def test_the_layout_table_names_every_module_and_only_what_exists():
+    """docs/development.md's layout table cannot drift: every module of the two packages is
+    in it, and every path it names exists."""
+    named = layout_paths((ROOT / 'docs' / 'development.md').read_text())
+    assert 'rosidl_buffer_py/publisher.py' in named and 'rosidl_buffer_py/routes.py' in named
+    missing = [path for path in named if not (ROOT / path).exists()]
+    assert not missing, f'the layout table names what does not exist: {missing}'
+    modules = {f'{package}/{module.name}' for package in ('rosidl_buffer_py',
+                                                          'demo_buffer_backend')
+               for module in (ROOT / package).glob('*.py') if module.name != '__init__.py'}
+    unnamed = sorted(modules - set(named))
+    assert not unnamed, f'modules the layout table does not name: {unnamed}'
+
+
+def test_layout_paths_reads_folders_and_bare_names():
+    text = ('# x\n## Layout\n| path | what |\n|---|---|\n'
+            '| `a/b.py`, `c.py` | `not/this.py` |\n| `d/`, `e.py` | x |\n| `f` | y |\n'
+            '## Next\n| `g/h.py` | z |\n')
+    assert layout_paths(text) == ['a/b.py', 'a/c.py', 'd/', 'd/e.py', 'f']
+
+
 def test_every_test_the_documents_name_exists():
     """docs/guarantees.md names the test behind each guarantee as `file::test`: each one is a
     test function of that file."""
