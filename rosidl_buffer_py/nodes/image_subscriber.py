@@ -1,10 +1,10 @@
 """image_subscriber: receive and verify the frames of image_publisher, then report.
 
 The report (a JSON line at exit): received, distinct, duplicates, gaps (and the first 20 missing
-frames), the most publishers matched at once, the first and last frame seen, checksum failures, backends seen, wrong-backend frames,
-latency percentiles and the time from the callback's start to a readable numpy array over the
-image (``view_ms``). The
-parameters are listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
+frames), the most publishers matched at once (``publishers``), the first and last frame seen,
+checksum failures, backends seen, wrong-backend frames, latency percentiles and the time from
+the callback's start to a readable numpy array over the image (``view_ms``). The parameters are
+listed in :data:`PARAMETERS` (``image_subscriber --help`` prints them).
 """
 import collections
 import time
@@ -111,7 +111,7 @@ class ImageSubscriber(Node):
         #: why run() ended: 'expected_count', 'timeout_sec', or None (a signal, or not yet)
         self.stopped_by = None
         #: the most publishers matched at once: frames of two publishers share counters
-        self.publishers = 0
+        self.most_publishers = 0
         self.get_logger().info(self.start_line())
 
     def start_line(self) -> str:
@@ -187,7 +187,8 @@ class ImageSubscriber(Node):
 
     def done(self) -> bool:
         p = self.params
-        self.publishers = max(self.publishers, self.subscription.get_publisher_count())
+        self.most_publishers = max(self.most_publishers,
+                                   self.subscription.get_publisher_count())
         if p['expected_count'] and len(self.seen) >= p['expected_count']:
             self.stopped_by = 'expected_count'
         elif p['timeout_sec'] and time.monotonic() - self.start > p['timeout_sec']:
@@ -211,7 +212,7 @@ class ImageSubscriber(Node):
             'role': 'subscriber', 'node': self.get_name(), 'params': p,
             'received': self.counters['received'], 'distinct': len(self.seen),
             'duplicates': self.counters['duplicates'], 'gaps': len(missing),
-            'publishers': self.publishers,
+            'publishers': self.most_publishers,
             'out_of_order': self.counters['out_of_order'],
             'missing': missing[:20],
             'first_frame': min(self.seen) if self.seen else None,
