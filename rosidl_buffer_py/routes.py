@@ -24,18 +24,18 @@ channel, and one :class:`RouteTable` per publisher::
         +-------unmatched-------- CONFIRMED <--channel acknowledged-- SERVING <-+ fence written
     any --gone--> GONE (nothing is written to it any more)
 
-Until FENCING the main topic serves the subscription. A route becomes FENCING only when what
-its channel carries from then on reaches the subscription's reader: the reader acknowledged the
+Until FENCING the main topic serves the subscription. A route becomes FENCING only when what its
+channel carries from then on reaches the subscription's reader: the reader acknowledged the
 probes (so it matched the channel writer), or the channel has been matched for the settle time.
 Its first channel message is preceded by a *route fence* naming the last message the main topic
 carried for it, which the subscription delivers first. The fence waits (the main topic serving a
 while longer, at most ``FENCE_DEFER_SECONDS``) until the main topic's readers acknowledged all
 they were sent, so that it can say its message reached the subscription's reader. Once serving,
 a route stays on its channel while the channel is matched (the subscription drops main-topic
-copies from the fence on). CONFIRMED: the channel's samples were acknowledged too, so main-topic samples are withheld
-from that subscription (the DataWriter sends it a GAP instead of the payload). A route whose
-probes were acknowledged becomes CONFIRMED with its fence, and the fenced message's own
-main-topic copy is withheld too: it would race the channel copy.
+copies from the fence on). CONFIRMED: the channel's samples were acknowledged too, so main-topic
+samples are withheld from that subscription (the DataWriter sends it a GAP instead of the
+payload). A route whose probes were acknowledged becomes CONFIRMED with its fence, and the
+fenced message's own main-topic copy is withheld too: it would race the channel copy.
 
 Subscription side: one :class:`Stream` per publisher::
 
