@@ -131,7 +131,12 @@ def test_a_nested_payload_travels_as_a_descriptor_and_as_identical_bytes():
     pub = subprocess.Popen([sys.executable, '-c', _PUBLISHER], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True)
     try:
-        outputs = {kind: proc.communicate(timeout=60) for kind, proc in subs.items()}
+        try:
+            outputs = {kind: proc.communicate(timeout=60) for kind, proc in subs.items()}
+        except subprocess.TimeoutExpired as exc:  # say what the publisher saw (issue 27)
+            pub.kill()
+            _, pub_err = pub.communicate()
+            pytest.fail(f'{exc}\npublisher exit {pub.returncode}, stderr:\n{pub_err[-3000:]}')
         pub.communicate(timeout=30)
     finally:
         for proc in (pub, *subs.values()):
