@@ -448,17 +448,16 @@ class Publisher(rclpy.publisher.Publisher):
         """Write the probes the route table asked for, stamped ``timestamp`` (the last message's
         or older: nothing takes them for a newer message). Under the lock."""
         for key, count in probes:
-            channel = self._peers[key].channel
+            peer = self._peers[key]
+            self._logger.debug(f'{count} probes to {peer.info.gid_hex}')
             for _ in range(count):
-                channel.publish(control.PROBE_BYTES, timestamp)
+                peer.channel.publish(control.PROBE_BYTES, timestamp)
 
     def _advance(self) -> None:
         """Bring the routes up to date between messages (the route timer). Under the lock."""
         probes, timer = self._table.advance(time.monotonic(), self._view)
         if probes:
             self._write_probes(probes, self._last_timestamp or time.time_ns())
-        for key, _ in probes:
-            self._logger.debug(f'probes to {self._peers[key].info.gid_hex}')
         self._arm_route_timer(timer)
 
     def _arm_route_timer(self, needed: bool) -> None:
