@@ -120,6 +120,30 @@ def run_graph() -> dict:
     return result
 
 
+def _stalled_reader(variant: str) -> dict:
+    """test/harness/stalled_reader.py: per subscription, messages taken and MESSAGE_LOST."""
+    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'harness',
+                          'stalled_reader.py')
+    done = subprocess.run([sys.executable, script, variant], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def test_a_stalled_subscriber_process_counts_no_message_lost_that_stock_does_not():
+    """keep_last_1_mixed's graph (RELIABLE KEEP_LAST 1, cpu, demo and plain publishers in one
+    process, cpu, demo, any and plain subscriptions in another), the subscriber process
+    SIGSTOPped twice for 0.2 s while 60 messages a publisher go out at 50 Hz: each subscription
+    of ours reports the MESSAGE_LOST events its stock counterpart reports (stock: none, 4 of 4
+    runs). Before the withheld main-topic samples were GAPped at write, every sample written
+    during a stall counted as lost (40 per subscription), which failed a loaded CI run."""
+    stock, ours = _stalled_reader('stock'), _stalled_reader('ours')
+    print(f'stock {stock}\nours  {ours}')
+    for label, counts in stock.items():
+        assert ours[label]['lost'] == counts['lost'], (label, stock, ours)
+        assert ours[label]['taken'] > 0, (label, ours)
+
+
 def test_stalled_and_never_taking_subscribers_cost_only_themselves_then_publisher_crash():
     """A demo publisher (640x480 rgb8, 30 Hz) serves three demo subscribers: `healthy`,
     `stalled` (SIGSTOP 10 s, then SIGCONT), `never` (SIGSTOPped for good once the frames

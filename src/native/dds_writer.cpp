@@ -13,7 +13,10 @@
 #include "fastdds/rtps/common/InstanceHandle.h"
 #include "fastdds/rtps/common/Time_t.h"
 #include "fastdds/rtps/interfaces/IReaderDataFilter.hpp"
+#include "fastdds/rtps/messages/RTPSMessageGroup.h"
 #include "fastdds/rtps/writer/RTPSWriter.h"
+#include "fastdds/rtps/writer/ReaderProxy.h"
+#include "fastdds/rtps/writer/StatefulWriter.h"
 #include "rmw_fastrtps_private.hpp"
 #include "rmw_fastrtps_shared_cpp/TypeSupport.hpp"
 #include "rmw_fastrtps_shared_cpp/guid_utils.hpp"
@@ -83,6 +86,21 @@ public:
   }
 
   const eprosima::fastdds::rtps::IReaderDataFilter * previous() const {return previous_;}
+
+  /// The readers the sample `sequence` was kept from (none when it has no entry).
+  std::vector<GUID_t> excluded_from(int64_t sequence) const
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (auto it = entries_.rbegin(); it != entries_.rend(); ++it) {
+      if (it->sequence == sequence) {
+        return it->readers;
+      }
+      if (it->sequence < sequence) {
+        break;
+      }
+    }
+    return {};
+  }
 
 private:
   /// Samples remembered: far more than are ever in flight between their write and delivery.
@@ -190,6 +208,59 @@ bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error)
     });
 }
 
+namespace
+{
+
+/// After a write on a main-topic writer: a GAP for the sample to each reliable reader it was
+/// kept from, as Fast DDS sends a reader a relevant sample at once. Fast DDS itself tells a
+/// reader of an irrelevant sample only when the reader asks (its ACKNACK after a HEARTBEAT), and
+/// on a KEEP_LAST writer the sample may have left the history by then: a reader whose process
+/// was stalled meanwhile gets a HEARTBEAT whose first sample is past it and counts the sample
+/// lost, a MESSAGE_LOST event that stock, which sent the sample, never causes. The GAP goes out
+/// in order before any later HEARTBEAT, so the reader marks the sample irrelevant first.
+void gap_to_excluded_readers(eprosima::fastdds::dds::DataWriter * writer)
+{
+  std::lock_guard<std::mutex> registry(g_exclusions_mutex);
+  if (g_exclusions.empty()) {
+    return;  // no main-topic writer of this process keeps samples from anyone
+  }
+  std::string unavailable;
+  eprosima::fastrtps::rtps::RTPSWriter * rtps = rmw_private::rtps_writer_of(writer, &unavailable);
+  ReaderExclusions * exclusions = rtps == nullptr ? nullptr : installed_exclusions(rtps);
+  auto * stateful = dynamic_cast<eprosima::fastrtps::rtps::StatefulWriter *>(rtps);
+  if (exclusions == nullptr || stateful == nullptr) {
+    return;  // not a writer we filter, or a best-effort one (its readers get no HEARTBEAT)
+  }
+  std::lock_guard<eprosima::fastrtps::RecursiveTimedMutex> writer_lock(rtps->getMutex());
+  const int64_t sequence = rmw_private::next_sequence_number(rtps) - 1;
+  std::vector<GUID_t> readers = exclusions->excluded_from(sequence);
+  const eprosima::fastrtps::rtps::SequenceNumber_t sample(
+    static_cast<int32_t>(sequence >> 32), static_cast<uint32_t>(sequence & 0xffffffffu));
+  for (GUID_t & guid : readers) {
+    eprosima::fastrtps::rtps::ReaderProxy * proxy = nullptr;
+    if (!stateful->matched_reader_lookup(guid, &proxy) || proxy == nullptr ||
+      !proxy->is_reliable() || proxy->is_datasharing_reader())
+    {
+      continue;
+    }
+    if (proxy->is_local_reader()) {
+      stateful->intraprocess_gap(proxy, sample);
+      continue;
+    }
+    try {
+      // sent when the group goes out of scope, as StatefulWriter's own personal GAPs are
+      eprosima::fastrtps::rtps::RTPSMessageGroup group(
+        rtps->getRTPSParticipant(), rtps, proxy->message_sender());
+      group.add_gap(
+        sample, eprosima::fastrtps::rtps::SequenceNumberSet_t(sample + 1), guid);
+    } catch (...) {
+      // a send that timed out: the reader still gets the GAP when it asks, as before
+    }
+  }
+}
+
+}  // namespace
+
 bool write_serialized_w_timestamp(
   eprosima::fastdds::dds::DataWriter * writer, const void * data, size_t length,
   int64_t source_timestamp_ns, std::string * error)
@@ -224,6 +295,7 @@ bool write_serialized_w_timestamp(
     *error = "DataWriter::write_w_timestamp failed (return code " + std::to_string(rc()) + ")";
     return false;
   }
+  gap_to_excluded_readers(writer);
   return true;
 }
 
@@ -259,6 +331,7 @@ bool write_message_w_timestamp(
     *error = "DataWriter::write_w_timestamp failed (return code " + std::to_string(rc()) + ")";
     return false;
   }
+  gap_to_excluded_readers(info.writer);
   return true;
 }
 
