@@ -12,8 +12,8 @@ subscribers (the plain one stays plain); ``stock``: the same processes with stoc
 Printed per graph: frames each steady subscriber received of those published (for ``ours``'
 demo subscriber, how many as zero-copy Buffers), and the ``ours`` publisher's CPU copies on
 channels to peers that share the frame's backend (``cpu_copies_to_buffer_capable_peers``: the
-backend declined to describe the frame for them). It asserts
-nothing about time.
+backend declined to describe the frame for them); under the table, the frames a steady
+subscriber missed (the first 20). It asserts nothing about time.
 
 ``python -m launch_free_demos.bench.churn [--seconds 20] [--payload 1920x1080] [--load 2]``
 """
@@ -30,8 +30,9 @@ STEADY = {'demo': {'acceptable_buffer_backends': 'demo'}, 'cpu': {}, 'plain': {'
 #: After the last frame: how long the publisher stays for subscribers still taking, and then
 #: how long the steady subscribers may go on taking what is in flight. A subscriber that got
 #: every frame leaves at once; one that lost some (stock's under load) would otherwise keep
-#: the graph up for nothing: a RELIABLE sample not in flight 2 s after the last frame is lost.
-DRAIN_SEC = 2.0
+#: the graph up for nothing: a RELIABLE sample not in flight 4 s after the last frame is lost.
+#: (2 s was once too short for a plain subscriber beside four busy processes on 2 cores.)
+DRAIN_SEC = 4.0
 
 
 def _busy(stop) -> None:
@@ -76,6 +77,9 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
         reports = run.reports()
     result: Dict[str, object] = {label: (reports.get(label) or {}).get('distinct', 0)
                                  for label in STEADY}
+    result['missing'] = {label: (reports.get(label) or {}).get('missing', 'no report')
+                         for label in STEADY
+                         if (reports.get(label) or {}).get('distinct', 0) != count}
     pub = reports.get('pub') or {}
     result['published'] = pub.get('published', 0)
     stats = pub.get('statistics') or {}
@@ -97,7 +101,9 @@ def table(rows: List[Tuple[str, Dict[str, object]]], payload: str, rate: float, 
         zero_copy = f' ({r["zero_copy"]})' if graph == 'ours' else ''
         lines.append(f'| {graph} | {r["published"]} | {r["demo"]}{zero_copy} | {r["cpu"]} | '
                      f'{r["plain"]} | {r["cpu_to_capable"] if graph == "ours" else "-"} |')
-    return '\n'.join(lines)
+    missed = [f'{graph} {label}: frames {frames} missing' for graph, r in rows
+              for label, frames in r['missing'].items()]
+    return '\n'.join(lines + (['', *missed] if missed else []))
 
 
 def main(argv: List[str] = None) -> int:
