@@ -48,12 +48,19 @@ Every copy of a message carries its publisher's source timestamp, increasing per
 stream delivers each timestamp at most once and in increasing order. In WAITING, channel
 messages are queued (taken from DDS, so the channel's history cannot overflow) until the main
 topic delivered the fenced message; main-topic messages are never held.
+
+The subscription takes through a :class:`Receiver`, one :meth:`Receiver.step` at a time, which
+owns the take order over its routes (channels first, then the main topic, whose duplicates are
+dropped before they are taken) and asks about DDS through a :class:`ReceiveView`; the
+subscription counts and decodes what each :class:`Step` gives. The route simulation
+(``test/test_route_simulation.py``) drives the publisher's and the subscription's entry points,
+over simulated DDS readers and writers.
 """
 import collections
 import enum
 from dataclasses import dataclass, field
 from typing import Deque, Dict, Generic, Hashable, Iterable, NamedTuple, Optional, Protocol, \
-    Tuple, TypeVar
+    Sequence, Tuple, TypeVar
 
 #: How long a channel must have been matched before it serves its subscription, when its
 #: reader's readiness cannot be acknowledged (BEST_EFFORT, KEEP_ALL or a deep KEEP_LAST).
@@ -644,3 +651,153 @@ class StreamTable(Generic[T]):
         """Fenced messages given up after FENCE_TIMEOUT_SECONDS, and known lost, so far."""
         return (self._ended[0] + sum(s.timeouts for s in self.streams.values()),
                 self._ended[1] + sum(s.lost_fenced for s in self.streams.values()))
+
+
+class Incoming(enum.Enum):
+    """What a subscription made of a sample it took from a channel (see ReceiveView.classify)."""
+
+    DATA = 'data'        #: a message of the publisher
+    FENCE = 'fence'      #: a route fence (:class:`Fence`)
+    CONTROL = 'control'  #: a probe, or a sample rejected and counted: nothing to deliver
+
+
+class Outcome(enum.Enum):
+    """What one step of :meth:`Receiver.step` did."""
+
+    DELIVER = 'deliver'      #: a message to hand to the callback (``Step.sample``)
+    QUEUED = 'queued'        #: a channel message kept until its stream's fence opens
+    DUPLICATE = 'duplicate'  #: a copy delivered already, or to be from the other route: dropped
+    FENCE = 'fence'          #: a route fence: its stream may wait for a main-topic message
+    CONTROL = 'control'      #: a probe or a rejected channel sample
+    DISCARDED = 'discarded'  #: a main-topic duplicate dropped before it was taken (uncopied)
+
+
+C = TypeVar('C')
+
+
+class Step(NamedTuple, Generic[C, T]):
+    """One step of a subscription's take order: what was taken, from where, and its outcome."""
+
+    outcome: Outcome
+    sample: Optional[T] = None
+    #: The channel it came from; None for the main topic.
+    channel: Optional[C] = None
+    #: A queued channel message released now (its fence passed, or was given up).
+    released: bool = False
+
+
+class ReceiveView(Protocol[C, T]):
+    """What :class:`Receiver` asks of a subscription's DDS readers: its channels (one per
+    publisher that serves it) and its main-topic reader, shared by every publisher."""
+
+    def channels(self) -> Sequence[C]:
+        """The channel readers, in a stable order."""
+
+    def channel_key(self, channel: C) -> Hashable:
+        """The publisher whose channel it is (its stream's key)."""
+
+    def take_channel(self, channel: C) -> Optional[T]:
+        """The channel's next sample, taken; None when it has none."""
+
+    def classify(self, channel: C, sample: T) -> Tuple[Incoming, Optional[Fence]]:
+        """What a channel sample is (the fence when it is one); rejections are the view's to
+        count and log."""
+
+    def timestamp(self, sample: T) -> int:
+        """A sample's source timestamp (its publisher's message number)."""
+
+    def channels_drained(self) -> None:
+        """Every channel was empty: the view may retire those of departed publishers."""
+
+    def peek_main(self) -> Optional[Tuple[Hashable, int]]:
+        """(publisher, timestamp) of the main reader's next sample, left untaken; None when
+        it has none."""
+
+    def discard_main(self) -> None:
+        """Drop the main reader's next sample without copying its payload."""
+
+    def take_main(self, publisher: Optional[Hashable]) -> Optional[T]:
+        """Take the main reader's next sample (``publisher``: its publisher when just peeked,
+        else None); None when it has none."""
+
+    def main_key(self, sample: T) -> Hashable:
+        """The publisher of a main-topic sample."""
+
+
+class Receiver(Generic[C, T]):
+    """A subscription's take order over its routes, one :meth:`step` at a time: channels first,
+    in rotation (a stream's queued messages released as its fence allows, else the channel's
+    next sample), then the main topic, whose copies of channel messages are dropped untaken.
+
+    Channels go first because a channel message never waits on the main topic except behind a
+    fence, and a fence's main-topic message is taken by the same loop once the channels are
+    empty. The endpoint counts and decodes what the steps give; the route simulation
+    (``test/test_route_simulation.py``) drives the same steps over simulated readers.
+    """
+
+    def __init__(self, streams: StreamTable[T]) -> None:
+        self.streams = streams
+        self._next_channel = 0
+
+    def step(self, view: 'ReceiveView[C, T]', now: float) -> Optional[Step[C, T]]:
+        """The next step, or None when nothing is left to take."""
+        found = self._from_channels(view, now)
+        return found if found is not None else self._from_main(view)
+
+    def _from_channels(self, view: 'ReceiveView[C, T]', now: float) -> Optional[Step[C, T]]:
+        channels = view.channels()
+        count = len(channels)
+        main_drained = None
+        for i in range(count):
+            channel = channels[(self._next_channel + i) % count]
+            stream = self.streams[view.channel_key(channel)]
+            found = None
+            if stream.holding:
+                if main_drained is None:  # a fence may time out only if nothing can come
+                    main_drained = view.peek_main() is None
+                released = stream.release(now, main_drained)
+                if released is not None:
+                    found = Step(Outcome.DELIVER, released, channel, released=True)
+            if found is None:
+                sample = view.take_channel(channel)
+                if sample is None:
+                    continue
+                found = self._channel_sample(view, channel, stream, sample, now)
+            self._next_channel = (self._next_channel + i + 1) % count
+            return found
+        view.channels_drained()
+        return None
+
+    @staticmethod
+    def _channel_sample(view: 'ReceiveView[C, T]', channel: C, stream: Stream[T], sample: T,
+                        now: float) -> Step[C, T]:
+        kind, fence = view.classify(channel, sample)
+        if kind is Incoming.FENCE:
+            stream.fenced(view.timestamp(sample), fence, now)
+            return Step(Outcome.FENCE, sample, channel)
+        if kind is Incoming.CONTROL:
+            return Step(Outcome.CONTROL, sample, channel)
+        verdict = stream.channel(view.timestamp(sample), sample, now)
+        outcome = {Verdict.DELIVER: Outcome.DELIVER, Verdict.DUPLICATE: Outcome.DUPLICATE,
+                   Verdict.QUEUED: Outcome.QUEUED}[verdict]
+        return Step(outcome, sample, channel)
+
+    def _from_main(self, view: 'ReceiveView[C, T]') -> Optional[Step[C, T]]:
+        publisher = None
+        if self.streams.any_switched:
+            peeked = view.peek_main()
+            if peeked is None:
+                return None
+            publisher, timestamp = peeked
+            stream = self.streams.streams.get(publisher)
+            if stream is not None and stream.duplicate(timestamp):
+                stream.passed_by(timestamp)
+                view.discard_main()
+                return Step(Outcome.DISCARDED)
+        sample = view.take_main(publisher)
+        if sample is None:
+            return None
+        if self.streams[view.main_key(sample)].main(view.timestamp(sample)) is \
+                Verdict.DUPLICATE:
+            return Step(Outcome.DUPLICATE, sample)
+        return Step(Outcome.DELIVER, sample)

@@ -47,7 +47,7 @@ from rosidl_buffer_py._native import (
     set_user_data, take_message_with_gid, take_serialized_with_gid)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import channel_topic
-from rosidl_buffer_py.routes import Verdict
+from rosidl_buffer_py.routes import Outcome
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
@@ -108,6 +108,80 @@ class _PublisherPeer:
         return bool(self.departed) if self.departed is not None else self.channel.pending
 
 
+class _ReceiveView:
+    """A subscription's DDS readers as :class:`routes.Receiver` asks about them
+    (:class:`routes.ReceiveView`): its channels (:class:`_PublisherPeer`) and its main-topic
+    reader. What it rejects on a channel it counts and logs through the subscription."""
+
+    def __init__(self, sub: 'Subscription') -> None:
+        self._sub = sub
+
+    def channels(self) -> List[_PublisherPeer]:
+        return self._sub._channels
+
+    def channel_key(self, peer: _PublisherPeer) -> bytes:
+        return peer.info.gid
+
+    def take_channel(self, peer: _PublisherPeer) -> Optional[_Taken]:
+        return peer.take()
+
+    def classify(self, peer: _PublisherPeer, taken: _Taken):
+        if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
+            # the channel's writer is created by the publisher's participant: anyone else on
+            # its topic is an impostor (any process can create a writer on any topic)
+            self._sub._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
+                                     f'{peer.info.gid_hex}\'s participant')
+            return routes.Incoming.CONTROL, None
+        if type(taken.raw) is self._sub.msg_type:
+            return routes.Incoming.DATA, None
+        try:
+            message = control.parse(taken.raw)
+        except control.ControlError as exc:
+            self._sub._reject(taken, f'{exc} (on the channel {peer.channel_topic})')
+            return routes.Incoming.CONTROL, None
+        if message is None:
+            return routes.Incoming.DATA, None
+        if isinstance(message, routes.Fence):
+            return routes.Incoming.FENCE, message
+        return routes.Incoming.CONTROL, None  # a probe: the publisher learning we matched
+
+    def timestamp(self, taken: _Taken) -> int:
+        return taken.timestamp
+
+    def channels_drained(self) -> None:
+        self._sub._retire_departed()
+
+    def peek_main(self) -> Optional[Tuple[bytes, int]]:
+        return peek_untaken(self._sub.handle)
+
+    def discard_main(self) -> None:
+        discard_untaken(self._sub.handle)
+
+    def take_main(self, publisher: Optional[bytes]) -> Optional[_Taken]:
+        """Publishers write only CPU data on the main topic: it is deserialized in C, as rclpy
+        does. A sample that does not deserialize makes Jazzy's C type support print a line to
+        stderr; its publisher is then a *suspect*, whose later samples are taken as bytes for
+        the codec (which rejects malformed data silently, counted and logged throttled), so a
+        hostile writer gets one such line, not one per message."""
+        sub = self._sub
+        if publisher is None and sub._suspects:
+            peeked = peek_untaken(sub.handle)
+            if peeked is None:
+                return None
+            publisher = peeked[0]
+        if publisher is not None and publisher in sub._suspects:
+            taken = take_serialized_with_gid(sub.handle)
+        else:
+            taken = take_message_with_gid(sub.handle, sub.msg_type, C_DESERIALIZE_MAX_BYTES)
+            if taken is not None and type(taken[0]) is not sub.msg_type and \
+                    len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
+                sub._suspects.add(taken[1])  # C deserialization failed (and said so)
+        return None if taken is None else _Taken(*taken)
+
+    def main_key(self, taken: _Taken) -> bytes:
+        return taken.publisher_gid
+
+
 class _MainTopicReader(_rclpy.Subscription):
     """The main topic's rcl subscription. The executor takes through it as through any
     subscription's handle; its takes are the owner's delivery path."""
@@ -142,7 +216,8 @@ class Subscription(rclpy.subscription.Subscription):
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
             reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
         self._counts = collections.Counter()
-        self._next_channel = 0
+        self._receiver: routes.Receiver[_PublisherPeer, _Taken] = routes.Receiver(self._streams)
+        self._view = _ReceiveView(self)
         #: the peers with a channel (and departed ones with samples left), polled in turn
         self._channels: List[_PublisherPeer] = []
         self._suspects: Set[bytes] = set()  # publishers whose data C could not deserialize
@@ -248,22 +323,46 @@ class Subscription(rclpy.subscription.Subscription):
     # the delivery path ----------------------------------------------------------------------
 
     def _next(self) -> Optional[Tuple[object, dict]]:
-        """The next message to deliver, with its message info, or None when none is left."""
+        """The next message to deliver, with its message info, or None when none is left.
+
+        The take order is the route protocol's (:class:`routes.Receiver`); this counts what
+        each step did and decodes what it delivers."""
         with self._lock:
             while not self._peers.closed:
-                found = self._next_from_channels()
-                if found is not None:
-                    msg, taken = found
-                    if msg is not None:
-                        return self._delivered(msg, taken)
-                    continue
-                taken = self._take_main()
-                if taken is None:
+                step = self._receiver.step(self._view, time.monotonic())
+                if step is None:
                     return None
-                msg = self._accept_main(taken)
-                if msg is not None:
+                outcome, taken = step.outcome, step.sample
+                if step.channel is None:  # the main topic: delivered, or a duplicate dropped
+                    self._counts['from_main_topic'] += 1
+                    if outcome is not Outcome.DELIVER:
+                        self._counts['duplicates_dropped'] += 1
+                        continue
+                    msg = self._decode(taken, self._peers.get(taken.publisher_gid))
+                    if msg is None:
+                        continue
                     if self._streams.any_holding:
                         self._wake()  # it may open a fence: the channel guard delivers the rest
+                    return self._delivered(msg, taken)
+                if outcome is Outcome.FENCE:
+                    self._counts['fences'] += 1
+                    self._logger.debug(
+                        f'route fence from {step.channel.info.gid_hex}: main-topic messages up '
+                        f'to {self._streams[step.channel.info.gid].fence} first')
+                    self._arm_fence_timer()
+                    continue
+                if outcome is Outcome.CONTROL:
+                    continue
+                if not step.released:
+                    self._counts['from_channels'] += 1
+                if outcome is Outcome.DUPLICATE:
+                    self._counts['duplicates_dropped'] += 1
+                    continue
+                if outcome is Outcome.QUEUED:
+                    self._arm_fence_timer()
+                    continue
+                msg = self._decode(taken, step.channel)
+                if msg is not None:
                     return self._delivered(msg, taken)
             return None
 
@@ -272,115 +371,6 @@ class Subscription(rclpy.subscription.Subscription):
         if self._deadline is not None:
             self._deadline.activity()
         return msg, taken.info
-
-    def _take_main(self) -> Optional[_Taken]:
-        """The next main-topic sample to consider; duplicates are dropped uncopied first.
-
-        While some publisher serves us on its channel, its main-topic copies (written for
-        legacy subscribers; its DataWriter keeps most from us, see
-        ``_native.exclude_from_next_write``) are duplicates: their key (publisher GID, source
-        timestamp) is read from the DDS sample info and they are discarded without copying
-        their payload.
-
-        Publishers write only CPU data on the main topic: it is deserialized in C, as rclpy
-        does. A sample that does not deserialize makes Jazzy's C type support print a line to
-        stderr; its publisher is then a *suspect*, whose later samples are taken as bytes for
-        the codec (which rejects malformed data silently, counted and logged throttled), so a
-        hostile writer gets one such line, not one per message.
-        """
-        key = None
-        streams = self._streams.streams
-        while self._suspects or self._streams.any_switched:
-            key = peek_untaken(self.handle)
-            if key is None:
-                return None
-            stream = streams.get(key[0])
-            if stream is None or not stream.duplicate(key[1]):
-                break
-            stream.passed_by(key[1])
-            if discard_untaken(self.handle) is not None:
-                self._counts['from_main_topic'] += 1
-                self._counts['duplicates_dropped'] += 1
-            key = None
-        if key is not None and key[0] in self._suspects:
-            taken = take_serialized_with_gid(self.handle)
-        else:
-            taken = take_message_with_gid(self.handle, self.msg_type,
-                                               C_DESERIALIZE_MAX_BYTES)
-            if taken is not None and type(taken[0]) is not self.msg_type and \
-                    len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
-                self._suspects.add(taken[1])  # C deserialization failed (and said so)
-        if taken is None:
-            return None
-        self._counts['from_main_topic'] += 1
-        return _Taken(*taken)
-
-    def _accept_main(self, taken: _Taken):
-        """The message of a main-topic sample, or None when it is not to be delivered."""
-        if self._streams[taken.publisher_gid].main(taken.timestamp) is Verdict.DUPLICATE:
-            self._counts['duplicates_dropped'] += 1  # delivered, or to be, from the channel
-            return None
-        return self._decode(taken, self._peers.get(taken.publisher_gid))
-
-    def _next_from_channels(self):
-        """``(message or None, taken)`` from the channels (rotating), or None when all are
-        empty (a stream waiting for its fence queues what its channel gives meanwhile)."""
-        channels = self._channels
-        count = len(channels)
-        now = time.monotonic()
-        main_drained = None
-        for i in range(count):
-            peer = channels[(self._next_channel + i) % count]
-            stream = self._streams[peer.info.gid]
-            taken = None
-            if stream.holding:
-                if main_drained is None:  # a fence may time out only if nothing can come
-                    main_drained = peek_untaken(self.handle) is None
-                taken = stream.release(now, main_drained)
-                msg = None if taken is None else self._decode(taken, peer)
-            if taken is None:
-                taken = peer.take()
-                if taken is None:
-                    continue
-                msg = self._accept_channel(taken, peer, stream, now)
-            self._next_channel = (self._next_channel + i + 1) % count
-            return msg, taken
-        self._retire_departed()
-        return None
-
-    def _accept_channel(self, taken: _Taken, peer: _PublisherPeer, stream: routes.Stream,
-                        now: float):
-        """The message of a channel sample, or None (a control message, a duplicate, a sample
-        of a writer that is not the peer's, or it must wait)."""
-        if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
-            # the channel's writer is created by the publisher's participant: anyone else on
-            # its topic is an impostor (any process can create a writer on any topic)
-            self._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
-                                f'{peer.info.gid_hex}\'s participant')
-            return None
-        ts = taken.timestamp
-        try:
-            message = None if type(taken.raw) is self.msg_type else control.parse(taken.raw)
-        except control.ControlError as exc:
-            self._reject(taken, f'{exc} (on the channel {peer.channel_topic})')
-            return None
-        if message is not None:
-            if isinstance(message, routes.Fence):
-                self._counts['fences'] += 1
-                self._logger.debug(f'route fence from {peer.info.gid_hex}: main-topic messages up '
-                              f'to {message.last_main} first')
-                stream.fenced(ts, message, now)
-                self._arm_fence_timer()
-            return None  # a probe: the publisher learning that this channel reader matched
-        self._counts['from_channels'] += 1
-        verdict = stream.channel(ts, taken, now)
-        if verdict is Verdict.DUPLICATE:
-            self._counts['duplicates_dropped'] += 1
-            return None
-        if verdict is Verdict.QUEUED:
-            self._arm_fence_timer()
-            return None
-        return self._decode(taken, peer)
 
     def _deliver_available(self) -> None:
         """Channel data woke us: deliver what is deliverable (at most ``MAX_BATCH``).

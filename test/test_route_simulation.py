@@ -3,9 +3,10 @@
 The model test (``test_routes.py``) explores states; this explores *orderings*: a camera
 publisher (the real :class:`~rosidl_buffer_py.routes.RouteTable`, driven through the entry points
 ``Publisher`` uses: ``dispatch`` per message, ``advance`` on its route timer), a buffer-aware
-subscription (a :class:`~rosidl_buffer_py.routes.StreamTable`, taking samples in the order
-``Subscription._next`` does: channels first, held messages released, then the main topic with
-its duplicates dropped before they are taken), a second publisher on the keyless topic and
+subscription (the real :class:`~rosidl_buffer_py.routes.Receiver` and
+:class:`~rosidl_buffer_py.routes.StreamTable`, taking samples in the order ``Subscription._next``
+takes them: channels first, held messages released, then the main topic with its duplicates
+dropped before they are taken), a second publisher on the keyless topic and
 optionally a legacy subscription, connected by simulated DDS links that do what Fast DDS does:
 
 - RELIABLE, in order per writer, each sample arriving after a latency of its own (or, in a
@@ -41,8 +42,8 @@ from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple
 import pytest
 
 from rosidl_buffer_py import routes
-from rosidl_buffer_py.routes import FENCE_TIMEOUT_SECONDS, Fence, RouteTable, StreamTable, \
-    Verdict
+from rosidl_buffer_py.routes import FENCE_TIMEOUT_SECONDS, Fence, Incoming, Outcome, \
+    RouteTable, StreamTable
 
 #: How many seeds a CI run simulates per configuration.
 SEEDS = 400
@@ -215,7 +216,8 @@ class Camera:
 
 class Subscriber:
     """The buffer-aware subscription 's': one main reader (shared by every publisher of the
-    topic) and the camera's channel, taken in ``Subscription._next``'s order."""
+    topic) and the camera's channel, taken by the real :class:`routes.Receiver`, to which it is
+    the :class:`routes.ReceiveView`."""
 
     def __init__(self, sim: 'Simulation', main: History, channel: History,
                  reliable: bool) -> None:
@@ -223,6 +225,7 @@ class Subscriber:
         self.main = main
         self.channel = channel
         self.streams: StreamTable[Sample] = StreamTable(reliable=reliable)
+        self.receiver: routes.Receiver[History, Sample] = routes.Receiver(self.streams)
         self.stalled_until = 0.0
         self.wake_pending = False
         self.delivered: Dict[str, List[int]] = {'p': [], 'o': []}
@@ -251,44 +254,57 @@ class Subscriber:
     def _deliver(self, sample: Sample) -> None:
         self.delivered[sample.writer].append(sample.timestamp)
 
+    # routes.ReceiveView over the simulated readers: the camera's channel and the main reader
+
+    def channels(self) -> Tuple[History, ...]:
+        return (self.channel,)
+
+    def channel_key(self, channel: History) -> str:
+        return 'p'
+
+    def take_channel(self, channel: History) -> Optional[Sample]:
+        return channel.samples.popleft() if channel.samples else None
+
+    def classify(self, channel: History, sample: Sample):
+        if sample.kind == 'fence':
+            return Incoming.FENCE, sample.fence
+        return (Incoming.CONTROL, None) if sample.kind == 'probe' else (Incoming.DATA, None)
+
+    def timestamp(self, sample: Sample) -> int:
+        return sample.timestamp
+
+    def channels_drained(self) -> None:
+        pass
+
+    def peek_main(self) -> Optional[Tuple[str, int]]:
+        return (self.main.samples[0].writer, self.main.samples[0].timestamp) \
+            if self.main.samples else None
+
+    def discard_main(self) -> None:
+        self.main.samples.popleft()
+
+    def take_main(self, publisher: Optional[str]) -> Optional[Sample]:
+        return self.main.samples.popleft() if self.main.samples else None
+
+    def main_key(self, sample: Sample) -> str:
+        return sample.writer
+
     def _next(self) -> bool:
-        """One step of ``Subscription._next``: True while something was done."""
+        """One step of the subscription's take order (the real :class:`routes.Receiver`, as
+        ``Subscription._next`` drives it): True while something was done."""
         now = self.sim.now
-        stream = self.streams['p']
-        if stream.holding:
-            released = stream.release(now, not self.main.samples)
-            if released is not None:
-                self.held.append((released.timestamp,
-                                  now - self.queued_at.pop(released.timestamp)))
-                self._deliver(released)
-                return True
-        if self.channel.samples:
-            sample = self.channel.samples.popleft()
-            if sample.kind == 'fence':
-                stream.fenced(sample.timestamp, sample.fence, now)
-                return True
-            if sample.kind == 'probe':
-                return True
-            self.taken.add(sample.timestamp)
-            verdict = stream.channel(sample.timestamp, sample, now)
-            if verdict is Verdict.DELIVER:
-                self._deliver(sample)
-            elif verdict is Verdict.QUEUED:
-                self.queued_at[sample.timestamp] = now
-            return True
-        while self.main.samples:
-            sample = self.main.samples[0]  # peek_untaken: duplicates are dropped untaken
-            own = self.streams[sample.writer]
-            if not (self.streams.any_switched and own.duplicate(sample.timestamp)):
-                break
-            own.passed_by(sample.timestamp)
-            self.main.samples.popleft()
-        if not self.main.samples:
+        step = self.receiver.step(self, now)
+        if step is None:
             return False
-        sample = self.main.samples.popleft()
-        if sample.writer == 'p':
+        sample, outcome = step.sample, step.outcome
+        if step.released:
+            self.held.append((sample.timestamp, now - self.queued_at.pop(sample.timestamp)))
+        elif sample is not None and sample.kind == 'data' and \
+                (step.channel is not None or sample.writer == 'p'):
             self.taken.add(sample.timestamp)
-        if self.streams[sample.writer].main(sample.timestamp) is Verdict.DELIVER:
+        if outcome is Outcome.QUEUED:
+            self.queued_at[sample.timestamp] = now
+        elif outcome is Outcome.DELIVER:
             self._deliver(sample)
         return True
 

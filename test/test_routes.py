@@ -13,8 +13,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
     CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_DEFER_SECONDS, FENCE_TIMEOUT_SECONDS,
-    PROBE_INTERVAL_SECONDS, Fence, Route, RouteState, RouteTable, Stream, StreamState,
-    StreamTable, Verdict)
+    PROBE_INTERVAL_SECONDS, Fence, Incoming, Receiver, Route, RouteState, RouteTable, Stream,
+    StreamState, StreamTable, Verdict)
 
 S = RouteState
 
@@ -382,6 +382,101 @@ def test_stream_channel_without_fence_switches_and_lost_channel_goes_back_to_mai
 
 
 # --- control messages -------------------------------------------------------------------------
+
+class _Readers:
+    """A routes.ReceiveView over lists: channel samples ('fence', n) / ('probe', n) / ('data',
+    n) per publisher key, and main-topic samples (publisher, n); what was taken, in order."""
+
+    def __init__(self, channels: Dict[str, list], main: list) -> None:
+        self.queues = {key: collections.deque(samples) for key, samples in channels.items()}
+        self.main = collections.deque(main)
+        self.taken: List[tuple] = []
+        self.drained = 0
+
+    def channels(self):
+        return list(self.queues)
+
+    def channel_key(self, channel):
+        return channel
+
+    def take_channel(self, channel):
+        queue = self.queues[channel]
+        if not queue:
+            return None
+        self.taken.append((channel, *queue[0]))
+        return queue.popleft()
+
+    def classify(self, channel, sample):
+        if sample[0] == 'fence':
+            return Incoming.FENCE, Fence(sample[2])
+        return (Incoming.CONTROL, None) if sample[0] == 'probe' else (Incoming.DATA, None)
+
+    def timestamp(self, sample):
+        return sample[1]
+
+    def channels_drained(self):
+        self.drained += 1
+
+    def peek_main(self):
+        return self.main[0] if self.main else None
+
+    def discard_main(self):
+        self.taken.append(('discarded', *self.main.popleft()))
+
+    def take_main(self, publisher):
+        if not self.main:
+            return None
+        self.taken.append(('main', *self.main[0]))
+        return self.main.popleft()
+
+    def main_key(self, sample):
+        return sample[0]
+
+
+def _steps(readers: _Readers, receiver: Receiver, now: float = 0.0) -> List[tuple]:
+    steps = []
+    while (step := receiver.step(readers, now)) is not None:
+        steps.append((step.outcome.value, step.sample, step.channel, step.released))
+    return steps
+
+
+def test_receiver_takes_channels_in_rotation_before_the_main_topic():
+    readers = _Readers({'a': [('data', 1), ('data', 2)], 'b': [('data', 1)]}, [('x', 5)])
+    steps = _steps(readers, Receiver(StreamTable()))
+    assert [(s[0], s[2]) for s in steps] == [('deliver', 'a'), ('deliver', 'b'),
+                                            ('deliver', 'a'), ('deliver', None)]
+    assert readers.drained == 2  # each time every channel was empty: before the main topic, last
+
+
+def test_receiver_drops_main_topic_duplicates_untaken_once_a_channel_serves():
+    streams = StreamTable()
+    readers = _Readers({'a': [('data', 3)]}, [('a', 2), ('a', 3), ('a', 4), ('x', 1)])
+    steps = _steps(readers, Receiver(streams))
+    # a's channel switched it at 3: its main-topic copies from 3 on are duplicates, dropped
+    # before they are taken (no payload copied); 2 came late (older than 3): also dropped
+    assert [s[0] for s in steps] == ['deliver', 'discarded', 'discarded', 'discarded',
+                                     'deliver']
+    assert [t[0] for t in readers.taken] == ['a', 'discarded', 'discarded', 'discarded', 'main']
+
+
+def test_receiver_queues_behind_a_fence_and_releases_after_the_fenced_message():
+    streams = StreamTable()
+    readers = _Readers({'a': [('fence', 3, 2), ('data', 3), ('data', 4)]}, [])
+    receiver = Receiver(streams)
+    steps = _steps(readers, receiver)
+    assert [s[0] for s in steps] == ['fence', 'queued', 'queued']
+    readers.main.append(('a', 2))  # the fenced main-topic message arrives
+    steps = _steps(readers, receiver)
+    assert [(s[0], s[1], s[3]) for s in steps] == [
+        ('deliver', ('a', 2), False), ('deliver', ('data', 3), True),
+        ('deliver', ('data', 4), True)]
+
+
+def test_receiver_gives_probes_and_rejected_samples_no_delivery():
+    readers = _Readers({'a': [('probe', 0), ('data', 1)]}, [])
+    steps = _steps(readers, Receiver(StreamTable()))
+    assert [s[0] for s in steps] == ['control', 'deliver']
+
 
 def test_control_messages_round_trip_and_are_told_from_messages():
     for message in (control.PROBE, Fence(0), Fence(2 ** 64 - 1), Fence(123456789),
