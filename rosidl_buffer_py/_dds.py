@@ -192,12 +192,12 @@ def type_support(msg_type: Any) -> Any:
 
 def endpoint_kind(endpoint: Any) -> str:
     """'publisher' or 'subscription' for an rclpy Publisher/Subscription or their handle."""
-    from rclpy import _rclpy_pybind11 as rclpy_c
     from rclpy.publisher import Publisher
     from rclpy.subscription import Subscription
-    if isinstance(endpoint, (Publisher, rclpy_c.Publisher)):
+    from rosidl_buffer_py.rclpy_seams_7_1 import is_c_endpoint
+    if isinstance(endpoint, Publisher) or is_c_endpoint(endpoint, 'publisher'):
         return 'publisher'
-    if isinstance(endpoint, (Subscription, rclpy_c.Subscription)):
+    if isinstance(endpoint, Subscription) or is_c_endpoint(endpoint, 'subscription'):
         return 'subscription'
     raise TypeError(
         f'cannot tell the kind of {type(endpoint).__name__}; pass kind= explicitly')

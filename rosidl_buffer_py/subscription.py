@@ -35,13 +35,13 @@ from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple
 
 import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.exceptions import InvalidTopicNameException
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
 
 from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import rclpy_seams_7_1 as seams
 from rosidl_buffer_py._native import (
     ChannelSubscription, discard_untaken, endpoint_gid, get_user_data, peek_untaken,
     set_user_data, take_message_with_gid, take_serialized_with_gid)
@@ -182,15 +182,6 @@ class _ReceiveView:
         return taken.publisher_gid
 
 
-class _MainTopicReader(_rclpy.Subscription):
-    """The main topic's rcl subscription. The executor takes through it as through any
-    subscription's handle; its takes are the owner's delivery path."""
-
-    def take_message(self, msg_type, raw):
-        owner = self._owner()
-        return None if owner is None else owner._next()
-
-
 class Subscription(rclpy.subscription.Subscription):
     """Receive messages whose ``uint8[]`` payload may arrive as a backend Buffer.
 
@@ -229,10 +220,9 @@ class Subscription(rclpy.subscription.Subscription):
             event_callbacks = copy.copy(event_callbacks)
             event_callbacks.deadline = None
         _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
-        with node.handle:
-            reader = _MainTopicReader(node.handle, msg_type, topic,
-                                      qos_profile.get_c_qos_profile())
-        reader._owner = lambda: None
+        # the main topic's reader: the executor takes through it as through any subscription's
+        # handle, and its takes are this subscription's delivery path (set once it is ready)
+        reader = seams.delegating_reader(node, msg_type, topic, qos_profile)
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
             endpoint_gid(reader, 'subscription'), topic)
@@ -270,8 +260,7 @@ class Subscription(rclpy.subscription.Subscription):
                                                           callback_group)
         # discovery wakes its own guard (the table's): data wake-ups do not poll discovery
         self._peers.open()
-        owner = self
-        reader._owner = lambda: owner if not owner._peers.closed else None
+        reader.take = self._next  # None once closed: _next checks
 
     # rclpy.subscription.Subscription surface ------------------------------------------------
 
@@ -567,19 +556,18 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
                          'buffer-aware ones included')
     # what Node.create_subscription does, with rclpy's own checks (its errors, its exception
     # types: rclpy has no hook for a subscription class)
-    qos = node._validate_qos_or_depth_parameter(qos_profile)
+    seams.warn_if_other_version()
+    qos = seams.validate_qos(node, qos_profile)
     callback_group = callback_group or node.default_callback_group
     try:
         final_topic = node.resolve_topic_name(topic)
     except RuntimeError:
         try:
-            node._validate_topic_or_service_name(topic)
+            seams.validate_topic_name(node, topic)
         except InvalidTopicNameException as ex:
             raise ex from None
         raise
-    from rclpy.qos_overriding_options import _declare_qos_parameters, QoSOverridingOptions
-    _declare_qos_parameters(rclpy.subscription.Subscription, node, final_topic, qos,
-                            qos_overriding_options or QoSOverridingOptions([]))
+    seams.declare_qos_parameters(node, final_topic, qos, qos_overriding_options)
     check_is_valid_msg_type(msg_type)
     event_callbacks = event_callbacks or SubscriptionEventCallbacks()
     cls = Subscription if _dds.is_supported() and codec.buffer_paths(msg_type) else \
@@ -588,16 +576,11 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
         sub = cls(node, msg_type, topic, callback, qos, callback_group, event_callbacks,
                   acceptable_buffer_backends)
     except ValueError:
-        node._validate_topic_or_service_name(topic)  # rclpy's error for a bad name
+        seams.validate_topic_name(node, topic)  # rclpy's error for a bad name
         raise
     if cls is _PlainSubscription and codec.buffer_paths(msg_type):
         _dds.warn_unsupported('subscription', sub.topic_name)
-    # registered as Node.create_subscription registers its own
-    callback_group.add_entity(sub)
-    node._subscriptions.append(sub)
-    node._wake_executor()
-    for handler in sub.event_handlers:
-        node.add_waitable(handler)
+    seams.register_subscription(node, sub, callback_group, sub.event_handlers)
     return sub
 
 
@@ -611,9 +594,7 @@ class _PlainSubscription(rclpy.subscription.Subscription):
         self.acceptable_buffer_backends = parse_acceptable_buffer_backends(
             acceptable_buffer_backends)
         _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
-        with node.handle:
-            handle = _rclpy.Subscription(node.handle, msg_type, topic,
-                                         qos_profile.get_c_qos_profile())
+        handle = seams.c_subscription(node, msg_type, topic, qos_profile)
         super().__init__(handle, msg_type, topic, callback, callback_group, qos_profile, False,
                          event_callbacks=event_callbacks)
 

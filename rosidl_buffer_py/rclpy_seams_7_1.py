@@ -1,0 +1,121 @@
+"""Every private part of rclpy this package uses, in one place: rclpy 7.1 (ROS 2 Jazzy).
+
+rclpy has no hook for a subscription class of one's own, so a buffer-aware subscription is
+created and registered as ``Node.create_subscription`` creates and registers its own (rclpy's
+argument checks, its QoS-override parameters, the node's list of subscriptions), and its main
+topic's C subscription is rclpy's C class with ``take_message`` delegated (the executor takes
+through it as through any subscription, and the take runs the subscription's route protocol).
+Each function names the private part it uses; nothing else in the package touches one.
+
+:data:`MIRRORS` is the rclpy version these were read from. :func:`matches` compares the running
+rclpy with it; ``test/test_rclpy_seams.py`` fails when they differ (read the parts again, then
+update :data:`MIRRORS`), and creating an endpoint under another version logs one warning.
+"""
+import functools
+import importlib.metadata
+from typing import Callable, Iterable, Optional, Tuple
+
+import rclpy.subscription
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.logging import get_logger
+from rclpy.qos import QoSProfile
+
+#: The rclpy release (major, minor) whose private parts this module mirrors.
+MIRRORS: Tuple[int, int] = (7, 1)
+
+
+@functools.lru_cache(maxsize=None)
+def running_version() -> Optional[Tuple[int, int]]:
+    """(major, minor) of the running rclpy: its Python distribution (PyPI), else its
+    package.xml in the ament index (a colcon or apt install); None when neither says."""
+    for dist in ('rclpy', 'ros-jazzy-rclpy'):
+        try:
+            return _major_minor(importlib.metadata.version(dist))
+        except (importlib.metadata.PackageNotFoundError, ValueError):
+            continue
+    try:
+        import re
+        from ament_index_python.packages import get_package_share_directory
+        with open(f'{get_package_share_directory("rclpy")}/package.xml') as f:
+            found = re.search(r'<version>([^<]+)</version>', f.read())
+        return _major_minor(found.group(1)) if found else None
+    except Exception:  # noqa: BLE001 (no ament index, no rclpy share: unknown)
+        return None
+
+
+def _major_minor(version: str) -> Tuple[int, int]:
+    major, minor = version.split('.')[:2]
+    return int(major), int(minor)
+
+
+def matches() -> bool:
+    """Whether the running rclpy is the release these seams mirror."""
+    return running_version() == MIRRORS
+
+
+@functools.lru_cache(maxsize=None)
+def warn_if_other_version() -> None:
+    """Log once per process when the running rclpy is not the one mirrored."""
+    if not matches():
+        get_logger('rosidl_buffer_py').warning(
+            f'rclpy {running_version()} is running; rosidl_buffer_py mirrors private parts of '
+            f'rclpy {MIRRORS[0]}.{MIRRORS[1]} (rosidl_buffer_py/rclpy_seams_7_1.py): '
+            'buffer-aware subscriptions may not work as they should')
+
+
+def validate_qos(node, qos_profile) -> QoSProfile:
+    """``Node._validate_qos_or_depth_parameter``: a QoSProfile, or rclpy's error for a bad one."""
+    return node._validate_qos_or_depth_parameter(qos_profile)
+
+
+def validate_topic_name(node, topic: str) -> None:
+    """``Node._validate_topic_or_service_name``: rclpy's error for a bad topic name."""
+    node._validate_topic_or_service_name(topic)
+
+
+def declare_qos_parameters(node, topic: str, qos: QoSProfile, options) -> None:
+    """``rclpy.qos_overriding_options._declare_qos_parameters`` for a subscription: the
+    QoS-override parameters ``Node.create_subscription`` declares (``options`` may be None)."""
+    from rclpy.qos_overriding_options import _declare_qos_parameters, QoSOverridingOptions
+    _declare_qos_parameters(rclpy.subscription.Subscription, node, topic, qos,
+                            options or QoSOverridingOptions([]))
+
+
+def register_subscription(node, sub, callback_group, handlers: Iterable) -> None:
+    """What ``Node.create_subscription`` does with a new subscription: in its callback group,
+    in ``Node._subscriptions`` (``node.subscriptions``, ``destroy_subscription``,
+    ``destroy_node``), the executor woken (``Node._wake_executor``), its event handlers
+    added as waitables."""
+    callback_group.add_entity(sub)
+    node._subscriptions.append(sub)
+    node._wake_executor()
+    for handler in handlers:
+        node.add_waitable(handler)
+
+
+def c_subscription(node, msg_type, topic: str, qos: QoSProfile):
+    """rclpy's C subscription (``_rclpy.Subscription``), as ``Node.create_subscription``
+    creates it."""
+    with node.handle:
+        return _rclpy.Subscription(node.handle, msg_type, topic, qos.get_c_qos_profile())
+
+
+class DelegatingReader(_rclpy.Subscription):
+    """rclpy's C subscription whose ``take_message`` (called by the executor, as for any
+    subscription) returns what ``take()`` returns: ``(message, message_info)`` or None."""
+
+    take: Callable[[], Optional[tuple]] = staticmethod(lambda: None)
+
+    def take_message(self, msg_type, raw):
+        return self.take()
+
+
+def delegating_reader(node, msg_type, topic: str, qos: QoSProfile) -> DelegatingReader:
+    """A :class:`DelegatingReader` of ``topic``; it takes nothing until its ``take`` is set."""
+    with node.handle:
+        return DelegatingReader(node.handle, msg_type, topic, qos.get_c_qos_profile())
+
+
+def is_c_endpoint(endpoint, kind: str) -> bool:
+    """Whether ``endpoint`` is rclpy's C publisher or subscription (``kind``)."""
+    return isinstance(endpoint, _rclpy.Publisher if kind == 'publisher' else _rclpy.Subscription)

@@ -1,0 +1,58 @@
+"""rclpy's private parts: all in rosidl_buffer_py/rclpy_seams_7_1.py, and that module mirrors
+the rclpy that is running (a new rclpy release fails here first: read those parts again)."""
+import pathlib
+import re
+
+from rclpy.node import Node
+
+from rosidl_buffer_py import _dds, rclpy_seams_7_1 as seams
+
+PACKAGE = pathlib.Path(seams.__file__).parent
+#: What reaching into rclpy looks like: its C module, a node's private attribute, its private
+#: QoS-parameter helper.
+PRIVATE = re.compile(r'rclpy\.impl|_rclpy_pybind11|\bnode\._[a-z]|_declare_qos_parameters')
+
+
+def test_the_seams_mirror_the_running_rclpy():
+    """Fails when the running rclpy is not the release the seams were read from: compare each
+    part named in rclpy_seams_7_1.py with the new rclpy, then update MIRRORS (and the name)."""
+    assert seams.running_version() == seams.MIRRORS, (seams.running_version(), seams.MIRRORS)
+    assert seams.matches()
+
+
+def test_every_private_part_the_seams_name_exists_in_the_running_rclpy():
+    for name in ('_validate_qos_or_depth_parameter', '_validate_topic_or_service_name',
+                 '_wake_executor'):
+        assert callable(getattr(Node, name, None)), name
+    from rclpy import qos_overriding_options
+    assert callable(qos_overriding_options._declare_qos_parameters)
+    assert hasattr(seams.DelegatingReader, 'take_message')
+
+
+def test_no_other_module_of_the_package_reaches_into_rclpy():
+    offenders = []
+    for path in sorted(PACKAGE.rglob('*.py')):
+        if path.name == 'rclpy_seams_7_1.py':
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if PRIVATE.search(line.split('#')[0]):
+                offenders.append(f'{path.relative_to(PACKAGE.parent)}:{number}: {line.strip()}')
+    assert not offenders, '\n'.join(offenders)
+
+
+def test_a_delegating_reader_takes_what_its_take_gives():
+    import rclpy
+    from std_msgs.msg import String
+    rclpy.init()
+    try:
+        node = rclpy.create_node('seams_reader')
+        _dds.type_support(String)  # as rclpy's create_* import it first
+        reader = seams.delegating_reader(node, String, '/seams_reader', rclpy.qos.QoSProfile(
+            depth=1))
+        assert reader.take_message(String, False) is None  # nothing set: nothing taken
+        reader.take = lambda: ('message', {'source_timestamp': 1})
+        assert reader.take_message(String, False) == ('message', {'source_timestamp': 1})
+        reader.destroy_when_not_in_use()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
