@@ -26,21 +26,14 @@ MIRRORS: Tuple[int, int] = (7, 1)
 
 @functools.lru_cache(maxsize=None)
 def running_version() -> Optional[Tuple[int, int]]:
-    """(major, minor) of the running rclpy: its Python distribution (PyPI), else its
-    package.xml in the ament index (a colcon or apt install); None when neither says."""
+    """(major, minor) of the running rclpy, from its Python distribution's metadata (PyPI's
+    wheels and ament's installs both carry it); None when it has none."""
     for dist in ('rclpy', 'ros-jazzy-rclpy'):
         try:
             return _major_minor(importlib.metadata.version(dist))
         except (importlib.metadata.PackageNotFoundError, ValueError):
             continue
-    try:
-        import re
-        from ament_index_python.packages import get_package_share_directory
-        with open(f'{get_package_share_directory("rclpy")}/package.xml') as f:
-            found = re.search(r'<version>([^<]+)</version>', f.read())
-        return _major_minor(found.group(1)) if found else None
-    except Exception:  # noqa: BLE001 (no ament index, no rclpy share: unknown)
-        return None
+    return None
 
 
 def _major_minor(version: str) -> Tuple[int, int]:
