@@ -672,6 +672,10 @@ class Outcome(enum.Enum):
     DISCARDED = 'discarded'  #: a main-topic duplicate dropped before it was taken (uncopied)
 
 
+#: A channel message's verdict as a step's outcome.
+_OUTCOME_OF = {Verdict.DELIVER: Outcome.DELIVER, Verdict.DUPLICATE: Outcome.DUPLICATE,
+               Verdict.QUEUED: Outcome.QUEUED}
+
 C = TypeVar('C')
 
 
@@ -778,9 +782,7 @@ class Receiver(Generic[C, T]):
         if kind is Incoming.CONTROL:
             return Step(Outcome.CONTROL, sample, channel)
         verdict = stream.channel(view.timestamp(sample), sample, now)
-        outcome = {Verdict.DELIVER: Outcome.DELIVER, Verdict.DUPLICATE: Outcome.DUPLICATE,
-                   Verdict.QUEUED: Outcome.QUEUED}[verdict]
-        return Step(outcome, sample, channel)
+        return Step(_OUTCOME_OF[verdict], sample, channel)
 
     def _from_main(self, view: 'ReceiveView[C, T]') -> Optional[Step[C, T]]:
         publisher = None
