@@ -958,6 +958,8 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
           &error))
       {
         failed = i;
+      } else if (target.channel == nullptr) {  // the main topic's writer
+        gap_to_excluded_readers(rmw_fastrtps_cpp::get_datawriter(rmw_pub));
       }
     }
   }

@@ -351,8 +351,13 @@ PyObject * publish_serialized(PyObject *, PyObject * args, PyObject * kwds)
   std::string error;
   // The pin keeps the rcl publisher (and its DataWriter) alive; Fast DDS copies the bytes.
   if (!without_gil([&] {
-      return write_serialized_w_timestamp(
-        dds.writer, view.data(), view.size(), source_timestamp, &error);
+      if (!write_serialized_w_timestamp(
+          dds.writer, view.data(), view.size(), source_timestamp, &error))
+      {
+        return false;
+      }
+      gap_to_excluded_readers(dds.writer);  // the main topic's writer
+      return true;
     }))
   {
     PyErr_Format(DdsError, "publish_serialized: %s", error.c_str());

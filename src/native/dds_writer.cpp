@@ -208,9 +208,6 @@ bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error)
     });
 }
 
-namespace
-{
-
 /// After a write on a main-topic writer: a GAP for the sample to each reliable reader it was
 /// kept from, as Fast DDS sends a reader a relevant sample at once. Fast DDS itself tells a
 /// reader of an irrelevant sample only when the reader asks (its ACKNACK after a HEARTBEAT), and
@@ -221,7 +218,7 @@ namespace
 void gap_to_excluded_readers(eprosima::fastdds::dds::DataWriter * writer)
 {
   std::lock_guard<std::mutex> registry(g_exclusions_mutex);
-  if (g_exclusions.empty()) {
+  if (writer == nullptr || g_exclusions.empty()) {
     return;  // no main-topic writer of this process keeps samples from anyone
   }
   std::string unavailable;
@@ -259,8 +256,6 @@ void gap_to_excluded_readers(eprosima::fastdds::dds::DataWriter * writer)
   }
 }
 
-}  // namespace
-
 bool write_serialized_w_timestamp(
   eprosima::fastdds::dds::DataWriter * writer, const void * data, size_t length,
   int64_t source_timestamp_ns, std::string * error)
@@ -295,7 +290,6 @@ bool write_serialized_w_timestamp(
     *error = "DataWriter::write_w_timestamp failed (return code " + std::to_string(rc()) + ")";
     return false;
   }
-  gap_to_excluded_readers(writer);
   return true;
 }
 
@@ -331,7 +325,6 @@ bool write_message_w_timestamp(
     *error = "DataWriter::write_w_timestamp failed (return code " + std::to_string(rc()) + ")";
     return false;
   }
-  gap_to_excluded_readers(info.writer);
   return true;
 }
 

@@ -60,6 +60,12 @@ bool exclude_from_next_write(
   rmw_publisher_t * publisher, const std::vector<GidArray> & readers, bool * available,
   std::string * error);
 
+/// Call right after a write on a main-topic DataWriter (never a channel's): send a GAP for the
+/// sample just written to each reliable reader exclude_from_next_write kept it from. Fast DDS
+/// would send it only when the reader asks, and a KEEP_LAST writer may have dropped the sample
+/// by then: a reader whose process was stalled would count it lost. Nothing when none was kept.
+void gap_to_excluded_readers(eprosima::fastdds::dds::DataWriter * writer);
+
 /// Remove the exclusion filter from the publisher's writer, giving Fast DDS's own back; call it
 /// before the publisher is destroyed. Nothing to do when none was installed.
 bool remove_write_exclusions(rmw_publisher_t * publisher, std::string * error);
