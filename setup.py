@@ -126,6 +126,9 @@ def native_extension(prefixes: list) -> Extension:
         # points and get_datawriter/get_datareader/get_domain_participant; fastrtps: DDS API.
         libraries=['rcl', 'rmw', 'rmw_fastrtps_cpp', 'fastrtps', 'fastcdr', 'rcutils'],
         extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra'],
+        # export PyInit__native alone: see src/native/exports.map (why a numpy- or torch-first
+        # import crashed where the extension's copies of Fast DDS symbols won the lookup)
+        extra_link_args=[f'-Wl,--version-script={HERE / "src" / "native" / "exports.map"}'],
         language='c++',
     )
 
