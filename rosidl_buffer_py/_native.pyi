@@ -50,6 +50,19 @@ class BufferBase:
     def _has_host_memory(self) -> bool: ...
 
 
+# DLPack -------------------------------------------------------------------------------------
+
+def dlpack_capsule(address: int, nbytes: int, device_type: int, device_id: int, owner: object,
+                   versioned: bool = False, readonly: bool = False) -> Any:
+    """A DLPack capsule (a ``PyCapsule`` named ``'dltensor'``, or ``'dltensor_versioned'``
+    with ``versioned``: DLPack 1.0) of a compact 1-D uint8 tensor of ``nbytes`` at
+    ``address`` on ``(device_type, device_id)``: 1 kDLCPU, 2 kDLCUDA, 3 kDLCUDAHost. For
+    ``__dlpack__``: torch/cupy/numpy ``from_dlpack`` take it without a copy. It holds a
+    reference to ``owner`` until the consumer's deleter runs (any thread), or until the
+    capsule is destroyed unconsumed. ``readonly`` sets the read-only flag (versioned only).
+    Bad values raise ``ValueError``."""
+
+
 # endpoints ----------------------------------------------------------------------------------
 
 def endpoint_gid(endpoint: _Entity, kind: _Kind) -> bytes:

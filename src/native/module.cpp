@@ -5,8 +5,10 @@
 //                 __buffer__ for Python classes).
 //   rmw_fastrtps layer (dds_*.cpp) - endpoint GIDs, USER_DATA, discovery tap, channels below rcl,
 //                 take with publisher GID.
+//   dlpack_capsule - raw host or device memory as a DLPack capsule that keeps its owner alive.
 #include "buffer_base.hpp"
 #include "dds_common.hpp"
+#include "dlpack_export.hpp"
 
 namespace
 {
@@ -27,7 +29,9 @@ PyMODINIT_FUNC PyInit__native(void)
   if (module == nullptr) {
     return nullptr;
   }
-  if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0) {
+  if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0 ||
+    add_dlpack_export(module) < 0)
+  {
     Py_DECREF(module);
     return nullptr;
   }
