@@ -1,6 +1,5 @@
 """DemoBackend: the ``demo`` buffer backend plugin (entry point
 ``demo = demo_buffer_backend:DemoBackend``)."""
-import threading
 from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
@@ -8,16 +7,7 @@ from rosidl_buffer_py.buffer import Buffer
 
 from demo_buffer_backend import handover, lifecycle, limits
 from demo_buffer_backend.buffer import BACKEND_TYPE, DemoBuffer
-from demo_buffer_backend.ledgers import EndpointLedger
-
-
-def _depth_of(endpoint_info: EndpointInfo) -> Optional[int]:
-    """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL;
-    None when unknown, or when the local publisher is not named (its window would count other
-    channels' messages)."""
-    if endpoint_info.local_gid is None:
-        return None
-    return endpoint_info.history_depth
+from demo_buffer_backend.endpoints import ServedEndpoints
 
 
 class DemoBackend(BufferBackend):
@@ -43,11 +33,7 @@ class DemoBackend(BufferBackend):
                              reclaim_timeout=reclaim_timeout,
                              max_inflight_per_peer=max_inflight_per_peer)
         self._domain = handover.domain()
-        self._lock = threading.Lock()
-        #: Compatible peers: gid -> token of their process.
-        self._peers: Dict[bytes, str] = {}
-        #: (peer gid, local publisher gid or None) -> ledger of its descriptors in flight.
-        self._ledgers: Dict[Tuple[bytes, Optional[bytes]], EndpointLedger] = {}
+        self._served = ServedEndpoints()
 
     def get_backend_type(self) -> str:
         return BACKEND_TYPE
@@ -75,13 +61,7 @@ class DemoBackend(BufferBackend):
         """Compatible iff the peer advertises our domain and a token. A compatible publisher's
         process may hand this one segments from now on (see :mod:`.inbox`)."""
         compatible, token = self.parse_metadata(endpoint_supported_backends.get(BACKEND_TYPE))
-        with self._lock:
-            if self._peers.get(endpoint_info.gid, token) != token or not compatible:
-                self._forget_ledgers(endpoint_info.gid)  # another process now, or none
-            if compatible:
-                self._peers[endpoint_info.gid] = token
-            else:
-                self._peers.pop(endpoint_info.gid, None)
+        self._served.note(endpoint_info.gid, token if compatible else None)
         if endpoint_info.endpoint_kind is EndpointKind.PUBLISHER:
             pool = lifecycle.get_pool()
             if compatible:
@@ -90,29 +70,23 @@ class DemoBackend(BufferBackend):
                 pool.forget(endpoint_info.gid)
         return compatible, []
 
-    def _forget_ledgers(self, gid: bytes) -> None:
-        for key in [key for key in self._ledgers if key[0] == gid]:
-            del self._ledgers[key]
-
     def on_removing_endpoint(self, endpoint_info: EndpointInfo) -> None:
         """Forget the peer and its ledgers (what it was sent settles through its link), and
         close the segments nobody can use any more: a publisher gone from DDS (its lease
         expired) is the moment an idle subscriber learns that it will send nothing more, with
         no thread of ours to wait for it."""
-        with self._lock:
-            self._peers.pop(endpoint_info.gid, None)
-            self._forget_ledgers(endpoint_info.gid)
+        self._served.forget(endpoint_info.gid)
         pool = lifecycle.get_pool()
         pool.forget(endpoint_info.gid)
         pool.sweep()
 
     def is_compatible(self, endpoint_info: EndpointInfo) -> bool:
         """Whether the endpoint was discovered and shares our domain."""
-        return endpoint_info.gid in self._peers
+        return endpoint_info.gid in self._served
 
     def peer_token(self, endpoint_info: EndpointInfo) -> Optional[str]:
         """The token a compatible peer advertised (None: unknown peer)."""
-        return self._peers.get(endpoint_info.gid)
+        return self._served.token(endpoint_info.gid)
 
     def create_descriptor_with_endpoint(self, buffer: Buffer,
                                         endpoint_info: EndpointInfo) -> Optional[bytes]:
@@ -121,28 +95,17 @@ class DemoBackend(BufferBackend):
         publisher reuse it under the new peer), a listener not of our user, or a full queue to
         it. ``EndpointGone`` when the peer's process hung up its link."""
         pool = lifecycle.get_pool()
-        token = self._peers.get(endpoint_info.gid)
+        token = self._served.token(endpoint_info.gid)
         pin = buffer.pin if isinstance(buffer, DemoBuffer) else None
         if token is None or pin is None:
             pool.decline()
             return None
-        key = (endpoint_info.gid, endpoint_info.local_gid)
-        depth = _depth_of(endpoint_info)
-        with self._lock:
-            ledger = self._ledgers.get(key)
-            if ledger is None:
-                ledger = self._ledgers[key] = EndpointLedger(
-                    token, depth, per_channel=key[1] is not None)
-        ledger.depth = depth
-        return pool.describe(pin, ledger)
+        return pool.describe(pin, self._served.ledger(endpoint_info, token))
 
     def peer_ledgers(self) -> Dict[str, dict]:
         """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):
         its token, depth, messages and descriptors in flight."""
-        with self._lock:
-            ledgers = dict(self._ledgers)
-        return {gid.hex() + (f'/{local.hex()}' if local else ''): ledger.summary()
-                for (gid, local), ledger in ledgers.items()}
+        return self._served.summary()
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> DemoBuffer:

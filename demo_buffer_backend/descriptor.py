@@ -30,13 +30,16 @@ class Descriptor(NamedTuple):
     size: int
 
 
-def pack(desc: Descriptor) -> bytes:
-    return _LAYOUT.pack(MAGIC, VERSION, 0, 0, desc.pid, desc.nonce, desc.segment_id, 0,
+def pack(desc: Descriptor, magic: bytes = MAGIC) -> bytes:
+    """The descriptor's bytes; ``magic`` names the medium (another backend built on this
+    machinery has its own)."""
+    return _LAYOUT.pack(magic, VERSION, 0, 0, desc.pid, desc.nonce, desc.segment_id, 0,
                         desc.generation, desc.offset, desc.size)
 
 
-def unpack(data) -> Descriptor:
+def unpack(data, magic: bytes = MAGIC) -> Descriptor:
     """Parse and validate a descriptor received from the network; ``ValueError`` otherwise."""
+    expected = magic
     try:
         data = bytes(data)
     except TypeError:
@@ -45,8 +48,8 @@ def unpack(data) -> Descriptor:
         raise ValueError(f'demo descriptor has {len(data)} bytes, expected {SIZE}')
     magic, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
         offset, size = _LAYOUT.unpack(data)
-    if magic != MAGIC:
-        raise ValueError(f'not a demo descriptor (magic {magic!r}, expected {MAGIC!r})')
+    if magic != expected:
+        raise ValueError(f'not a demo descriptor (magic {magic!r}, expected {expected!r})')
     if version != VERSION:
         raise ValueError(f'unsupported demo descriptor version {version} (expected {VERSION})')
     if reserved1 or reserved2 or reserved3:

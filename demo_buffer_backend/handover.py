@@ -93,13 +93,13 @@ class Credentials(NamedTuple):
 
 
 class Handover(NamedTuple):
-    """One segment a publisher process handed to us (``fd`` is ours to close), or, with
-    ``fd`` -1, one it retired."""
+    """One segment a publisher process handed to us (``fds`` are ours to close: as many as
+    its medium hands over per segment), or, with no ``fds``, one it retired."""
 
     nonce: int
     segment_id: int
     capacity: int
-    fd: int
+    fds: Tuple[int, ...]
 
 
 def new_token() -> str:
@@ -115,8 +115,12 @@ def token_pid(token: str) -> int:
     return int(token.partition('_')[0])
 
 
-def _address(token: str) -> str:
-    return f'\0rbpy_demo/{token}'
+#: The medium name of the demo backend's listeners (``\\0rbpy_demo/<token>``).
+DEMO = 'demo'
+
+
+def _address(token: str, medium: str) -> str:
+    return f'\0rbpy_{medium}/{token}'
 
 
 def domain() -> str:
@@ -148,11 +152,11 @@ def _new_socket() -> socket.socket:
 class Listener:
     """The subscriber side: this process's listening socket and the links accepted on it."""
 
-    def __init__(self, token: str) -> None:
+    def __init__(self, token: str, medium: str = DEMO) -> None:
         self.token = token
         self.sock = _new_socket()
         try:
-            self.sock.bind(_address(token))
+            self.sock.bind(_address(token, medium))
             self.sock.listen(64)
             self.sock.setblocking(False)
         except BaseException:
@@ -176,8 +180,10 @@ class Listener:
         self.sock.close()
 
 
-def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
-    """Drain ``conn`` without blocking: ``(handovers, reasons for rejected records, hung up)``.
+def receive(conn: socket.socket,
+            fds_per_segment: int = 1) -> Tuple[List[Handover], List[str], bool]:
+    """Drain ``conn`` without blocking: ``(handovers, reasons for rejected records, hung up)``;
+    a handover carries ``fds_per_segment`` descriptors (its medium's).
     Stops at the first malformed record (a genuine publisher sends none: the caller closes the
     connection). Every descriptor received but not returned in a handover is closed here."""
     handovers: List[Handover] = []
@@ -202,13 +208,13 @@ def receive(conn: socket.socket) -> Tuple[List[Handover], List[str], bool]:
             problem = f'a record of {len(data)} bytes, expected {HANDOVER.size}'
         else:
             magic, nonce, segment_id, reserved, capacity = HANDOVER.unpack(data)
-            expected = {HANDOVER_MAGIC: 1, RETIRE_MAGIC: 0}.get(magic)
+            expected = {HANDOVER_MAGIC: fds_per_segment, RETIRE_MAGIC: 0}.get(magic)
             if expected is None or reserved:
                 problem = f'a record with magic {magic!r} / reserved {reserved}'
             elif len(fds) != expected:
                 problem = f'a {magic!r} record with {len(fds)} descriptors, expected {expected}'
         if problem is None:
-            handovers.append(Handover(nonce, segment_id, capacity, fds[0] if fds else -1))
+            handovers.append(Handover(nonce, segment_id, capacity, tuple(fds)))
         else:
             rejected.append(problem)
             for fd in fds:
@@ -237,10 +243,11 @@ class Link:
 
     __slots__ = ('token', 'sock', 'segments', 'verdicts', 'responsive')
 
-    def __init__(self, token: str) -> None:
-        """Connect to ``token``'s listener without waiting. ``ProcessGone`` when nobody listens
-        there; ``PermissionError`` when who listens is not that process of our user;
-        ``BlockingIOError`` when its backlog is full (a stopped process: try again later)."""
+    def __init__(self, token: str, medium: str = DEMO) -> None:
+        """Connect to ``token``'s listener of ``medium`` without waiting. ``ProcessGone`` when
+        nobody listens there; ``PermissionError`` when who listens is not that process of our
+        user; ``BlockingIOError`` when its backlog is full (a stopped process: try again
+        later)."""
         self.token = token
         self.segments: set = set()  #: ids of the segments handed over on this link
         #: segment id -> the subscriber's verdict on it (ACCEPTED or REFUSED, and the refusal)
@@ -250,7 +257,7 @@ class Link:
         self.sock = _new_socket()
         try:
             self.sock.setblocking(False)
-            self.sock.connect(_address(token))
+            self.sock.connect(_address(token, medium))
             cred = credentials(self.sock)
             if cred.uid != os.geteuid() or cred.pid != token_pid(token):
                 raise PermissionError(
@@ -262,12 +269,12 @@ class Link:
                 raise ProcessGone(f'nobody listens for demo token {token}: {exc}') from None
             raise
 
-    def hand_over(self, nonce: int, segment_id: int, capacity: int, fd: int) -> None:
-        """Push one segment's descriptor. ``ProcessGone`` when the subscriber hung up;
+    def hand_over(self, nonce: int, segment_id: int, capacity: int, fds: List[int]) -> None:
+        """Push one segment's descriptors. ``ProcessGone`` when the subscriber hung up;
         ``BlockingIOError`` when its queue is full (try again with a later frame)."""
         record = HANDOVER.pack(HANDOVER_MAGIC, nonce, segment_id, 0, capacity)
         try:
-            socket.send_fds(self.sock, [record], [fd], socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
+            socket.send_fds(self.sock, [record], fds, socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
         except OSError as exc:
             if exc.errno in _GONE:
                 raise ProcessGone(f'demo subscriber {self.token} hung up: {exc}') from None

@@ -54,8 +54,11 @@ class Inbox:
     """This process's listener (made on :meth:`listen`), its inbound connections and the
     publisher processes discovery showed (see the module docstring)."""
 
-    def __init__(self, token: str, diagnostics: Diagnostics) -> None:
+    def __init__(self, token: str, diagnostics: Diagnostics, medium: str = handover.DEMO,
+                 fds_per_segment: int = 1) -> None:
         self.token = token
+        self.medium = medium  #: names the listener (``\\0rbpy_<medium>/<token>``)
+        self.fds_per_segment = fds_per_segment
         self.diagnostics = diagnostics
         self.counters = diagnostics.counters
         self.listener: Optional[handover.Listener] = None
@@ -68,7 +71,7 @@ class Inbox:
         """Whether this process listens for segments (its listener created if need be)."""
         if self.listener is None:
             try:
-                self.listener = handover.Listener(self.token)
+                self.listener = handover.Listener(self.token, self.medium)
             except OSError as exc:
                 self.diagnostics.warn_once('listener', f'cannot listen for demo segments: '
                                            f'{exc}; publishers will send this process CPU bytes')
@@ -157,7 +160,7 @@ class Inbox:
         self._review_pending(matched, now)
         deliveries = []
         for conn, pid in list(self.inbound.items()):
-            got, rejected, hung_up = handover.receive(conn)
+            got, rejected, hung_up = handover.receive(conn, self.fds_per_segment)
             if rejected:
                 self.refuse(conn, pid, rejected[0])
                 hung_up = True

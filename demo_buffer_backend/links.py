@@ -28,7 +28,9 @@ def gone_error(token: str, how: str = '') -> EndpointGone:
 class Links:
     """The links of this process, by subscriber process token, and the tokens that hung up."""
 
-    def __init__(self, nonce: int, slots: Slots, diagnostics: Diagnostics) -> None:
+    def __init__(self, nonce: int, slots: Slots, diagnostics: Diagnostics,
+                 medium: str = handover.DEMO) -> None:
+        self.medium = medium  #: the name of the listeners links connect to
         self.nonce = nonce
         self.slots = slots
         self.diagnostics = diagnostics
@@ -54,7 +56,7 @@ class Links:
                     return None
                 del self.unwanted[token]
             try:
-                link = self.by_token[token] = handover.Link(token)
+                link = self.by_token[token] = handover.Link(token, self.medium)
             except handover.ProcessGone:
                 self.hung_up(token)
             except BlockingIOError:  # its backlog is full: CPU bytes for now, retry later
@@ -122,13 +124,13 @@ class Links:
         """Hand the slot's segment to ``link``'s process; False (CPU bytes for now) when it
         cannot be reopened or the queue is full. ``EndpointGone`` when the process hung up."""
         try:
-            fd = slot.segment.reader_fd()
+            fds = slot.segment.reader_fds()
         except OSError as exc:
             self.diagnostics.warn_once(
                 'reader_fd', f'cannot reopen a demo segment for a reader: {exc}')
             return False
         try:
-            link.hand_over(self.nonce, slot.id, slot.capacity, fd)
+            link.hand_over(self.nonce, slot.id, slot.capacity, fds)
             self.counters.handovers_sent += 1
             return True
         except handover.ProcessGone:
@@ -141,7 +143,8 @@ class Links:
                 f'{link.token}: {exc}; it gets CPU bytes until it drains')
             return False
         finally:
-            os.close(fd)
+            for fd in fds:
+                os.close(fd)
 
     def retire(self, slot: Slot) -> None:
         """Tell every process that holds the slot's segment that it is removed."""

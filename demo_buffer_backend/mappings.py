@@ -17,7 +17,7 @@ Callers hold the pool's guard (:mod:`.guard`); a hold is dropped through it.
 import os
 import socket
 import time
-from typing import Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -47,7 +47,7 @@ class Mapping:
                  conn: Optional[socket.socket]) -> None:
         self.key = key
         self.received = received
-        self.view = memoryview(received.map).toreadonly()[memory.HEADER_SIZE:]
+        self.view = received.data  #: read-only payload (sliceable) of the whole segment
         self.refs = 0  #: holds alive; the shared lock is held while there are any
         self.conn = conn  #: where takes are acknowledged (None: ours, or its publisher left)
         self.orphan = False  #: its publisher hung up
@@ -57,14 +57,20 @@ class Mapping:
 
 
 class Hold:
-    """Keepalive of a subscriber-side DemoBuffer: this process's hold on the slot's bytes."""
+    """Keepalive of a subscriber-side DemoBuffer: this process's hold on the slot's bytes.
 
-    __slots__ = ('owner', 'mapping', 'generation')
+    ``readers``: for a medium read asynchronously (a GPU's), what read the bytes (its streams);
+    the hold is then let go only once the reads queued on them are complete (see
+    :meth:`Mappings.release_after_reads`), so that its publisher never reuses the slot under a
+    kernel still reading it."""
+
+    __slots__ = ('owner', 'mapping', 'generation', 'readers')
 
     def __init__(self, owner: 'Mappings', mapping: Mapping, generation: int) -> None:
         self.owner = owner
         self.mapping = mapping
         self.generation = generation
+        self.readers: Optional[set] = None
 
     @property
     def segment(self) -> Tuple[int, int]:
@@ -73,7 +79,11 @@ class Hold:
 
     def __del__(self):
         try:
-            self.owner.guard.defer(self.owner.release, self.mapping)
+            if self.readers:
+                self.owner.guard.defer(self.owner.release_after_reads,
+                                       (self.mapping, self.readers))
+            else:
+                self.owner.guard.defer(self.owner.release, self.mapping)
         except Exception:  # pragma: no cover - interpreter shutdown
             pass
 
@@ -84,8 +94,11 @@ class Mappings:
     takes of our own segments."""
 
     def __init__(self, token: str, inbox: Inbox, slots: Slots, guard: Guard,
-                 diagnostics: Diagnostics) -> None:
+                 diagnostics: Diagnostics, medium: Any = memory.SharedMemory) -> None:
         self.token = token
+        self.medium = medium  #: what received segments are (:class:`.memory.SharedMemory`)
+        #: releases waiting for their reads to complete: (mapping, the medium's fence)
+        self.reading: List[Tuple[Mapping, Any]] = []
         self.inbox = inbox
         self.slots = slots
         self.guard = guard
@@ -107,12 +120,12 @@ class Mappings:
     def adopt_own(self, slot: Slot) -> None:
         """Map our own slot as a reader would (in-process subscriptions)."""
         if (self.slots.pid, self.slots.nonce, slot.id) not in self.by_key:  # on every message
-            fd = slot.segment.reader_fd()
+            fds = slot.segment.reader_fds()
             try:
-                self._map(SegmentKey(self.slots.pid, self.slots.nonce, slot.id), fd,
+                self._map(SegmentKey(self.slots.pid, self.slots.nonce, slot.id), fds,
                           slot.capacity, None)
-            except ValueError:
-                os.close(fd)
+            except (ValueError, OSError):
+                _close_all(fds)
                 raise
 
     def retire_own(self, slot: Slot) -> None:
@@ -124,9 +137,9 @@ class Mappings:
                 self._close(own)
 
     # --- handovers ----------------------------------------------------------------------------
-    def _map(self, key: SegmentKey, fd: int, capacity: int,
+    def _map(self, key: SegmentKey, fds: Sequence[int], capacity: int,
              conn: Optional[socket.socket]) -> None:
-        self.by_key[key] = Mapping(key, memory.open_received(fd, capacity), conn)
+        self.by_key[key] = Mapping(key, self.medium.open_received(fds, capacity), conn)
         self.per_process[key.pid] = self.per_process.get(key.pid, 0) + 1
         self.counters.mappings_opened += 1
 
@@ -134,6 +147,7 @@ class Mappings:
         """Take every segment handed over meanwhile (never blocks), note the publishers that
         hung up, then close the segments nobody can use any more."""
         self.last_sweep = time.monotonic()
+        self._settle_reads()
         for delivery in self.inbox.drain():
             self._take_delivery(delivery)
         self._close_unused()
@@ -144,8 +158,7 @@ class Mappings:
         hung_up = delivery.hung_up
         for record in delivery.handovers:
             if hung_up:  # refused for an earlier record: the rest is not looked at
-                if record.fd >= 0:
-                    os.close(record.fd)
+                _close_all(record.fds)
             elif not self._take_handover(delivery.conn, delivery.pid, record):
                 self.inbox.refuse(delivery.conn, delivery.pid, 'it handed over a segment that '
                                   'is not one the demo backend makes')
@@ -165,7 +178,7 @@ class Mappings:
         """Map (or retire) the segment of ``record`` and tell its publisher; False when the
         record is one no genuine publisher sends (the caller closes the connection)."""
         key = SegmentKey(pid, record.nonce, record.segment_id)
-        if record.fd < 0:  # retired by its publisher
+        if not record.fds:  # retired by its publisher
             mapping = self.by_key.get(key)
             if mapping is not None and mapping.conn is conn:
                 mapping.retired = True
@@ -181,7 +194,7 @@ class Mappings:
                                 Refusal.TOTAL_LIMIT)
         else:
             try:
-                self._map(key, record.fd, record.capacity, conn)
+                self._map(key, record.fds, record.capacity, conn)
                 self.counters.handovers_received += 1
                 handover.send_reply(conn, ReplyKind.ACCEPTED, record.segment_id)
                 return True
@@ -189,7 +202,7 @@ class Mappings:
                 problem, refusal = str(exc), Refusal.INVALID
             except OSError as exc:  # ours: out of descriptors or address space
                 problem, refusal = f'cannot map it here: {exc}', Refusal.TOTAL_LIMIT
-        os.close(record.fd)
+        _close_all(record.fds)
         self._refuse_handover(pid, problem)
         handover.send_reply(conn, ReplyKind.REFUSED, record.segment_id, refusal)
         return refusal is not Refusal.INVALID
@@ -211,12 +224,37 @@ class Mappings:
             if left:
                 self.per_process[mapping.key.pid] = left
         self.counters.mappings_closed += 1
+        mapping.received.close()
+
+    def release_after_reads(self, item: Tuple[Mapping, set]) -> None:
+        """A hold whose bytes were read asynchronously is dropped (run through the guard):
+        released once the medium says the reads queued on ``readers`` are complete."""
+        mapping, readers = item
         try:
-            mapping.view.release()
-            mapping.received.map.close()
-        except BufferError:
-            pass  # a view is still exported: the mapping goes when it does
-        os.close(mapping.received.fd)
+            fence = self.medium.fence(readers)
+        except Exception as exc:  # the device is gone or broken: nothing will read any more
+            self.diagnostics.warn_once(f'fence_{type(exc).__name__}',
+                                       f'{self.medium.name}: cannot wait for reads: {exc}')
+            fence = None
+        if fence is None:
+            self.release(mapping)
+        else:
+            self.reading.append((mapping, fence))
+
+    def _settle_reads(self) -> None:
+        """Release the holds whose reads are complete."""
+        if self.reading:
+            waiting = []
+            for mapping, fence in self.reading:
+                try:
+                    done = fence.done()
+                except Exception:
+                    done = True
+                if done:
+                    self.release(mapping)
+                else:
+                    waiting.append((mapping, fence))
+            self.reading = waiting
 
     def release(self, mapping: Mapping) -> None:
         """A hold is dropped (run through the guard): the last one unlocks the segment."""
@@ -229,6 +267,7 @@ class Mappings:
     def close(self) -> None:
         """Close every segment. Views still alive keep their memory (the kernel frees it with
         them)."""
+        self.reading = []
         for mapping in list(self.by_key.values()):
             self._close(mapping)
 
@@ -238,6 +277,7 @@ class Mappings:
         fds = [mapping.received.fd for mapping in self.by_key.values()]
         self.by_key = {}
         self.per_process = {}
+        self.reading = []
         return fds
 
     # --- taking -------------------------------------------------------------------------------
@@ -245,12 +285,15 @@ class Mappings:
         """A read-only view of the bytes ``d`` names and the hold that protects it;
         ``ValueError`` saying why not."""
         key = (d.pid, d.nonce, d.segment_id)  # finds the SegmentKey (a tuple) it equals
+        if self.reading:
+            self._settle_reads()
         mapping = self.by_key.get(key)
         if mapping is None or time.monotonic() - self.last_sweep >= limits.SWEEP_INTERVAL:
             self.receive()
             mapping = self.by_key.get(key)
         if mapping is None or mapping.retired:
-            raise ValueError(f'demo descriptor names segment {d.segment_id} of publisher pid '
+            raise ValueError(f'{self.medium.name} descriptor names segment {d.segment_id} of '
+                             f'publisher pid '
                              f'{d.pid}, which that process did not hand to this one (or '
                              'removed since)')
         capacity = mapping.received.capacity
@@ -289,6 +332,14 @@ class Mappings:
                 self.counters.acks_unsent += 1
         elif d.pid == self.slots.pid and d.nonce == self.slots.nonce:
             self.slots.acknowledge(d.segment_id, d.generation, self.token)
+
+
+def _close_all(fds: Sequence[int]) -> None:
+    for fd in fds:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
 
 
 def _acquire_hold(fd: int) -> bool:

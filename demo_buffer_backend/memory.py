@@ -23,7 +23,7 @@ import fcntl
 import mmap
 import os
 import struct
-from typing import NamedTuple
+from typing import Sequence
 
 HEADER_SIZE = max(4096, mmap.ALLOCATIONGRANULARITY)
 PAGE_SIZE = mmap.PAGESIZE
@@ -72,11 +72,16 @@ def read_u64(header: mmap.mmap, offset: int) -> int:
 
 
 class Segment:
-    """A segment this process created: its descriptor and a writable mapping of all of it."""
+    """A segment this process created: its descriptor and a writable mapping of all of it.
+
+    With ``with_data=False`` it is a header alone (the *control* segment of memory that lives
+    elsewhere, a GPU's for example): its header records ``capacity`` and the generation, and
+    its hold byte carries the locks, while ``data`` is left ``None`` for the medium to set.
+    """
 
     __slots__ = ('fd', 'map', 'capacity', 'data')
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, *, with_data: bool = True) -> None:
         """Create, back and seal a segment of ``capacity`` data bytes (a multiple of the page
         size); ``OSError`` (ENOSPC, ENOMEM, EFBIG, ...) when the memory cannot be had."""
         if capacity <= 0 or capacity % PAGE_SIZE:
@@ -84,9 +89,10 @@ class Segment:
                              f'{capacity}')
         fd = os.memfd_create('rbpy_demo', os.MFD_ALLOW_SEALING | os.MFD_CLOEXEC)
         mapped = None
+        length = HEADER_SIZE + (capacity if with_data else 0)
         try:
-            os.posix_fallocate(fd, 0, HEADER_SIZE + capacity)
-            mapped = mmap.mmap(fd, HEADER_SIZE + capacity,
+            os.posix_fallocate(fd, 0, length)
+            mapped = mmap.mmap(fd, length,
                                flags=mmap.MAP_SHARED | getattr(mmap, 'MAP_POPULATE', 0))
             fcntl.fcntl(fd, fcntl.F_ADD_SEALS, SEALS)  # after the writable mapping, see above
         except BaseException:
@@ -98,7 +104,7 @@ class Segment:
         self.fd = fd
         self.capacity = capacity
         HEADER.pack_into(self.map, 0, MAGIC, capacity, 0, 0, 0)
-        self.data = memoryview(self.map)[HEADER_SIZE:]
+        self.data = memoryview(self.map)[HEADER_SIZE:] if with_data else None
 
     def set_generation(self, generation: int, size: int) -> None:
         """Record the bytes of a new generation (the caller holds the exclusive lock)."""
@@ -109,29 +115,50 @@ class Segment:
         are its own). The caller closes it (after handing it over)."""
         return os.open(f'/proc/self/fd/{self.fd}', os.O_RDONLY | os.O_CLOEXEC)
 
+    def reader_fds(self) -> list:
+        """What a reader process is handed: one new read-only description (see
+        :meth:`reader_fd`)."""
+        return [self.reader_fd()]
+
     def close(self) -> None:
         try:
-            self.data.release()
+            if self.data is not None:
+                self.data.release()
             self.map.close()
         except BufferError:
             pass  # a view is still exported: the mapping goes when it does
         os.close(self.fd)
 
 
-class Received(NamedTuple):
+class Received:
     """A segment of another process (or ours, through a reader description), mapped
-    read-only."""
+    read-only: ``fd`` carries the locks, ``map`` the header, ``data`` the payload view (None
+    for a control segment, whose medium sets it)."""
 
-    fd: int
-    map: mmap.mmap
-    capacity: int
+    __slots__ = ('fd', 'map', 'capacity', 'data')
+
+    def __init__(self, fd: int, mapped: mmap.mmap, capacity: int, with_data: bool) -> None:
+        self.fd = fd
+        self.map = mapped
+        self.capacity = capacity
+        self.data = memoryview(mapped).toreadonly()[HEADER_SIZE:] if with_data else None
+
+    def close(self) -> None:
+        try:
+            if self.data is not None:
+                self.data.release()
+            self.map.close()
+        except BufferError:
+            pass  # a view is still exported: the mapping goes when it does
+        os.close(self.fd)
 
 
-def open_received(fd: int, capacity: int) -> Received:
+def open_received(fd: int, capacity: int, *, with_data: bool = True) -> Received:
     """Map a received segment descriptor after checking that it is one as :class:`Segment`
-    creates them: a sealed memfd of ``HEADER_SIZE + capacity`` bytes, all backed, with our
-    header. ``ValueError`` naming what is wrong otherwise; ``OSError`` when this process lacks
-    the memory or descriptors to map it; ``fd`` stays the caller's to close on error."""
+    creates them: a sealed memfd of ``HEADER_SIZE + capacity`` bytes (``HEADER_SIZE`` alone
+    when not ``with_data``), all backed, with our header. ``ValueError`` naming what is wrong
+    otherwise; ``OSError`` when this process lacks the memory or descriptors to map it; ``fd``
+    stays the caller's to close on error."""
     try:
         seals = fcntl.fcntl(fd, fcntl.F_GET_SEALS)
     except OSError:
@@ -142,9 +169,10 @@ def open_received(fd: int, capacity: int) -> Received:
     st = os.fstat(fd)
     if not 0 < capacity <= 1 << 40 or capacity % PAGE_SIZE:
         raise ValueError(f'capacity {capacity} is not a multiple of {PAGE_SIZE} in (0, 1 TiB]')
-    if st.st_size != HEADER_SIZE + capacity:
-        raise ValueError(f'size {st.st_size} is not {HEADER_SIZE + capacity} (header + '
-                         f'capacity {capacity})')
+    length = HEADER_SIZE + (capacity if with_data else 0)
+    if st.st_size != length:
+        raise ValueError(f'size {st.st_size} is not {length} (header'
+                         + (f' + capacity {capacity})' if with_data else ' alone)'))
     if st.st_blocks * 512 < st.st_size:
         raise ValueError(f'only {st.st_blocks * 512} of its {st.st_size} bytes are backed '
                          '(a sparse segment could fault)')
@@ -160,4 +188,52 @@ def open_received(fd: int, capacity: int) -> Received:
         mapped.close()
         raise ValueError(f'header ({magic!r}, capacity {recorded}) is not ({MAGIC!r}, '
                          f'{capacity})')
-    return Received(fd, mapped, capacity)
+    return Received(fd, mapped, capacity, with_data)
+
+
+class SharedMemory:
+    """The demo backend's medium: payloads in the sealed segments themselves.
+
+    A *medium* is what a :class:`~.pool.Pool` is made of; the pool's machinery (slots,
+    ledgers, links, inbox, mappings) is the same for every medium. A medium has:
+
+    - ``name``: names its listeners (``\\0rbpy_<name>/<token>``) and its messages;
+    - ``descriptor_magic``: the 4 bytes that open its descriptors;
+    - ``fds_per_segment``: the descriptors a handover carries (the first is the segment whose
+      header and hold byte the machinery uses);
+    - ``round_capacity(nbytes)`` and ``fits(capacity, nbytes)``: slot sizes;
+    - ``create(capacity)``: a segment (``fd``, ``map``, ``capacity``, ``data`` sliceable,
+      ``set_generation``, ``reader_fds()``, ``close()``), ``OSError`` when the memory cannot
+      be had;
+    - ``open_received(fds, capacity)``: a :class:`Received`-like mapping (``fd``, ``map``,
+      ``capacity``, ``data``, ``close()``), which owns ``fds`` on success; ``ValueError`` for
+      a segment it does not make, ``OSError`` for what this process lacks;
+    - ``fence(readers)``: for memory that other engines read asynchronously (a GPU's streams),
+      an object whose ``done()`` says when the reads queued so far are complete; None when
+      nothing is pending (host memory: a view dropped is a read complete).
+    """
+
+    name = 'demo'
+    descriptor_magic = b'RBDM'
+    fds_per_segment = 1
+
+    @staticmethod
+    def round_capacity(nbytes: int) -> int:
+        return round_capacity(nbytes)
+
+    @staticmethod
+    def fits(capacity: int, nbytes: int) -> bool:
+        """A slot of ``capacity`` serves ``nbytes`` without wasting more than half of it."""
+        return nbytes <= capacity <= 2 * max(nbytes, PAGE_SIZE)
+
+    @staticmethod
+    def create(capacity: int) -> Segment:
+        return Segment(capacity)
+
+    @staticmethod
+    def open_received(fds: Sequence[int], capacity: int) -> Received:
+        return open_received(fds[0], capacity)
+
+    @staticmethod
+    def fence(readers) -> None:
+        return None

@@ -26,10 +26,10 @@ what a process holds the kernel frees with it.
 """
 import os
 import time
-from typing import Optional, Tuple
+from typing import Any, Optional, Tuple
 
 from demo_buffer_backend import descriptor as codec
-from demo_buffer_backend import handover, limits
+from demo_buffer_backend import handover, limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics
 from demo_buffer_backend.guard import Guard
 from demo_buffer_backend.handover import ReplyKind
@@ -53,9 +53,13 @@ class Pool:
 
     Each takes the guard; after :meth:`shutdown` the pool refuses new work (the next use of the
     backend makes a new pool, see :mod:`.lifecycle`).
+
+    ``medium`` is what its segments are (see :class:`.memory.SharedMemory`, the demo
+    backend's; ``cuda_buffer_backend`` composes a pool of GPU memory from the same parts).
     """
 
-    def __init__(self, token: str) -> None:
+    def __init__(self, token: str, medium: Any = memory.SharedMemory) -> None:
+        self.medium = medium
         self.pid = os.getpid()
         self.token = token
         self.nonce = int(token[-16:], 16)
@@ -63,10 +67,12 @@ class Pool:
         self.guard = Guard()
         self.diagnostics = Diagnostics()
         self.counters = self.diagnostics.counters
-        self.slots = Slots(self.pid, self.nonce, self.guard, self.diagnostics, self._retire)
-        self.links = Links(self.nonce, self.slots, self.diagnostics)
-        self.inbox = Inbox(token, self.diagnostics)
-        self.mappings = Mappings(token, self.inbox, self.slots, self.guard, self.diagnostics)
+        self.slots = Slots(self.pid, self.nonce, self.guard, self.diagnostics, self._retire,
+                           medium)
+        self.links = Links(self.nonce, self.slots, self.diagnostics, medium.name)
+        self.inbox = Inbox(token, self.diagnostics, medium.name, medium.fds_per_segment)
+        self.mappings = Mappings(token, self.inbox, self.slots, self.guard, self.diagnostics,
+                                 medium)
         self.porter: Optional[Porter] = None  #: the inbox's thread, from the first advertise()
 
     def _retire(self, slot: Slot) -> None:
@@ -162,7 +168,8 @@ class Pool:
         self.counters.descriptors_created += 1
         if pin.packed is None:
             pin.packed = codec.pack(codec.Descriptor(
-                self.pid, self.nonce, slot.id, pin.generation, 0, pin.size))
+                self.pid, self.nonce, slot.id, pin.generation, 0, pin.size),
+                self.medium.descriptor_magic)
         return pin.packed
 
     def decline(self) -> None:
@@ -200,13 +207,15 @@ class Pool:
         ``ValueError`` (counted, warned about once per cause) when it names none."""
         with self.guard:
             try:
-                d = codec.unpack(raw)
+                d = codec.unpack(raw, self.medium.descriptor_magic)
                 if self.closed:
-                    raise ValueError('the demo backend of this process is shut down')
+                    raise ValueError(f'the {self.medium.name} backend of this process is '
+                                     'shut down')
                 return self.mappings.open(d)
             except ValueError as exc:
                 self.counters.rejected += 1
-                self.diagnostics.warn_once(f'reject_{exc}', f'rejected a demo descriptor: {exc}')
+                self.diagnostics.warn_once(f'reject_{exc}',
+                                           f'rejected a {self.medium.name} descriptor: {exc}')
                 raise
 
     def sweep(self) -> None:

@@ -12,7 +12,7 @@ Callers hold the pool's guard (:mod:`.guard`); a pin is dropped through it.
 """
 import errno
 import time
-from typing import AbstractSet, Callable, Dict, List, Optional, Tuple
+from typing import AbstractSet, Any, Callable, Dict, List, Optional, Tuple
 
 from demo_buffer_backend import limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics, logger
@@ -94,7 +94,8 @@ class Slots:
     """
 
     def __init__(self, pid: int, nonce: int, guard: Guard, diagnostics: Diagnostics,
-                 retire: Callable[[Slot], None]) -> None:
+                 retire: Callable[[Slot], None], medium: Any = memory.SharedMemory) -> None:
+        self.medium = medium  #: what segments are made of (:class:`.memory.SharedMemory`)
         self.pid = pid  #: with ``nonce``, names this publisher in descriptors and handovers
         self.nonce = nonce
         self.guard = guard
@@ -128,7 +129,7 @@ class Slots:
     def allocate(self, nbytes: int, gone: AbstractSet[str]) -> Optional[Tuple[memoryview, Pin]]:
         """A writable view of ``nbytes`` in a slot and its pin, or ``None`` (counted and warned
         about once per cause): fall back. ``gone``: tokens of processes that hung up."""
-        capacity = memory.round_capacity(nbytes)
+        capacity = self.medium.round_capacity(nbytes)
         self.grow_failure = None
         slot = (self._reuse(nbytes, gone, stale_ok=False)
                 or self._grow(nbytes, capacity, gone, stale_ok=False)
@@ -162,10 +163,6 @@ class Slots:
                 "each endpoint's share)")
 
     @staticmethod
-    def _fits(slot: Slot, nbytes: int) -> bool:
-        return nbytes <= slot.capacity <= 2 * max(nbytes, memory.PAGE_SIZE)
-
-    @staticmethod
     def _lock_free(slot: Slot, gone: AbstractSet[str], stale_ok: bool,
                    now_ns: int) -> Optional[bool]:
         """Take the exclusive lock of a free slot: None when it is not free, else whether it
@@ -182,7 +179,8 @@ class Slots:
 
     def _reuse(self, nbytes: int, gone: AbstractSet[str], stale_ok: bool) -> Optional[Slot]:
         now = time.monotonic_ns()
-        for slot in sorted((s for s in self.by_id.values() if self._fits(s, nbytes)),
+        fits = self.medium.fits
+        for slot in sorted((s for s in self.by_id.values() if fits(s.capacity, nbytes)),
                            key=lambda s: s.last_used):
             reclaimed = self._lock_free(slot, gone, stale_ok, now)
             if reclaimed is None:
@@ -214,13 +212,14 @@ class Slots:
             else:
                 return None
         try:
-            segment = memory.Segment(capacity)
+            segment = self.medium.create(capacity)
         except OSError as exc:
             if exc.errno in (errno.ENOSPC, errno.ENOMEM, errno.EFBIG):
                 self.grow_failure = 'enospc'
             else:
                 self.grow_failure = 'memory_error'
-                logger.warning(f'cannot create a {capacity}-byte demo segment: {exc}',
+                logger.warning(f'cannot create a {capacity}-byte {self.medium.name} segment: '
+                               f'{exc}',
                                throttle_duration_sec=limits.SEGMENT_WARNING_INTERVAL)
             return None
         slot = Slot(self.next_id, segment)

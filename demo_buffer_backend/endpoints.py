@@ -1,0 +1,80 @@
+"""The peer endpoints a backend built on this machinery serves: the token of each compatible
+peer's process and the ledger of each peer endpoint (per local publisher when known).
+
+Shared by ``DemoBackend`` and ``cuda_buffer_backend.CudaBackend`` (one per device there).
+"""
+import threading
+from typing import Dict, Optional, Tuple
+
+from rosidl_buffer_py.backend import EndpointInfo
+
+from demo_buffer_backend.ledgers import EndpointLedger
+
+
+def depth_of(endpoint_info: EndpointInfo) -> Optional[int]:
+    """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL;
+    None when unknown, or when the local publisher is not named (its window would count other
+    channels' messages)."""
+    if endpoint_info.local_gid is None:
+        return None
+    return endpoint_info.history_depth
+
+
+class ServedEndpoints:
+    """Compatible peers (gid -> the token of their process) and their ledgers."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._peers: Dict[bytes, str] = {}
+        #: (peer gid, local publisher gid or None) -> ledger of its descriptors in flight.
+        self._ledgers: Dict[Tuple[bytes, Optional[bytes]], EndpointLedger] = {}
+
+    def note(self, gid: bytes, token: Optional[str]) -> None:
+        """Discovery says the peer's process is ``token`` (None: the peer cannot be served);
+        its ledgers go when that changes."""
+        with self._lock:
+            if self._peers.get(gid, token) != token or token is None:
+                self._forget_ledgers(gid)  # another process now, or none
+            if token is not None:
+                self._peers[gid] = token
+            else:
+                self._peers.pop(gid, None)
+
+    def forget(self, gid: bytes) -> None:
+        """The peer is gone: forget it and its ledgers (what it was sent settles through its
+        link)."""
+        with self._lock:
+            self._peers.pop(gid, None)
+            self._forget_ledgers(gid)
+
+    def _forget_ledgers(self, gid: bytes) -> None:
+        for key in [key for key in self._ledgers if key[0] == gid]:
+            del self._ledgers[key]
+
+    def token(self, gid: bytes) -> Optional[str]:
+        """The token of a compatible peer's process (None: unknown peer)."""
+        return self._peers.get(gid)
+
+    def __contains__(self, gid: bytes) -> bool:
+        return gid in self._peers
+
+    def ledger(self, endpoint_info: EndpointInfo, token: str) -> EndpointLedger:
+        """The ledger of the peer endpoint (per local publisher when named), its depth
+        refreshed."""
+        key = (endpoint_info.gid, endpoint_info.local_gid)
+        depth = depth_of(endpoint_info)
+        with self._lock:
+            ledger = self._ledgers.get(key)
+            if ledger is None:
+                ledger = self._ledgers[key] = EndpointLedger(
+                    token, depth, per_channel=key[1] is not None)
+        ledger.depth = depth
+        return ledger
+
+    def summary(self) -> Dict[str, dict]:
+        """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):
+        its token, depth, messages and descriptors in flight."""
+        with self._lock:
+            ledgers = dict(self._ledgers)
+        return {gid.hex() + (f'/{local.hex()}' if local else ''): ledger.summary()
+                for (gid, local), ledger in ledgers.items()}
