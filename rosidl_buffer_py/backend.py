@@ -28,6 +28,13 @@ class EndpointGone(Exception):
     """
 
 
+class BackendUnavailable(Exception):
+    """Raised by a backend's constructor when this machine cannot run it (no driver, no
+    device): the registry leaves it out, logs the reason once (debug level), names it to whoever
+    asks for the backend, and
+    :func:`rosidl_buffer_py.registry.unavailable_backends` says why."""
+
+
 class EndpointKind(enum.Enum):
     """Which side of a topic an endpoint is."""
 

@@ -85,6 +85,14 @@ class Buffer(BufferBase):
                 'non-host-addressable memory')
         return bytes(memoryview(self))
 
+    def host_bytes(self) -> memoryview:
+        """The payload on the host, for sending it as CPU bytes: the memory itself when it is
+        host-addressable, else the backend's download (by default :meth:`to_bytes`; a backend
+        may hand out a reusable staging area instead, valid until its next download)."""
+        if self._has_host_memory:
+            return memoryview(self)
+        return memoryview(self.to_bytes())
+
     def __repr__(self) -> str:
         access = 'read-only' if self._readonly else 'writable'
         return (f'{type(self).__name__}(backend_type={self._backend_type!r}, '

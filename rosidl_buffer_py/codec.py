@@ -731,7 +731,7 @@ def _payload_view(value: Any, field: Any) -> memoryview:
             view = memoryview(value)
         else:
             try:
-                data = value.to_bytes()
+                data = value.host_bytes()
             except Exception as exc:
                 raise CodecError(f'{field}: {value!r} cannot be read as CPU bytes: '
                                  f'{type(exc).__name__}: {exc}') from exc

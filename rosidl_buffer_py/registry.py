@@ -16,7 +16,7 @@ from typing import Dict, FrozenSet, Mapping, Optional, Set
 
 from rclpy.logging import get_logger
 
-from rosidl_buffer_py.backend import BufferBackend
+from rosidl_buffer_py.backend import BackendUnavailable, BufferBackend
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND, CpuBackend
 
 #: Entry point group that backends register under.
@@ -31,6 +31,8 @@ ANY_BACKEND = 'any'
 _logger = get_logger('rosidl_buffer_py.registry')
 _lock = threading.Lock()
 _backends: Optional[Dict[str, BufferBackend]] = None
+#: Installed backends this machine cannot run: name -> why (see ``BackendUnavailable``).
+_unavailable: Dict[str, str] = {}
 _warned_unknown: Set[str] = set()
 
 
@@ -63,6 +65,14 @@ def _discover() -> Dict[str, BufferBackend]:
             continue
         try:
             backends[entry_point.name] = _load_entry_point(entry_point)
+        except BackendUnavailable as exc:
+            if _unavailable.get(entry_point.name) != str(exc):
+                # debug: a machine without a GPU is no news to a graph that never asks for it;
+                # who names the backend is told why (parse_acceptable_buffer_backends,
+                # get_backend)
+                _logger.debug(f'buffer backend {entry_point.name!r} is unavailable here and is '
+                              f'left out: {exc}')
+            _unavailable[entry_point.name] = str(exc)
         except Exception as exc:  # a broken plugin must never stop a node from starting
             _logger.error(f'buffer backend {entry_point.name!r} ({entry_point.value}) failed to '
                           f'load and is skipped: {type(exc).__name__}: {exc}')
@@ -81,12 +91,22 @@ def get_installed_backends(*, refresh: bool = False) -> Mapping[str, BufferBacke
         return dict(_backends)
 
 
+def unavailable_backends() -> Mapping[str, str]:
+    """Installed backends this machine cannot run (no driver, no device), with the reason."""
+    get_installed_backends()
+    with _lock:
+        return dict(_unavailable)
+
+
 def get_backend(name: str) -> BufferBackend:
     """Return the installed backend called ``name``; ``KeyError`` names the installed ones."""
     backends = get_installed_backends()
     try:
         return backends[name]
     except KeyError:
+        why = _unavailable.get(name)
+        if why is not None:
+            raise KeyError(f'buffer backend {name!r} is unavailable here: {why}') from None
         raise KeyError(f'buffer backend {name!r} is not installed; installed: '
                        f'{", ".join(sorted(backends))}') from None
 
@@ -119,6 +139,10 @@ def parse_acceptable_buffer_backends(value: Optional[str]) -> FrozenSet[str]:
             first_time = name not in _warned_unknown
             _warned_unknown.add(name)
         if first_time:
-            _logger.warning(f'acceptable_buffer_backends names {name!r}, which is not an installed '
-                            f'buffer backend; installed: {", ".join(sorted(installed))}')
+            why = _unavailable.get(name)
+            _logger.warning(
+                f'acceptable_buffer_backends names {name!r}, which is unavailable here ({why}); '
+                'it gets CPU bytes' if why is not None else
+                f'acceptable_buffer_backends names {name!r}, which is not an installed '
+                f'buffer backend; installed: {", ".join(sorted(installed))}')
     return frozenset(accepted)
