@@ -1,0 +1,38 @@
+"""``./dev wheelhouse`` (docs/development.md, "Installing on a machine without internet"): the
+wheels of everything the package and its tests need, for a target Python, one version each,
+installable with pip offline. Made here for this machine's own Python (what pip can check)."""
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_wheelhouse_installs_offline(tmp_path):
+    version = f'{sys.version_info.major}.{sys.version_info.minor}'
+    out = tmp_path / 'wheelhouse'
+    made = subprocess.run(
+        [str(ROOT / 'dev'), 'wheelhouse', '--python-version', version, '--out', str(out),
+         '--skip-present', 'numpy,setuptools,pytest,pytest-xdist,hypothesis,matplotlib,wheel'],
+        capture_output=True, text=True, timeout=600)
+    if made.returncode != 0 and 'No matching distribution' in made.stderr + made.stdout:
+        pytest.skip(f'no wheels for CPython {version} here: {made.stderr[-500:]}')
+    assert made.returncode == 0, made.stderr[-3000:]
+    wheels = sorted(out.glob('*.whl'))
+    names = [w.name.split('-')[0].lower().replace('_', '-') for w in wheels]
+    assert len(names) == len(set(names)), 'two versions of one package stop pip'
+    assert not [n for n in names if 'ament-cmake' in n or n in ('numpy', 'pytest', 'setuptools')]
+    assert {'ros-rclpy', 'ros-fastrtps', 'ros-sensor-msgs', 'mcap', 'empy'} <= set(names)
+    assert 'python3 -m pip install --no-index --no-deps' in (out / 'INSTALL.txt').read_text()
+    # the documented install, offline (into a folder of its own rather than this venv)
+    target = tmp_path / 'site'
+    installed = subprocess.run(
+        [sys.executable, '-m', 'pip', 'install', '--no-index', '--no-deps', '--no-compile',
+         '--target', str(target), *map(str, wheels)], capture_output=True, text=True,
+        timeout=600)
+    assert installed.returncode == 0, installed.stderr[-3000:]
+    assert (target / 'rclpy').is_dir() and (target / 'sensor_msgs').is_dir()
+    assert sysconfig.get_platform().startswith('linux')
