@@ -143,7 +143,8 @@ setup(
     name=PACKAGE,
     version=package_version(str(HERE), '.', 'package.xml'),
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'demo_buffer_backend',
-                                    'demo_buffer_backend.*', 'launch_free_demos',
+                                    'demo_buffer_backend.*', 'cuda_buffer_backend',
+                                    'cuda_buffer_backend.*', 'launch_free_demos',
                                     'launch_free_demos.*']),
     ext_modules=[native_extension(PREFIXES)],
     data_files=[
@@ -167,6 +168,7 @@ setup(
     entry_points={
         'rosidl_buffer_py.backends': [
             'demo = demo_buffer_backend:DemoBackend',
+            'cuda = cuda_buffer_backend:CudaBackend',
         ],
         # installed in lib/rosidl_buffer_py (setup.cfg), where `ros2 run rosidl_buffer_py` looks
         'console_scripts': [

@@ -16,7 +16,7 @@ def test_the_package_imports_after_a_numeric_library(first):
     if first in ('torch', 'cupy') and not _have(first):
         pytest.skip(f'{first} is not installed here')
     code = (f'import {first}; import rosidl_buffer_py; import demo_buffer_backend; '
-            'from rosidl_buffer_py._native import BufferBase; '
+            'import cuda_buffer_backend; from rosidl_buffer_py._native import BufferBase; '
             'print("ok")')
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                             timeout=120, cwd='/')

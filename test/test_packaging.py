@@ -25,9 +25,16 @@ MODULE_KEYS = {
 }
 #: Modules a test uses only where they are installed (that check is skipped otherwise): never
 #: declared, never installed by ./dev or CI.
-OPTIONAL_TEST_MODULES = {'rosbags': 'test_reindex.py reads repaired bags back with it too'}
+OPTIONAL_TEST_MODULES = {'rosbags': 'test_reindex.py reads repaired bags back with it too',
+                         'torch': 'the GPU tests use it as a consumer where it is installed',
+                         'cupy': 'the GPU tests use it as a consumer where it is installed'}
+#: GPU libraries the GPU peer and benchmark import (inside functions), where the machine has them:
+#: never declared (the cuda backend itself needs none of them), never installed by ./dev or CI.
+OPTIONAL_GPU_MODULES = {'torch', 'cupy'}
+GPU_FILES = ('launch_free_demos/cuda_peer.py', 'launch_free_demos/bench/cuda.py')
 #: Modules of this repository (or made by the tests) that need no dependency.
-OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos', 'harness',
+OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'cuda_buffer_backend',
+               'launch_free_demos', 'harness',
                'rbpy_example_backend', 'test_codec', 'test_codec_general', 'test_packaging',
                'my_backend'}
 
@@ -115,7 +122,8 @@ def test_every_imported_module_is_declared():
     benchmark's peer nodes import the optional modules of requirements-bench.txt."""
     keys = package_xml_keys()
     peers = ROOT / 'launch_free_demos' / 'bench' / 'peers'
-    package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'launch_free_demos')
+    package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'cuda_buffer_backend',
+                           'launch_free_demos')
                for p in (ROOT / d).rglob('*.py') if peers not in p.parents]
     tests = list((ROOT / 'test').rglob('*.py'))
     for paths, allowed in ((package, keys['exec'] | {'python3-matplotlib'}),
@@ -124,6 +132,10 @@ def test_every_imported_module_is_declared():
         modules = _imported_modules(paths)
         if paths is tests:
             modules -= set(OPTIONAL_TEST_MODULES)
+        if paths is package:
+            others = [p for p in package if p.relative_to(ROOT).as_posix() not in GPU_FILES]
+            assert not _imported_modules(others) & OPTIONAL_GPU_MODULES
+            modules -= OPTIONAL_GPU_MODULES
         unknown = modules - set(MODULE_KEYS)
         assert not unknown, f'imported, no package.xml key known: {sorted(unknown)}'
         undeclared = {MODULE_KEYS[m] for m in modules} - allowed

@@ -35,6 +35,19 @@ COVERAGE = {
     './dev demo --help': 'here',
     './dev test': 'ci',                                   # .ci/run runs exactly this
     './dev setup': 'here',
+    # an offline install (docs/development.md): the wheelhouse made and installed offline; the
+    # checkout's install is test_install.py's (run as printed on the GPU machine)
+    './dev wheelhouse': 'test_wheelhouse.py',
+    './dev wheelhouse --skip-present numpy,setuptools,pytest,pytest-xdist,hypothesis,'
+    'matplotlib,wheel': 'test_wheelhouse.py',
+    'cd .wheelhouse && python3 -m pip install --no-index --no-deps --no-compile ./*.whl':
+        'test_wheelhouse.py',
+    'cd rosidl_buffer_py && python3 -m pip install --no-index --no-deps --no-build-isolation -e .':
+        'test_install.py',
+    './dev bench cuda': 'test_cuda_backend.py',  # where there is no GPU; test_cuda_gpu.py else
+    './dev bench cuda [--sizes 4k,1080p] [--paths stock,demo,floor,cuda] [--frames N] '
+    '[--rate HZ]': 'test_cuda_backend.py',
+    'python3 -m pytest -n 8 test/': 'ci',  # ./dev test's pytest, on the target's python3
     # README's quick start: the pair of programs, run here as printed
     '.venv/bin/python viewer.py &': 'here',
     '.venv/bin/python camera.py': 'here',
@@ -219,7 +232,8 @@ def test_the_layout_table_names_every_module_and_only_what_exists():
     missing = [path for path in named if not (ROOT / path).exists()]
     assert not missing, f'the layout table names what does not exist: {missing}'
     modules = {f'{package}/{module.name}' for package in ('rosidl_buffer_py',
-                                                          'demo_buffer_backend')
+                                                          'demo_buffer_backend',
+                                                          'cuda_buffer_backend')
                for module in (ROOT / package).glob('*.py') if module.name != '__init__.py'}
     unnamed = sorted(modules - set(named))
     assert not unnamed, f'modules the layout table does not name: {unnamed}'
@@ -341,6 +355,8 @@ SNIPPET_TESTS = {
     'viewer.py': 'test_camera_and_viewer_exchange_zero_copy_frames',
     'points.py': 'test_pointcloud_program',
     'my_backend.py': 'test_backend_guide_module_serves_the_nodes_and_leaves_nothing',
+    'gpu_camera.py': 'test_gpu_camera_and_viewer_exchange_zero_copy_tensors',
+    'gpu_viewer.py': 'test_gpu_camera_and_viewer_exchange_zero_copy_tensors',
 }
 
 
@@ -453,3 +469,30 @@ def test_backend_guide_module_serves_the_nodes_and_leaves_nothing(tmp_path):
     assert report['checksum_failures'] == 0 and report['wrong_backend'] == 0, report
     left = {n for n in os.listdir('/dev/shm') if n.startswith('mymem_')} - before
     assert not left, left
+
+
+def _gpu_missing() -> str:
+    import cuda_buffer_backend
+    why = cuda_buffer_backend.unavailable_reason()
+    if why:
+        return f'needs a CUDA GPU: {why}'
+    import importlib.util
+    if importlib.util.find_spec('torch') is None:
+        return 'needs torch'
+    return ''
+
+
+def test_gpu_camera_and_viewer_exchange_zero_copy_tensors(tmp_path):
+    """README's GPU programs as a pair: all 30 4K frames arrive as CudaBuffers, their values
+    right (a GPU and torch needed; skipped with the reason elsewhere)."""
+    why = _gpu_missing()
+    if why:
+        pytest.skip(why)
+    camera = _write_snippet(tmp_path, 'gpu_camera.py')
+    viewer = _write_snippet(tmp_path, 'gpu_viewer.py')
+    v = _popen([sys.executable, str(viewer)], cwd=tmp_path)
+    time.sleep(3)
+    c = _popen([sys.executable, str(camera)], cwd=tmp_path)
+    (vcode, vout, verr), (ccode, _, cerr) = _communicate_all([v, c], 120)
+    assert vcode == 0 and ccode == 0, verr[-2000:] + cerr[-2000:]
+    assert "('CudaBuffer', 'cuda:0', 0) ('CudaBuffer', 'cuda:0', 29)" in vout, vout

@@ -13,6 +13,7 @@ BENCHMARKS = {
     'bringup': ('bringup', "a new subscriber's wait for zero-copy (demo publisher, 1080p, 30 Hz)"),
     'hotpath': ('hotpath', "one message's time, stage by stage, on both sides"),
     'churn': ('churn', 'subscribers coming and going: what the steady ones get, ours vs stock'),
+    'cuda': ('cuda', 'GPU frames between processes: cuda backend vs D2H + stock + H2D (a GPU)'),
 }
 SUITE = ('suite', 'the full suite, table and plot (default; --quick for a shorter one)')
 
