@@ -267,13 +267,23 @@ class CudaMedium:
     fds_per_segment = 2
 
     def __init__(self, device: int) -> None:
+        """Device queries only: no CUDA context is made until a slot is (a process that only
+        advertises the backend, or only listens, never pays for one)."""
         drv = cuda.load()
         self.device = device
-        with drv.on(device):
-            self.granularity = drv.granularity(device)
+        self._granularity: Optional[int] = None
         self.uuid = drv.uuid(device)
         #: every device this process sees, by UUID (a publisher's device is named by its UUID)
         self.devices = {drv.uuid(d): d for d in range(drv.device_count())}
+
+    @property
+    def granularity(self) -> int:
+        """The device's VMM allocation granularity (its primary context made on first use)."""
+        if self._granularity is None:
+            drv = cuda.load()
+            with drv.on(self.device):
+                self._granularity = drv.granularity(self.device)
+        return self._granularity
 
     def round_capacity(self, nbytes: int) -> int:
         g = self.granularity
