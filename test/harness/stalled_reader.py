@@ -7,7 +7,8 @@ KEEP_LAST 1, ``--count`` messages each at 50 Hz; the subscriber process is stopp
 times for ``--stall`` seconds while they publish. ``stock``: every endpoint a plain rclpy one.
 
 ``python stalled_reader.py stock|ours [--stall 0.2] [--stalls 2] [--count 60]`` prints one JSON
-line: per subscription, the messages it took and the MESSAGE_LOST events' total count.
+line: per subscription, the messages it took, the MESSAGE_LOST events' total count and the
+descriptors it rejected (stale: their slot was reused before it took them; stock rejects none).
 """
 import argparse
 import array
@@ -58,6 +59,9 @@ def subscriber(ours: bool, topic: str) -> None:
     threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
     while not done.is_set():
         rclpy.spin_once(node, timeout_sec=0.05)
+    for label, sub in zip(SUBSCRIPTIONS, node.subs):  # descriptors it could not open
+        counts[label]['rejected'] = getattr(sub.statistics(), 'rejected', 0) \
+            if hasattr(sub, 'statistics') else 0
     print(json.dumps(counts), flush=True)
 
 
