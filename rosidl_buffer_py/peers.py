@@ -6,8 +6,9 @@ endpoint's topic in :mod:`rosidl_buffer_py.discovery`, keeps one record per buff
 asks the backends which of them can serve each peer, re-announces the endpoint while a peer's
 channel stays unmatched (:class:`~rosidl_buffer_py.reannounce.Reannouncer`) and destroys the
 channels at teardown (at interpreter exit at the latest, see :mod:`rosidl_buffer_py.teardown`).
-What it needs from its owner is the :class:`PeerOwner` protocol; what the owner keeps per peer
-(routes, streams, counters) stays in the owner's records (:class:`PeerRecord`).
+What it needs from its owner is the :class:`PeerOwner` protocol, a written interface the endpoint
+implements with an object of its own (not hooks on the rclpy entity); what the owner keeps per
+peer (routes, streams, counters) stays in the owner's records (:class:`PeerRecord`).
 """
 import threading
 import time
@@ -40,33 +41,33 @@ class PeerOwner(Protocol[R]):
     that processes discovery (the executor's, or ``publish()``'s when the node is not spun).
     """
 
-    def _announce(self) -> None:
+    def announce(self) -> None:
         """(Re-)set the endpoint's USER_DATA: peers discover, or re-discover, it."""
 
-    def _peer_seen(self) -> None:
+    def peer_seen(self) -> None:
         """Discovery: an endpoint of the peer kind on the topic appeared or changed, a legacy
         one too: what routes a message takes may change."""
 
-    def _channels_checked(self) -> None:
+    def channels_checked(self) -> None:
         """The re-announcer looked at the peers' channels (a few times a second while one is
         unmatched, and once when all are): one may have matched, which no DDS event tells
         the owner, so what depends on it (a publisher's routes) is due for a look."""
 
-    def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
+    def add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
         """A new buffer-aware peer: create its record and its channel."""
 
-    def _update_peer(self, record: R, compatible: Set[str]) -> None:
+    def update_peer(self, record: R, compatible: Set[str]) -> None:
         """The peer's advertisement was (re)read; the ``compatible`` backends can serve it."""
 
-    def _forget_peer(self, record: R) -> None:
+    def forget_peer(self, record: R) -> None:
         """The record leaves the table (the peer left, withdrew its advertisement, or the
         endpoint is torn down); its channel is destroyed right after."""
 
-    def _peer_gone(self, gid: bytes) -> None:
+    def peer_gone(self, gid: bytes) -> None:
         """Discovery: an endpoint of the peer kind on the topic went away (a peer or a legacy
         endpoint). The owner calls :meth:`PeerTable.drop` when it is done with the channel."""
 
-    def _release(self) -> None:
+    def release(self) -> None:
         """Teardown, once, after every peer was dropped: free what else the endpoint holds
         (its own timers and guard conditions: see :func:`destroy_node_entities`)."""
 
@@ -94,8 +95,8 @@ class PeerTable(Generic[R]):
         self._records: Dict[bytes, R] = {}
         self._discovery = discovery.for_node(node)
         self._discovery_guard = None
-        self.reannouncer = Reannouncer(node, callback_group, self, owner._announce,
-                                       owner._channels_checked)
+        self.reannouncer = Reannouncer(node, callback_group, self, owner.announce,
+                                       owner.channels_checked)
 
     # the records ----------------------------------------------------------------------------
 
@@ -162,7 +163,7 @@ class PeerTable(Generic[R]):
                 self.drop(gid)
             destroy_node_entities(self._node, [self.reannouncer.timer, self._discovery_guard],
                                   self._logger)
-            self._owner._release()
+            self._owner.release()
         teardown.untrack(self)
 
     # discovery (the watcher interface of ParticipantDiscovery) ------------------------------
@@ -174,7 +175,7 @@ class PeerTable(Generic[R]):
         with self.lock:
             if self.closed:
                 return
-            self._owner._peer_seen()
+            self._owner.peer_seen()
             known = self._records.get(peer.gid)
             if not peer.buffer_aware:
                 if known is not None:  # it withdrew its advertisement: now a legacy endpoint
@@ -188,7 +189,7 @@ class PeerTable(Generic[R]):
                 return
             compatible = self._compatible_backends(info, peer.backends)
             if known is None:
-                known = self._owner._add_peer(info, dict(peer.backends))
+                known = self._owner.add_peer(info, dict(peer.backends))
                 known.created_at = time.monotonic()
                 self._records[peer.gid] = known
                 # a new buffer-aware peer whose QoS matches ours may have discovered us before
@@ -196,19 +197,19 @@ class PeerTable(Generic[R]):
                 # unmatched (soon, but not now: see NEW_PEER_REANNOUNCE_SECONDS)
                 self.reannouncer.rearm()
             known.backends = dict(peer.backends)
-            self._owner._update_peer(known, compatible)
+            self._owner.update_peer(known, compatible)
 
     def _on_peer_gone(self, gid: bytes) -> None:
         """Discovery: an endpoint of our topic went away."""
         with self.lock:
-            self._owner._peer_gone(gid)
+            self._owner.peer_gone(gid)
 
     def drop(self, gid: bytes) -> None:
         """Forget a peer: its record leaves, its channel is destroyed, backends are told."""
         record = self._records.get(gid)
         if record is None:
             return
-        self._owner._forget_peer(record)
+        self._owner.forget_peer(record)
         del self._records[gid]
         if record.channel is not None:
             record.channel.destroy()

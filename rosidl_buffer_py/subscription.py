@@ -246,7 +246,7 @@ class Subscription(rclpy.subscription.Subscription):
         self._user_data = advertisement.append(
             get_user_data(reader, 'subscription'), self._advertised)
         self._peers: PeerTable[_PublisherPeer] = PeerTable(
-            self, node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
+            _PeerHooks(self), node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
         self._announce()
@@ -608,3 +608,38 @@ class _PlainSubscription(rclpy.subscription.Subscription):
 
     def statistics(self) -> SubscriptionStatistics:
         return SubscriptionStatistics(gid=None, buffer_aware=False, advertised_backends={})
+
+
+class _PeerHooks:
+    """The subscription as its :class:`~rosidl_buffer_py.peers.PeerTable` sees it (the
+    :class:`~rosidl_buffer_py.peers.PeerOwner` protocol): what discovery and teardown ask of
+    it, kept off the rclpy entity users hold."""
+
+    __slots__ = ('_endpoint',)
+
+    def __init__(self, endpoint: 'Subscription') -> None:
+        self._endpoint = endpoint
+
+    def announce(self) -> None:
+        self._endpoint._announce()
+
+    def peer_seen(self) -> None:
+        self._endpoint._peer_seen()
+
+    def channels_checked(self) -> None:
+        self._endpoint._channels_checked()
+
+    def add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
+        return self._endpoint._add_peer(info, backends)
+
+    def update_peer(self, record: _PublisherPeer, compatible: Set[str]) -> None:
+        self._endpoint._update_peer(record, compatible)
+
+    def forget_peer(self, record: _PublisherPeer) -> None:
+        self._endpoint._forget_peer(record)
+
+    def peer_gone(self, gid: bytes) -> None:
+        self._endpoint._peer_gone(gid)
+
+    def release(self) -> None:
+        self._endpoint._release()

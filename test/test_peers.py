@@ -95,30 +95,30 @@ class Owner:
     def __init__(self):
         self.calls, self.table = [], None
 
-    def _announce(self):
+    def announce(self):
         self.calls.append('announce')
 
-    def _peer_seen(self):
+    def peer_seen(self):
         self.seen = getattr(self, 'seen', 0) + 1
 
-    def _channels_checked(self):
+    def channels_checked(self):
         self.checks = getattr(self, 'checks', 0) + 1
 
-    def _add_peer(self, info, backends):
+    def add_peer(self, info, backends):
         self.calls.append(('add', info.gid))
         return Record(info, backends)
 
-    def _update_peer(self, record, compatible):
+    def update_peer(self, record, compatible):
         self.calls.append(('update', record.info.gid, frozenset(compatible)))
 
-    def _forget_peer(self, record):
+    def forget_peer(self, record):
         self.calls.append(('forget', record.info.gid))
 
-    def _peer_gone(self, gid):
+    def peer_gone(self, gid):
         self.calls.append(('gone', gid))
         self.table.drop(gid)
 
-    def _release(self):
+    def release(self):
         self.calls.append('release')
 
 
@@ -197,8 +197,8 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     t, owner, _, _, _ = table
     now = [1000.0]
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
-    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce,
-                                           owner._channels_checked)
+    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner.announce,
+                                           owner.channels_checked)
     gid = b'\x01' * 16
     t._on_peer(peer(gid, {'cpu': ''}, local=True))
     t[gid].created_at = now[0]
@@ -222,8 +222,8 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     t, owner, _, _, _ = table
     now = [1000.0]
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
-    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner._announce,
-                                           owner._channels_checked)
+    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner.announce,
+                                           owner.channels_checked)
     now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS  # the endpoint is not brand new
     missed, seen = b'\x01' * 16, b'\x02' * 16
     for gid in (missed, seen):
