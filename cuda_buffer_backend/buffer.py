@@ -176,6 +176,16 @@ class CudaBuffer(Buffer):
         claim = self._pin or self._hold
         return claim.generation if claim is not None else None
 
+    def renew(self, timeout: Optional[float] = None) -> bool:
+        """Wait until every subscriber is done with this published buffer (its descriptors
+        taken or given up, its views gone and their reads complete), then make it a new frame
+        in the same device memory: its address stays (a CUDA graph may keep writing there).
+        False when ``timeout`` seconds passed first, for a received buffer, or for private
+        memory."""
+        if self._pin is None:
+            return False
+        return lifecycle.get_pool(self.device).renew(self._pin, timeout)
+
     # --- synchronization -------------------------------------------------------------------------
     def _export_to(self, handle: int) -> None:
         """The consumer's stream ``handle`` is about to read (or, publisher side, write)."""

@@ -102,6 +102,16 @@ class DemoBuffer(Buffer):
         view[:] = source
         return cls(view.toreadonly(), keepalive=pin)
 
+    def renew(self, timeout: Optional[float] = None) -> bool:
+        """Wait until every subscriber is done with this published buffer (its descriptors
+        taken, or given up by their ledgers at a later publish, and their views gone), then
+        make it a new frame in the same memory: write into it again and publish it. False
+        when ``timeout`` seconds passed first (allocate a new buffer then), for a received
+        buffer, or for private memory (nothing to wait for: write into it freely)."""
+        if self._pin is None:
+            return False
+        return lifecycle.get_pool().renew(self._pin, timeout)
+
     @property
     def in_shm(self) -> bool:
         """True when the bytes live in a shared-memory slot (False: private fallback memory,

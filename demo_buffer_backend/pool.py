@@ -41,11 +41,16 @@ from demo_buffer_backend.porter import Porter
 from demo_buffer_backend.slots import Pin, Slot, Slots
 
 
+#: How often :meth:`Pool.renew` looks again: from the first pause up to the last (seconds).
+RENEW_POLL_SECONDS = (0.0005, 0.01)
+
+
 class Pool:
     """Everything the demo backend holds in one process, behind these calls:
 
     - publisher side: :meth:`allocate` (a slot for a new buffer), :meth:`describe` (a
-      descriptor of it for one endpoint), :meth:`decline` (count a buffer sent as CPU bytes);
+      descriptor of it for one endpoint), :meth:`decline` (count a buffer sent as CPU bytes),
+      :meth:`renew` (the same slot for a new frame, once its subscribers are done with it);
     - subscriber side: :meth:`advertise` (listen; our token), :meth:`expect` and
       :meth:`forget` (the matched publishers discovery shows), :meth:`open_descriptor` (a view
       of what a descriptor names), :meth:`sweep` (take handovers, close unused segments);
@@ -171,6 +176,31 @@ class Pool:
                 self.pid, self.nonce, slot.id, pin.generation, 0, pin.size),
                 self.medium.descriptor_magic)
         return pin.packed
+
+    def renew(self, pin: Pin, timeout: Optional[float]) -> bool:
+        """Make ``pin``'s slot a new generation, for the publisher to write a new frame into
+        the same memory: once every descriptor of its current generation is settled (taken,
+        given up, or sent to a process that hung up) and no subscriber holds a view of it (for
+        a medium read asynchronously: its reads are complete). Waits up to ``timeout`` seconds
+        (None: for ever) without the guard; False when that passed first, or the pin is
+        stale. Descriptors of the old generation are refused as stale from then on."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        pause = RENEW_POLL_SECONDS[0]
+        while True:
+            with self.guard:
+                slot = pin.slot
+                if self.closed or pin.owner is not self.slots or not slot.current(pin.generation):
+                    return False
+                self.links.drain_all()  # takes acknowledged meanwhile
+                if self.slots.renew(slot, pin.size, self.links.gone):
+                    pin.generation = slot.generation
+                    pin.packed = None
+                    return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+            time.sleep(pause if deadline is None else
+                       max(0.0, min(pause, deadline - time.monotonic())))
+            pause = min(pause * 2, RENEW_POLL_SECONDS[1])
 
     def decline(self) -> None:
         """Count a buffer sent as CPU bytes where a descriptor was asked for."""

@@ -177,6 +177,22 @@ class Slots:
             return None  # some process holds views of it
         return pinning
 
+    def renew(self, slot: Slot, nbytes: int, gone: AbstractSet[str]) -> bool:
+        """Start a new generation of a slot that its one pin (the caller's) keeps: when every
+        descriptor of the current one is settled (``gone``: tokens of processes that hung up)
+        and no reader holds a view (the exclusive lock). False when some subscriber may still
+        take or read it."""
+        if slot.closed or slot.pins != 1 or slot.pinning(gone) > 0:
+            return False
+        if not memory.try_lock(slot.segment.fd, exclusive=True):
+            return False  # some process holds views of it
+        try:
+            slot.start_generation(slot.generation + 1, nbytes)
+        finally:
+            memory.unlock(slot.segment.fd)
+        slot.last_used = time.monotonic_ns()
+        return True
+
     def _reuse(self, nbytes: int, gone: AbstractSet[str], stale_ok: bool) -> Optional[Slot]:
         now = time.monotonic_ns()
         fits = self.medium.fits

@@ -928,3 +928,31 @@ def test_pool_exhausted_warning_names_the_cause(backend, monkeypatch):
     assert (stats['fallbacks_too_large'], stats['fallbacks_held'], stats['fallbacks_enospc']) \
         == (1, 1, 1), stats
     del held
+
+
+def test_renew_waits_until_subscribers_are_done_then_gives_a_new_frame_in_the_same_memory(
+        backend):
+    """A camera that keeps its buffers: renew() returns once every descriptor of the published
+    frame was taken and every view of it dropped; the same memory is then a new generation,
+    and the old descriptor is refused as stale."""
+    ep = _endpoint()  # this process's own endpoint (adopt_own): descriptors and views are real
+    buf = DemoBuffer.allocate(1 << 16)
+    segment, generation = buf.segment, buf.generation
+    numpy.asarray(buf)[:] = 1
+    first = backend.create_descriptor_with_endpoint(buf, ep)
+    assert not buf.renew(timeout=0.05)  # sent, not taken yet
+    got = backend.from_descriptor_with_endpoint(first, ep)
+    assert not buf.renew(timeout=0.05)  # taken, but a view of it is held
+    assert numpy.asarray(got)[0] == 1
+    del got
+    gc.collect()
+    assert buf.renew(timeout=5.0)
+    assert (buf.segment, buf.generation) == (segment, generation + 1)
+    with pytest.raises(ValueError, match='stale'):
+        backend.from_descriptor_with_endpoint(first, ep)
+    numpy.asarray(buf)[:] = 2  # the new frame, in the same memory
+    again = backend.from_descriptor_with_endpoint(
+        backend.create_descriptor_with_endpoint(buf, ep), ep)
+    assert numpy.asarray(again)[0] == 2 and again.segment == segment
+    assert not again.renew()  # a received buffer is not the subscriber's to renew
+    assert not DemoBuffer(bytearray(4)).renew()  # private memory: nothing to wait for
