@@ -6,13 +6,14 @@ endpoint's topic in :mod:`rosidl_buffer_py.discovery`, keeps one record per buff
 asks the backends which of them can serve each peer, re-announces the endpoint while a peer's
 channel stays unmatched (:class:`~rosidl_buffer_py.reannounce.Reannouncer`) and destroys the
 channels at teardown (at interpreter exit at the latest, see :mod:`rosidl_buffer_py.teardown`).
-What it needs from its owner is the :class:`PeerOwner` protocol, a written interface the endpoint
-implements with an object of its own (not hooks on the rclpy entity); what the owner keeps per
-peer (routes, streams, counters) stays in the owner's records (:class:`PeerRecord`).
+What it needs from its owner is a :class:`PeerOwner`, the endpoint's callables for each event
+(not hooks on the rclpy entity); what the owner keeps per peer (routes, streams, counters) stays
+in the owner's records (:class:`PeerRecord`).
 """
 import threading
 import time
-from typing import Dict, Generic, Iterator, List, Mapping, Optional, Protocol, Set, TypeVar
+from typing import (Any, Callable, Dict, Generic, Iterator, List, Mapping, NamedTuple,
+                    Optional, Protocol, Set, TypeVar)
 
 from rosidl_buffer_py import discovery, teardown
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
@@ -34,42 +35,38 @@ class PeerRecord(Protocol):
 R = TypeVar('R', bound=PeerRecord)
 
 
-class PeerOwner(Protocol[R]):
-    """What a :class:`PeerTable` needs from the endpoint that owns it.
+class PeerOwner(NamedTuple):
+    """What a :class:`PeerTable` needs from the endpoint that owns it: the endpoint's own
+    callables, one per event (the endpoint builds it from its methods; nothing of it is on the
+    rclpy entity users hold).
 
-    Every hook is called with the table's lock held (the owner's lock, shared), on the thread
+    Every one is called with the table's lock held (the owner's lock, shared), on the thread
     that processes discovery (the executor's, or ``publish()``'s when the node is not spun).
     """
 
-    def announce(self) -> None:
-        """(Re-)set the endpoint's USER_DATA: peers discover, or re-discover, it."""
-
-    def peer_seen(self) -> None:
-        """Discovery: an endpoint of the peer kind on the topic appeared or changed, a legacy
-        one too: what routes a message takes may change."""
-
-    def channels_checked(self) -> None:
-        """The re-announcer looked at the peers' channels (a few times a second while one is
-        unmatched, and once when all are): one may have matched, which no DDS event tells
-        the owner, so what depends on it (a publisher's routes) is due for a look."""
-
-    def add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> R:
-        """A new buffer-aware peer: create its record and its channel."""
-
-    def update_peer(self, record: R, compatible: Set[str]) -> None:
-        """The peer's advertisement was (re)read; the ``compatible`` backends can serve it."""
-
-    def forget_peer(self, record: R) -> None:
-        """The record leaves the table (the peer left, withdrew its advertisement, or the
-        endpoint is torn down); its channel is destroyed right after."""
-
-    def peer_gone(self, gid: bytes) -> None:
-        """Discovery: an endpoint of the peer kind on the topic went away (a peer or a legacy
-        endpoint). The owner calls :meth:`PeerTable.drop` when it is done with the channel."""
-
-    def release(self) -> None:
-        """Teardown, once, after every peer was dropped: free what else the endpoint holds
-        (its own timers and guard conditions: see :func:`destroy_node_entities`)."""
+    #: ``()``: (re-)set the endpoint's USER_DATA: peers discover, or re-discover, it.
+    announce: Callable[[], None]
+    #: ``()``: discovery: an endpoint of the peer kind on the topic appeared or changed, a
+    #: legacy one too: what routes a message takes may change.
+    peer_seen: Callable[[], None]
+    #: ``()``: the re-announcer looked at the peers' channels (a few times a second while one
+    #: is unmatched, and once when all are): one may have matched, which no DDS event tells
+    #: the owner, so what depends on it (a publisher's routes) is due for a look.
+    channels_checked: Callable[[], None]
+    #: ``(info, backends) -> record``: a new buffer-aware peer: create its record and channel.
+    add_peer: Callable[[EndpointInfo, Dict[str, str]], Any]
+    #: ``(record, compatible)``: the peer's advertisement was (re)read; the ``compatible``
+    #: backends can serve it.
+    update_peer: Callable[[Any, Set[str]], None]
+    #: ``(record)``: the record leaves the table (the peer left, withdrew its advertisement, or
+    #: the endpoint is torn down); its channel is destroyed right after.
+    forget_peer: Callable[[Any], None]
+    #: ``(gid)``: discovery: an endpoint of the peer kind on the topic went away (a peer or a
+    #: legacy endpoint). The owner calls :meth:`PeerTable.drop` when done with the channel.
+    peer_gone: Callable[[bytes], None]
+    #: ``()``: teardown, once, after every peer was dropped: free what else the endpoint holds
+    #: (its own timers and guard conditions: see :func:`destroy_node_entities`).
+    release: Callable[[], None]
 
 
 class PeerTable(Generic[R]):
@@ -79,7 +76,7 @@ class PeerTable(Generic[R]):
     watching; :meth:`close` ends it and destroys every channel (once; ``closed`` then).
     """
 
-    def __init__(self, owner: PeerOwner[R], node, callback_group, *, lock: threading.RLock,
+    def __init__(self, owner: PeerOwner, node, callback_group, *, lock: threading.RLock,
                  peer_kind: EndpointKind, topic_name: str, gid: bytes,
                  backends: Mapping[str, BufferBackend], logger) -> None:
         self.lock = lock

@@ -48,7 +48,7 @@ from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.diagnostics import PublisherStatistics, SubscriptionPeer
-from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
+from rosidl_buffer_py.peers import PeerOwner, PeerTable, destroy_node_entities
 from rosidl_buffer_py.qos import (
     incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
 
@@ -239,7 +239,9 @@ class Publisher(rclpy.publisher.Publisher):
         self._user_data = advertisement.append(
             get_user_data(self, 'publisher'), advertised)
         self._peers = PeerTable(
-            _PeerHooks(self), node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
+            PeerOwner(self._announce, self._peer_seen, self._channels_checked, self._add_peer,
+                      self._update_peer, self._forget_peer, self._peer_gone, self._release),
+            node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
         self._view = _RouteView(self, self._peers)
@@ -619,38 +621,3 @@ def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, 
         msg_type, topic, qos_profile, callback_group=callback_group,
         event_callbacks=event_callbacks, qos_overriding_options=qos_overriding_options,
         publisher_class=functools.partial(Publisher, node=node))
-
-
-class _PeerHooks:
-    """The publisher as its :class:`~rosidl_buffer_py.peers.PeerTable` sees it (the
-    :class:`~rosidl_buffer_py.peers.PeerOwner` protocol): what discovery and teardown ask of
-    it, kept off the rclpy entity users hold."""
-
-    __slots__ = ('_endpoint',)
-
-    def __init__(self, endpoint: 'Publisher') -> None:
-        self._endpoint = endpoint
-
-    def announce(self) -> None:
-        self._endpoint._announce()
-
-    def peer_seen(self) -> None:
-        self._endpoint._peer_seen()
-
-    def channels_checked(self) -> None:
-        self._endpoint._channels_checked()
-
-    def add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
-        return self._endpoint._add_peer(info, backends)
-
-    def update_peer(self, record: _SubscriptionPeer, compatible: Set[str]) -> None:
-        self._endpoint._update_peer(record, compatible)
-
-    def forget_peer(self, record: _SubscriptionPeer) -> None:
-        self._endpoint._forget_peer(record)
-
-    def peer_gone(self, gid: bytes) -> None:
-        self._endpoint._peer_gone(gid)
-
-    def release(self) -> None:
-        self._endpoint._release()

@@ -53,7 +53,7 @@ from rosidl_buffer_py.events import DeadlineMonitor, finite
 from rosidl_buffer_py.message_support import enable_buffer_fields
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
-from rosidl_buffer_py.peers import PeerTable, destroy_node_entities
+from rosidl_buffer_py.peers import PeerOwner, PeerTable, destroy_node_entities
 from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
 
 
@@ -246,7 +246,9 @@ class Subscription(rclpy.subscription.Subscription):
         self._user_data = advertisement.append(
             get_user_data(reader, 'subscription'), self._advertised)
         self._peers: PeerTable[_PublisherPeer] = PeerTable(
-            _PeerHooks(self), node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
+            PeerOwner(self._announce, self._peer_seen, self._channels_checked, self._add_peer,
+                      self._update_peer, self._forget_peer, self._peer_gone, self._release),
+            node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
         self._announce()
@@ -608,38 +610,3 @@ class _PlainSubscription(rclpy.subscription.Subscription):
 
     def statistics(self) -> SubscriptionStatistics:
         return SubscriptionStatistics(gid=None, buffer_aware=False, advertised_backends={})
-
-
-class _PeerHooks:
-    """The subscription as its :class:`~rosidl_buffer_py.peers.PeerTable` sees it (the
-    :class:`~rosidl_buffer_py.peers.PeerOwner` protocol): what discovery and teardown ask of
-    it, kept off the rclpy entity users hold."""
-
-    __slots__ = ('_endpoint',)
-
-    def __init__(self, endpoint: 'Subscription') -> None:
-        self._endpoint = endpoint
-
-    def announce(self) -> None:
-        self._endpoint._announce()
-
-    def peer_seen(self) -> None:
-        self._endpoint._peer_seen()
-
-    def channels_checked(self) -> None:
-        self._endpoint._channels_checked()
-
-    def add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
-        return self._endpoint._add_peer(info, backends)
-
-    def update_peer(self, record: _PublisherPeer, compatible: Set[str]) -> None:
-        self._endpoint._update_peer(record, compatible)
-
-    def forget_peer(self, record: _PublisherPeer) -> None:
-        self._endpoint._forget_peer(record)
-
-    def peer_gone(self, gid: bytes) -> None:
-        self._endpoint._peer_gone(gid)
-
-    def release(self) -> None:
-        self._endpoint._release()
