@@ -45,6 +45,18 @@ _FLOCK = struct.Struct('hhqqi4x')  # struct flock (l_pid must be 0 for OFD locks
 _F_OFD_SETLK = getattr(fcntl, 'F_OFD_SETLK', 37)
 
 
+def _close(data, mapped: mmap.mmap, fd: int) -> None:
+    """Close a segment's view, mapping and descriptor (the mapping stays while a view of it is
+    exported: the kernel drops it with that view)."""
+    try:
+        if data is not None:
+            data.release()
+        mapped.close()
+    except BufferError:
+        pass  # a view is still exported: the mapping goes when it does
+    os.close(fd)
+
+
 def round_capacity(nbytes: int) -> int:
     """Data capacity for a payload of ``nbytes``: whole pages, at least one."""
     return max(PAGE_SIZE, -(-nbytes // PAGE_SIZE) * PAGE_SIZE)
@@ -121,13 +133,7 @@ class Segment:
         return [self.reader_fd()]
 
     def close(self) -> None:
-        try:
-            if self.data is not None:
-                self.data.release()
-            self.map.close()
-        except BufferError:
-            pass  # a view is still exported: the mapping goes when it does
-        os.close(self.fd)
+        _close(self.data, self.map, self.fd)
 
 
 class Received:
@@ -144,13 +150,7 @@ class Received:
         self.data = memoryview(mapped).toreadonly()[HEADER_SIZE:] if with_data else None
 
     def close(self) -> None:
-        try:
-            if self.data is not None:
-                self.data.release()
-            self.map.close()
-        except BufferError:
-            pass  # a view is still exported: the mapping goes when it does
-        os.close(self.fd)
+        _close(self.data, self.map, self.fd)
 
 
 def open_received(fd: int, capacity: int, *, with_data: bool = True) -> Received:

@@ -70,6 +70,21 @@ def run_ros(mode: str, width: int, height: int, frames: int, rate: float) -> Dic
             'types': sub_r['types']}
 
 
+class _SlotView:
+    """The first ``nbytes`` of a slot's device memory, for torch's ``from_dlpack``."""
+
+    def __init__(self, slot, nbytes: int) -> None:
+        self.slot = slot
+        self.nbytes = nbytes
+
+    def __dlpack__(self, stream=None, **_):
+        from rosidl_buffer_py._native import dlpack_capsule
+        return dlpack_capsule(self.slot.data.address, self.nbytes, 2, self.slot.device, self)
+
+    def __dlpack_device__(self):
+        return (2, self.slot.device)
+
+
 # --- the raw IPC floor ---------------------------------------------------------------------------
 
 SLOTS = 4
@@ -81,7 +96,6 @@ def run_floor(width: int, height: int, frames: int, rate: float) -> Dict:
 
     from cuda_buffer_backend import driver as cuda
     from cuda_buffer_backend.memory import DeviceSegment
-    from rosidl_buffer_py._native import dlpack_capsule
 
     nbytes = width * height * 3
     drv = cuda.load()
@@ -102,17 +116,7 @@ def run_floor(width: int, height: int, frames: int, rate: float) -> Dict:
             os.close(fd)
     ours.recv(16)  # the consumer mapped them
 
-    class _View:
-        def __init__(self, slot):
-            self.slot = slot
-
-        def __dlpack__(self, stream=None, **_):
-            return dlpack_capsule(self.slot.data.address, nbytes, 2, 0, self)
-
-        def __dlpack_device__(self):
-            return (2, 0)
-
-    tensors = [torch.from_dlpack(_View(s)) for s in slots]
+    tensors = [torch.from_dlpack(_SlotView(s, nbytes)) for s in slots]
     stream = torch.cuda.Stream()
     cpu0 = _cpu()
     period = 1.0 / rate
@@ -145,7 +149,6 @@ def floor_consumer(fd: int, capacity: int, nbytes: int, frames: int) -> None:
 
     from cuda_buffer_backend import driver as cuda
     from cuda_buffer_backend.memory import DeviceReceived
-    from rosidl_buffer_py._native import dlpack_capsule
 
     sock = socket.socket(fileno=fd)
     drv = cuda.load()
@@ -157,17 +160,7 @@ def floor_consumer(fd: int, capacity: int, nbytes: int, frames: int) -> None:
         _, fds, _, _ = socket.recv_fds(sock, 16, 2)
         slots.append(DeviceReceived(fds, capacity, devices, granularity))
 
-    class _View:
-        def __init__(self, slot):
-            self.slot = slot
-
-        def __dlpack__(self, stream=None, **_):
-            return dlpack_capsule(self.slot.data.address, nbytes, 2, 0, self)
-
-        def __dlpack_device__(self):
-            return (2, 0)
-
-    tensors = [torch.from_dlpack(_View(s)) for s in slots]
+    tensors = [torch.from_dlpack(_SlotView(s, nbytes)) for s in slots]
     stream = torch.cuda.Stream()
     sock.send(b'ready')
     latencies, failures = [], 0
