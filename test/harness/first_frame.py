@@ -35,6 +35,11 @@ if __package__ in (None, ''):  # run as a file: harness is a package of test/
 from launch_free_demos.domains import fresh_domain  # noqa: E402 (after the path fix)
 
 KINDS = ('stock', 'ours')
+#: Publishers between the two, to tell which part of ours changes matching (``--publishers``):
+#: stock rclpy after ``import rosidl_buffer_py``; after the discovery tap is installed on its
+#: participant as a buffer-aware endpoint's creation does; and a stock publisher whose USER_DATA
+#: is then set again, unchanged, as ours sets its advertisement (a re-announcement).
+PUBLISHER_VARIANTS = ('stock', 'import', 'tap', 'userdata', 'ours')
 TOPIC = 'first_frame/image'
 
 #: The subscriber: prints READY once created, then one JSON line per frame (index, monotonic
@@ -80,7 +85,15 @@ from rosidl_buffer_py.image import to_msg
 kind, topic, rate, count = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4])
 rclpy.init()
 node = rclpy.create_node('first_frame_pub')
-if kind == 'stock':
+if kind in ('import', 'tap', 'userdata'):
+    from rosidl_buffer_py import discovery
+    if kind == 'tap':
+        discovery.for_node(node)
+    pub = node.create_publisher(Image, topic, 10)
+    if kind == 'userdata':
+        from rosidl_buffer_py._dds import get_user_data, set_user_data
+        set_user_data(pub, get_user_data(pub, 'publisher'), 'publisher')
+elif kind == 'stock':
     pub = node.create_publisher(Image, topic, 10)
 else:
     pub = rosidl_buffer_py.create_publisher(node, Image, topic, 10)
@@ -176,12 +189,18 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--runs', type=int, default=10, help='runs per publisher kind')
     parser.add_argument('--subscriber', choices=(*KINDS, 'both'), default='both')
+    parser.add_argument('--publishers', default=','.join(KINDS),
+                        help=f'comma-separated, run in turn: {", ".join(PUBLISHER_VARIANTS)}')
     parser.add_argument('--rate', type=float, default=30.0, help='frames per second')
     parser.add_argument('--frames', type=int, default=60, help='frames per run')
     args = parser.parse_args(argv)
     # SIGTERM (a timeout's) takes Ctrl-C's path: the nodes and probes it started are reaped
     signal.signal(signal.SIGTERM, signal.default_int_handler)
     subscribers = KINDS if args.subscriber == 'both' else (args.subscriber,)
+    publishers = [p for p in args.publishers.split(',') if p]
+    unknown = set(publishers) - set(PUBLISHER_VARIANTS)
+    if unknown:
+        parser.error(f'unknown publishers {sorted(unknown)}; known: {PUBLISHER_VARIANTS}')
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     with fresh_domain():
         for subscriber in subscribers:
@@ -190,7 +209,7 @@ def main(argv=None) -> int:
             print('| run | publisher | first | received | matched ms | first frame ms |')
             print('|---|---|---|---|---|---|')
             for run in range(args.runs):
-                for publisher in KINDS:
+                for publisher in publishers:
                     trial = run_trial(subscriber, publisher, args.rate, args.frames)
                     trials.append(trial)
                     print(f'| {run + 1} | {publisher} | {_fmt(trial.first)} | '
@@ -199,7 +218,7 @@ def main(argv=None) -> int:
             print('\n| publisher | runs without a frame | first: median / worst | '
                   'matched ms: median / worst | first frame ms: median / worst |')
             print('|---|---|---|---|---|')
-            for publisher in KINDS:
+            for publisher in publishers:
                 mine = [t for t in trials if t.publisher == publisher]
                 none = sum(t.first is None for t in mine)
                 print(f'| {publisher} | {none} of {len(mine)} | {_summary(mine, "first")} | '
