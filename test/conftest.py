@@ -61,20 +61,6 @@ def _owner_alive(name: str) -> bool:
     return True
 
 
-#: The files that take longest (``./dev test --durations=0``: 40 to 140 s each on 2 cores, the
-#: others 30 s and less), run first: the two workers (``--dist loadfile``) then end together,
-#: rather than one waiting on the other's last long file.
-LONGEST_FILES = ('test_transport.py', 'test_benchmark.py', 'test_equivalence.py',
-                 'test_readme.py', 'test_install.py', 'test_record.py', 'test_faults.py',
-                 'test_colcon.py')
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """Longest files first (see ``LONGEST_FILES``); each file's tests keep their order."""
-    rank = {name: i for i, name in enumerate(LONGEST_FILES)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
-
 @pytest.fixture
 def context():
     """A private rclpy context (its own DDS participant) for in-process tests."""
