@@ -61,14 +61,14 @@ class DeviceSegment:
     read-write here, and the slot's interprocess event."""
 
     __slots__ = ('control', 'fd', 'map', 'capacity', 'data', 'device', 'handle', 'event',
-                 'staging', '_driver')
+                 'event_handle', 'staging', '_driver')
 
     def __init__(self, capacity: int, device: int, uuid: bytes, granularity: int) -> None:
         drv = cuda.load()
         self._driver = drv
         self.capacity = capacity
         self.device = device
-        self.handle = self.event = None
+        self.handle = self.event = self.event_handle = None
         self.staging: Optional[int] = None  #: page-locked host copy, made on first need
         self.control = memory.Segment(capacity, with_data=False)
         self.fd = self.control.fd
@@ -83,7 +83,7 @@ class DeviceSegment:
                 address = drv.map(self.handle, capacity, device, granularity, readonly=False)
                 self.data = DeviceRange(address, capacity, device)
                 self.event = drv.event_create(interprocess=True)
-                handle = drv.ipc_event_handle(self.event)
+                handle = self.event_handle = drv.ipc_event_handle(self.event)
                 _own_events[handle] = self.event
         except BaseException:
             self.close()
@@ -131,7 +131,7 @@ class DeviceSegment:
                     drv.mem_release(self.handle)
                     self.handle = None
                 if self.event is not None:
-                    _own_events.pop(drv.ipc_event_handle(self.event), None)
+                    _own_events.pop(self.event_handle, None)
                     drv.event_destroy(self.event)
                     self.event = None
                 if self.staging is not None:

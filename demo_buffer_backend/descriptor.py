@@ -39,17 +39,16 @@ def pack(desc: Descriptor, magic: bytes = MAGIC) -> bytes:
 
 def unpack(data, magic: bytes = MAGIC) -> Descriptor:
     """Parse and validate a descriptor received from the network; ``ValueError`` otherwise."""
-    expected = magic
     try:
         data = bytes(data)
     except TypeError:
         raise ValueError(f'demo descriptor must be bytes, got {type(data).__name__}') from None
     if len(data) != SIZE:
         raise ValueError(f'demo descriptor has {len(data)} bytes, expected {SIZE}')
-    magic, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
+    found, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
         offset, size = _LAYOUT.unpack(data)
-    if magic != expected:
-        raise ValueError(f'not a demo descriptor (magic {magic!r}, expected {expected!r})')
+    if found != magic:
+        raise ValueError(f'not a demo descriptor (magic {found!r}, expected {magic!r})')
     if version != VERSION:
         raise ValueError(f'unsupported demo descriptor version {version} (expected {VERSION})')
     if reserved1 or reserved2 or reserved3:
