@@ -10,11 +10,12 @@ function and class, and ``src/native/README.md`` says how they behave (lifetimes
 Native calls raise :class:`UnsupportedRmwError` when the entity is not rmw_fastrtps_cpp's
 (callers then fall back to plain rclpy) and :class:`DdsError` when a middleware call fails.
 """
+import contextlib
 import os
 import re
 import threading
 from pathlib import Path
-from typing import Any, Dict, List, NamedTuple, Optional, Tuple
+from typing import Any, Dict, Iterator, List, NamedTuple, Optional, Tuple
 
 from rosidl_buffer_py import _native
 
@@ -216,6 +217,26 @@ def get_user_data(endpoint: Any, kind: Optional[str] = None) -> bytes:
 def set_user_data(endpoint: Any, data: bytes, kind: Optional[str] = None) -> None:
     """Replace that USER_DATA. Keep rmw's 'typehash=...;' prefix: append to get_user_data()."""
     _native.set_user_data(endpoint, kind or endpoint_kind(endpoint), bytes(data))
+
+
+@contextlib.contextmanager
+def created_disabled(node: Any, kind: str) -> Iterator[None]:
+    """Inside the block, the DataWriters (``kind`` 'publisher') or DataReaders ('subscription')
+    that rmw creates with ``node``'s participant are created disabled: USER_DATA set on them
+    (:func:`set_user_data`) goes out with their first announcement instead of as a change to
+    it, which held a peer's match of the endpoint until its participant announced again (see
+    docs/design.md, "Discovery"). :func:`enable_created` ends the hold early; the block's end
+    ends it in any case, and enables every endpoint created meanwhile."""
+    _native.hold_enabling(node, kind, True)
+    try:
+        yield
+    finally:
+        _native.hold_enabling(node, kind, False)
+
+
+def enable_created(node: Any, kind: str) -> None:
+    """End :func:`created_disabled`'s hold now: enable what was created in it (idempotent)."""
+    _native.hold_enabling(node, kind, False)
 
 
 def drain_discovery_events(node: Any) -> List[EndpointEvent]:

@@ -78,6 +78,12 @@ def set_user_data(endpoint: _Entity, kind: _Kind, data: bytes) -> None:
     setting it, even to the same bytes, re-announces the endpoint."""
 
 
+def hold_enabling(node: _Entity, kind: _Kind, hold: bool) -> None:
+    """While held, the DataWriters (kind 'publisher') or DataReaders ('subscription') that rmw
+    creates with the node's participant are created disabled, so that USER_DATA set on them
+    goes out with their first announcement; letting go (``hold`` False) enables every one."""
+
+
 def take_serialized_with_gid(subscription: _Entity) -> Optional[Tuple[bytes, bytes, _Info]]:
     """Take one serialized message (CDR with its encapsulation header), with the GID of the
     DataWriter that wrote it and an rclpy-like message info dict; None when none is there."""

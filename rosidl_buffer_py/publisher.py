@@ -245,7 +245,10 @@ class Publisher(rclpy.publisher.Publisher):
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
         self._view = _RouteView(self, self._peers)
+        # the DataWriter is still disabled (create_publisher): its first announcement carries
+        # the advertisement, and it is enabled now
         self._announce()
+        _dds.enable_created(node, 'publisher')
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
         self._polled_at = 0.0
@@ -615,9 +618,13 @@ def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, 
     The node owns it like any publisher: ``node.destroy_publisher(pub)`` and
     ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do.
     """
-    if _dds.is_supported() and codec.buffer_paths(msg_type):
-        discovery.for_node(node)  # the tap goes first: peers re-announce when they see us
-    return node.create_publisher(
-        msg_type, topic, qos_profile, callback_group=callback_group,
+    create = functools.partial(
+        node.create_publisher, msg_type, topic, qos_profile, callback_group=callback_group,
         event_callbacks=event_callbacks, qos_overriding_options=qos_overriding_options,
         publisher_class=functools.partial(Publisher, node=node))
+    if not (_dds.is_supported() and codec.buffer_paths(msg_type)):
+        return create()
+    discovery.for_node(node)  # the tap goes first: peers re-announce when they see us
+    # created disabled: Publisher.__init__ sets the advertisement, then enables the DataWriter
+    with _dds.created_disabled(node, 'publisher'):
+        return create()

@@ -222,7 +222,20 @@ class Subscription(rclpy.subscription.Subscription):
         _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
         # the main topic's reader: the executor takes through it as through any subscription's
         # handle, and its takes are this subscription's delivery path (set once it is ready)
-        reader = seams.delegating_reader(node, msg_type, topic, qos_profile)
+        # created disabled, its advertisement set, then enabled: its first announcement
+        # carries the advertisement (see _dds.created_disabled)
+        backends = get_installed_backends()
+        self._backends = {name: backends[name] for name in self._accepted}
+        self._advertised = {name: backend.get_backend_metadata()
+                            for name, backend in sorted(self._backends.items())}
+        # our history, which DDS discovery does not carry: publishers keep a descriptor's
+        # memory while it can still be taken from it (see EndpointInfo.history_depth)
+        self._advertised[CPU_BACKEND] = history_metadata(qos_profile)
+        with _dds.created_disabled(node, 'subscription'):
+            reader = seams.delegating_reader(node, msg_type, topic, qos_profile)
+            self._user_data = advertisement.append(
+                get_user_data(reader, 'subscription'), self._advertised)
+            set_user_data(reader, 'subscription', self._user_data)
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
             endpoint_gid(reader, 'subscription'), topic)
@@ -236,22 +249,12 @@ class Subscription(rclpy.subscription.Subscription):
         self._gid = endpoint_gid(reader, 'subscription')
         self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.SUBSCRIPTION,
                                   node.get_name(), node.get_namespace())
-        backends = get_installed_backends()
-        self._backends = {name: backends[name] for name in self._accepted}
-        self._advertised = {name: backend.get_backend_metadata()
-                            for name, backend in sorted(self._backends.items())}
-        # our history, which DDS discovery does not carry: publishers keep a descriptor's
-        # memory while it can still be taken from it (see EndpointInfo.history_depth)
-        self._advertised[CPU_BACKEND] = history_metadata(qos_profile)
-        self._user_data = advertisement.append(
-            get_user_data(reader, 'subscription'), self._advertised)
         self._peers: PeerTable[_PublisherPeer] = PeerTable(
             PeerOwner(self._announce, self._peer_seen, self._channels_checked, self._add_peer,
                       self._update_peer, self._forget_peer, self._peer_gone, self._release),
             node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
             topic_name=self._topic_name, gid=self._gid, backends=self._backends,
             logger=self._logger)
-        self._announce()
         for backend in self._backends.values():
             backend.on_creating_endpoint(self._info)
         self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,

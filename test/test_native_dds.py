@@ -215,6 +215,80 @@ def test_user_data_seen_by_other_process(ctx, suffix, hash_survives):
     node.destroy_node()
 
 
+def _observer(name):
+    """A node of its own Context (its own participant) with the discovery tap installed."""
+    context = Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node(name, context=context)
+    _native.install_discovery(node)
+    return context, node
+
+
+def _events_of(observer, gid, events, settle):
+    """Collect the observer's events of ``gid`` until one arrived and ``settle`` s passed."""
+    deadline = None
+    while deadline is None or time.monotonic() < deadline:
+        events.extend(e for e in _dds.drain_discovery_events(observer) if e.gid == gid)
+        if deadline is None and events:
+            deadline = time.monotonic() + settle
+        time.sleep(0.02)
+    return events
+
+
+def test_hold_enabling_creates_endpoints_disabled_until_let_go(ctx):
+    """Held, what rmw creates stays disabled (no match, no announcement) while its USER_DATA
+    is set; let go, it is enabled, and the first discovery carries that USER_DATA, with no
+    'changed' after it."""
+    observer_ctx, observer = _observer('hold_observer')
+    try:
+        node = _node(ctx, 'hold_node')
+        topic = '/' + _unique('hold')
+        sub = node.create_subscription(Image, topic, lambda msg: None, 10)
+        with _dds.created_disabled(node, 'publisher'):
+            pub = node.create_publisher(Image, topic, 10)
+            extended = _dds.get_user_data(pub) + b'\0BUFBE:cpu=;'
+            _dds.set_user_data(pub, extended)
+            time.sleep(0.5)
+            assert pub.get_subscription_count() == 0  # disabled: not even the local reader
+            gid = _dds.endpoint_gid(pub)
+            assert not [e for e in _dds.drain_discovery_events(observer) if e.gid == gid]
+        assert _wait(lambda: pub.get_subscription_count() == 1)
+        events = _events_of(observer, gid, [], settle=1.0)
+        assert [(e.status, e.user_data) for e in events] == [('discovered', extended)], events
+        with pytest.raises(ValueError, match="'publisher' or 'subscription'"):
+            _native.hold_enabling(node, 'writer', True)
+        node.destroy_subscription(sub)
+        node.destroy_node()
+    finally:
+        observer.destroy_node()
+        observer_ctx.try_shutdown()
+
+
+@pytest.mark.parametrize('kind', ['publisher', 'subscription'])
+def test_a_buffer_aware_endpoint_is_first_announced_with_its_advertisement(ctx, kind):
+    """What another participant first discovers of a buffer-aware endpoint is its
+    advertisement, and no USER_DATA change follows (a change right after creation held new
+    peers' matches, test/harness/first_frame.py)."""
+    import rosidl_buffer_py
+    observer_ctx, observer = _observer('advert_observer')
+    try:
+        node = _node(ctx, 'advert_node')
+        topic = '/' + _unique('advert')
+        if kind == 'publisher':
+            endpoint = rosidl_buffer_py.create_publisher(node, Image, topic, 10)
+        else:
+            endpoint = rosidl_buffer_py.create_subscription(
+                node, Image, topic, lambda msg: None, 10, acceptable_buffer_backends='demo')
+        user_data = _dds.get_user_data(endpoint)
+        assert b'\0BUFBE:cpu=' in user_data
+        events = _events_of(observer, _dds.endpoint_gid(endpoint), [], settle=1.0)
+        assert [(e.status, e.user_data) for e in events] == [('discovered', user_data)], events
+        node.destroy_node()
+    finally:
+        observer.destroy_node()
+        observer_ctx.try_shutdown()
+
+
 # ---------------------------------------------------------------- channels
 
 

@@ -3,6 +3,7 @@
 //   endpoint_gid(endpoint, kind) -> bytes
 //   get_user_data(endpoint, kind) -> bytes
 //   set_user_data(endpoint, kind, data) -> None
+//   hold_enabling(node, kind, hold) -> None
 //   take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None
 //   take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, gid, info) | None
 //   publish_serialized(publisher, data, source_timestamp) -> None
@@ -15,12 +16,14 @@
 // `endpoint` is an rcl_publisher_t* / rcl_subscription_t* (int), an rclpy handle, or an
 // rclpy Publisher/Subscription; `kind` is "publisher" or "subscription" and must match it.
 #include <algorithm>
+#include <cstring>
 #include <map>
 #include <mutex>
 #include <vector>
 
 #include "dds_common.hpp"
 #include "dds_writer.hpp"
+#include "rmw_fastrtps_private.hpp"
 
 #include "fastdds/dds/publisher/DataWriter.hpp"
 #include "fastdds/dds/publisher/qos/DataWriterQos.hpp"
@@ -31,6 +34,7 @@
 #include "fastdds/dds/subscriber/qos/DataReaderQos.hpp"
 #include "rcl/error_handling.h"
 #include "rcl/guard_condition.h"
+#include "rcl/node.h"
 #include "rcl/publisher.h"
 #include "rcl/subscription.h"
 #include "rmw/serialized_message.h"
@@ -177,6 +181,37 @@ PyObject * set_user_data(PyObject *, PyObject * args)
   }
   if (!stored) {
     PyErr_SetString(DdsError, "Fast DDS truncated the USER_DATA (participant max_user_data?)");
+    return nullptr;
+  }
+  Py_RETURN_NONE;
+}
+
+/// hold_enabling(node, kind, hold): see the method table (GIL held throughout).
+PyObject * hold_enabling(PyObject *, PyObject * args)
+{
+  PyObject * node_arg;
+  const char * kind;
+  int hold;
+  if (!PyArg_ParseTuple(args, "Osp:hold_enabling", &node_arg, &kind, &hold)) {
+    return nullptr;
+  }
+  const bool writers = std::strcmp(kind, "publisher") == 0;
+  if (!writers && std::strcmp(kind, "subscription") != 0) {
+    PyErr_Format(
+      PyExc_ValueError, "kind must be 'publisher' or 'subscription', got '%s'", kind);
+    return nullptr;
+  }
+  PinnedHandle node;
+  if (node.acquire(node_arg, "node") < 0) {
+    return nullptr;
+  }
+  rmw_node_t * rmw_node = fastrtps_handle(node.get(), rcl_node_get_rmw_handle, "node");
+  if (rmw_node == nullptr) {
+    return nullptr;
+  }
+  std::string error;
+  if (!rmw_private::hold_enabling(rmw_node, writers, hold != 0, &error)) {
+    PyErr_Format(DdsError, "hold_enabling: %s", error.c_str());
     return nullptr;
   }
   Py_RETURN_NONE;
@@ -593,6 +628,11 @@ PyMethodDef endpoint_functions[] = {
     "set_user_data(endpoint, kind, data: bytes) -> None\n\n"
     "Replace that USER_DATA (keep rmw's 'typehash=...;' prefix!). Remote participants see\n"
     "the change as a 'changed' discovery event."),
+  RBPY_FUNCTION(hold_enabling, METH_VARARGS,
+    "hold_enabling(node, kind, hold: bool) -> None\n\n"
+    "While held, the DataWriters (kind 'publisher') or DataReaders ('subscription') that rmw\n"
+    "creates with the node's participant are created disabled, so that their USER_DATA is set\n"
+    "before discovery announces them; letting go (hold False) enables every one of them."),
   RBPY_FUNCTION(take_message_with_gid, METH_VARARGS,
     "take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, "
     "publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is deserialized "

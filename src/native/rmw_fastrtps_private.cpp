@@ -17,7 +17,13 @@
 // - rmw_fastrtps_shared_cpp/include/rmw_fastrtps_shared_cpp/rmw_context_impl.hpp and
 //   custom_participant_info.hpp: rmw_context_impl_s::participant_info, a CustomParticipantInfo
 //   whose subscriber_ is the one Subscriber rmw creates every DataReader with (read to adjust
-//   the default DataReaderQos around a channel subscription's creation, dds_channels.cpp);
+//   the default DataReaderQos around a channel subscription's creation, dds_channels.cpp), and
+//   publisher_ the one Publisher of every DataWriter;
+// - Fast DDS's installed Entity.hpp: the protected `enable_` flag of a Publisher or Subscriber,
+//   which PublisherImpl::create_datawriter and SubscriberImpl::create_datareader read (with
+//   autoenable_created_entities) to enable what they create, and which only set_qos reads
+//   besides (src/cpp/fastdds/{publisher,subscriber}/*Impl.cpp, v2.14.6); cleared around a
+//   buffer-aware endpoint's creation (hold_enabling);
 // - Fast DDS's installed RTPSWriter.h: its protected `mp_history` (the WriterHistory, whose
 //   public next_sequence_number() tells the next sample's sequence number).
 // The layouts come from the headers of the prefix setup.py builds against. A patch release that
@@ -29,6 +35,7 @@
 #include <mutex>
 #include <set>
 
+#include "fastdds/dds/core/Entity.hpp"
 #include "fastdds/dds/domain/DomainParticipant.hpp"
 #include "fastdds/dds/domain/DomainParticipantListener.hpp"
 #include "fastdds/dds/publisher/DataWriter.hpp"
@@ -36,6 +43,7 @@
 #include "fastdds/rtps/history/WriterHistory.h"
 #include "fastdds/rtps/writer/RTPSWriter.h"
 #include "fastrtps/config.h"
+#include "fastdds/dds/subscriber/DataReader.hpp"
 #include "fastdds/dds/subscriber/Subscriber.hpp"
 #include "rmw/init.h"
 #include "rmw_fastrtps_cpp/get_participant.hpp"
@@ -226,7 +234,11 @@ int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer)
   return history == nullptr ? -1 : history->next_sequence_number().to64long();
 }
 
-eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::string * error)
+namespace
+{
+
+/// rmw's participant info of the node, checked to be that of the node's participant.
+CustomParticipantInfo * participant_info_of(rmw_node_t * node, std::string * error)
 {
   if (!layout_verified()) {
     *error = kNotVerified;
@@ -241,14 +253,71 @@ eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::s
     return nullptr;
   }
   auto * info = static_cast<CustomParticipantInfo *>(node->context->impl->participant_info);
-  // Checked before use: rmw's participant info points to the node's participant.
+  // Checked before use: rmw's participant info points to the node's participant, and its
+  // Publisher and Subscriber belong to it.
   if (info->participant_ != participant || info->subscriber_ == nullptr ||
-    info->subscriber_->get_participant() != participant)
+    info->subscriber_->get_participant() != participant || info->publisher_ == nullptr ||
+    info->publisher_->get_participant() != participant)
   {
     *error = "rmw's participant info does not have the layout of rmw_fastrtps 8.4";
     return nullptr;
   }
-  return info->subscriber_;
+  return info;
+}
+
+/// Entity's protected `enable_`, reached as a pointer to member through a subclass (the
+/// language's own access to a protected member; nothing of the layout is assumed).
+struct EnabledFlag : eprosima::fastdds::dds::Entity
+{
+  static bool eprosima::fastdds::dds::Entity::* member() {return &EnabledFlag::enable_;}
+};
+
+template<typename Group, typename Endpoint>
+bool let_go(Group * group, std::vector<Endpoint *> & endpoints, std::string * error)
+{
+  group->*EnabledFlag::member() = true;
+  bool ok = true;
+  for (Endpoint * endpoint : endpoints) {
+    if (!endpoint->is_enabled() &&
+      endpoint->enable() != eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
+    {
+      *error = "Fast DDS refused to enable an endpoint created while enabling was held";
+      ok = false;
+    }
+  }
+  return ok;
+}
+
+}  // namespace
+
+eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::string * error)
+{
+  CustomParticipantInfo * info = participant_info_of(node, error);
+  return info == nullptr ? nullptr : info->subscriber_;
+}
+
+bool hold_enabling(rmw_node_t * node, bool writers, bool hold, std::string * error)
+{
+  CustomParticipantInfo * info = participant_info_of(node, error);
+  if (info == nullptr) {
+    return false;
+  }
+  if (hold) {
+    if (writers) {
+      info->publisher_->*EnabledFlag::member() = false;
+    } else {
+      info->subscriber_->*EnabledFlag::member() = false;
+    }
+    return true;
+  }
+  if (writers) {
+    std::vector<eprosima::fastdds::dds::DataWriter *> list;
+    info->publisher_->get_datawriters(list);
+    return let_go(info->publisher_, list, error);
+  }
+  std::vector<eprosima::fastdds::dds::DataReader *> list;
+  info->subscriber_->get_datareaders(list);
+  return let_go(info->subscriber_, list, error);
 }
 
 }  // namespace rmw_private

@@ -94,6 +94,15 @@ int64_t next_sequence_number(eprosima::fastrtps::rtps::RTPSWriter * writer);
 /// nullptr with `error` otherwise.
 eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::string * error);
 
+/// Hold back (`hold` true) or let go the enabling of the DataWriters (`writers` true: rmw's one
+/// Publisher, CustomParticipantInfo::publisher_) or DataReaders (its subscriber_) that rmw creates
+/// with the node's participant. While held they are created disabled: their QoS, USER_DATA
+/// included, is set without discovery traffic. Letting go enables every one of them left
+/// disabled. Call with the GIL held (rclpy creates its entities with it held). False with
+/// *error when not verified, when rmw's participant info does not have the expected layout, or
+/// when Fast DDS refuses to enable one.
+bool hold_enabling(rmw_node_t * node, bool writers, bool hold, std::string * error);
+
 }  // namespace rmw_private
 }  // namespace rbpy_dds
 
