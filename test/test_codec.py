@@ -18,6 +18,7 @@ from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from rosidl_buffer_py import Buffer, MAX_DESCRIPTOR_SIZE, enable_buffer_fields
 from rosidl_buffer_py import codec
+from rosidl_buffer_py.codec import plans, walker, wire
 from rosidl_buffer_py.codec import (
     CodecError, DESCRIPTOR_MARKER, Decoded, UnsupportedMessageTypeError, decode, encode,
     payload_field)
@@ -241,7 +242,7 @@ def test_payload_field_is_the_last_uint8_sequence():
 def test_aligned_or_variable_fields_after_the_payload_take_the_general_path(after):
     fake = fake_message_type('Trailing', [('data', *U8_SEQ), ('tail', *after)])
     assert payload_field(fake) == 'data'
-    assert codec._codec(fake).plan is None  # the short path needs fixed alignment-1 fields
+    assert plans.compiled(fake).plan is None  # the short path needs fixed alignment-1 fields
     assert codec.buffer_paths(fake) == (('data',),)
 
 
@@ -727,9 +728,9 @@ def test_walker_finds_the_end_of_many_message_layouts():
     from visualization_msgs.msg import Marker
 
     def walker_ops(msg_type):
-        builder = codec._Builder()
-        for name, slot_type in codec._fields(msg_type):
-            codec._add_type(builder, slot_type, name, (msg_type,))
+        builder = walker.Builder()
+        for name, slot_type in walker.message_fields(msg_type):
+            walker.add_type(builder, slot_type, name, (msg_type,))
         return builder.freeze()
 
     joint = JointState(name=['a', 'bc'], position=[1.0], velocity=[], effort=[2.0, 3.0])
@@ -739,14 +740,47 @@ def test_walker_finds_the_end_of_many_message_layouts():
     for msg in (joint, JointState(), camera, Imu(), marker, PoseWithCovarianceStamped()):
         raw = serialize_message(msg)
         body = memoryview(raw)[4:]
-        end = codec._walk(walker_ops(type(msg)), body, 0, len(body),
+        end = walker.walk(walker_ops(type(msg)), body, 0, len(body),
                           struct.Struct('<I').unpack_from, None)
         assert len(raw) - 8 <= end + 4 <= len(raw)
         assert deserialize_message(raw[:end + 4], type(msg)) == msg
         if end + 4 > 4:
             with pytest.raises(CodecError):
-                codec._walk(walker_ops(type(msg)), body, 0, end - 1,
+                walker.walk(walker_ops(type(msg)), body, 0, end - 1,
                             struct.Struct('<I').unpack_from, None)
+
+
+def test_op_fields_are_in_the_order_the_fast_path_reads():
+    """src/native/codec_fast.cpp reads the walker's ops by position (PyTuple_GET_ITEM): the kind
+    first, then each kind's fields where it looks for them. A reordered op fails here."""
+    assert (walker.FIXED, walker.STRING, walker.PSEQ, walker.SEQ, walker.ARRAY, walker.BLOB,
+            walker.WSTRING) == tuple(range(7))  # enum OpKind's values
+    assert walker.FixedOp._fields == ('kind', 'align', 'size', 'inner_pads', 'label')
+    assert walker.StringOp._fields == ('kind', 'bound', 'label')
+    assert walker.PrimitiveSeqOp._fields == ('kind', 'align', 'itemsize', 'bound', 'label')
+    assert walker.SeqOp._fields == ('kind', 'sub_ops', 'min_size', 'bound', 'label', 'path')
+    assert walker.ArrayOp._fields == ('kind', 'sub_ops', 'count', 'label', 'path')
+    assert walker.BlobOp._fields == ('kind', 'path', 'label')
+    assert walker.WStringOp._fields == ('kind', 'bound', 'label')
+    # what the builder gives are those tuples, each of the class of its kind, at any depth
+    from test_msgs.msg import MultiNested, WStrings
+    classes = {walker.FIXED: walker.FixedOp, walker.STRING: walker.StringOp,
+               walker.PSEQ: walker.PrimitiveSeqOp, walker.SEQ: walker.SeqOp,
+               walker.ARRAY: walker.ArrayOp, walker.BLOB: walker.BlobOp,
+               walker.WSTRING: walker.WStringOp}
+    seen = set()
+
+    def check(ops):
+        assert type(ops) is tuple
+        for op in ops:
+            assert isinstance(op, tuple) and type(op) is classes[op[0]], op
+            seen.add(op.kind)
+            if op.kind in (walker.SEQ, walker.ARRAY):
+                check(op.sub_ops)
+    for msg_type in (MultiNested, WStrings, Image):
+        check(plans.compiled(msg_type).ops)
+    check(plans.short_plan(Image).prefix_ops)
+    assert seen == set(classes)
 
 
 # --- the C fast path (rosidl_buffer_py._native.encode_descriptor / decode_descriptor) -----------
@@ -761,7 +795,9 @@ def _python_only(monkeypatch):
         @staticmethod
         def decode_descriptor(*args):
             return None
-    monkeypatch.setattr(codec, '_native', NoFastPath)
+    from rosidl_buffer_py import _native
+    monkeypatch.setattr(_native, 'encode_descriptor', NoFastPath.encode_descriptor)
+    monkeypatch.setattr(_native, 'decode_descriptor', NoFastPath.decode_descriptor)
 
 
 def _fast_path_cases():
@@ -779,10 +815,10 @@ def _fast_path_cases():
 def test_fast_path_gives_the_python_path_bytes_and_messages(monkeypatch):
     from rosidl_buffer_py import _native
     for msg, descriptor in _fast_path_cases():
-        plan = codec._plan(type(msg))
+        plan = plans.short_plan(type(msg))
         fast = encode(msg, descriptor)
         assert _native.encode_descriptor(
-            msg, plan.slots, plan.slot, codec._EMPTY_PAYLOAD, descriptor[0].encode(),
+            msg, plan.slots, plan.slot, wire.EMPTY_PAYLOAD, descriptor[0].encode(),
             descriptor[1], plan.suffix_size) == fast  # the C path did answer
         assert _native.decode_descriptor(fast, type(msg), plan.prefix_ops, plan.suffix_size,
                                          MAX_DESCRIPTOR_SIZE) is not None

@@ -27,6 +27,7 @@ from test_msgs.msg import MultiNested, UnboundedSequences, WStrings
 
 from rosidl_buffer_py import Buffer, MAX_DESCRIPTOR_SIZE
 from rosidl_buffer_py import codec
+from rosidl_buffer_py.codec import plans, walker
 from rosidl_buffer_py.codec import (
     CodecError, DESCRIPTOR_MARKER, EACH, FieldDescriptor, FieldPath,
     UnsupportedMessageTypeError, buffer_paths, buffers_of, decode, encode, field_paths,
@@ -227,7 +228,7 @@ def values_of(slot_type, depth=0):
                        max_size=getattr(slot_type, 'maximum_size', None) or 12)
     if isinstance(slot_type, definition.NamespacedType):
         return messages_of(nested_class(slot_type), depth + 1)
-    if codec._is_blob(slot_type):
+    if walker.is_blob(slot_type):
         return st.binary(max_size=40)
     item = values_of(slot_type.value_type, depth)
     if isinstance(slot_type, definition.Array):
@@ -451,7 +452,7 @@ def test_single_payload_api_on_a_general_type():
     msg = UnboundedSequences(uint8_values=b'abc', float64_values=[2.5],
                              uint8_values_default=b'payload', string_values=['z'])
     field = codec.payload_field(UnboundedSequences)
-    assert field == 'uint8_values_default' and codec._codec(UnboundedSequences).plan is None
+    assert field == 'uint8_values_default' and plans.compiled(UnboundedSequences).plan is None
     head, payload, suffix = codec.encode_parts(msg)
     assert bytes(payload) == b'payload'
     assert bytes(head) + bytes(payload) + bytes(suffix) == bytes(encode(msg))
@@ -556,7 +557,7 @@ def test_big_endian_input_decodes():
 
 @pytest.mark.parametrize('msg_type', [Image, CompressedImage, PointCloud2])
 def test_short_path_types_keep_it(msg_type):
-    assert codec._codec(msg_type).plan is not None
+    assert plans.compiled(msg_type).plan is not None
     decoded = decode(encode(msg_type(), {'data': ('demo', b'd')}), msg_type)
     assert decoded.descriptors == {('data',): ('demo', b'd')}
     assert (decoded.backend_type, decoded.descriptor) == ('demo', b'd')

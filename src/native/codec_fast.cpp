@@ -27,7 +27,13 @@ namespace
 
 constexpr size_t kHeader = 4;
 constexpr uint32_t kMarker = 0xFFFFFFFFu;
-// codec.py's walker op kinds (_FIXED, _STRING, _PSEQ, _SEQ, _ARRAY).
+// The op kinds of rosidl_buffer_py/codec/walker.py (FIXED, STRING, PSEQ, SEQ, ARRAY). Each op is
+// a typing.NamedTuple (a tuple subclass, so PyTuple_Check holds), read here by position: the
+// kind first, then FixedOp(kind, align, size, inner_pads, label), StringOp(kind, bound, label),
+// PrimitiveSeqOp(kind, align, itemsize, bound, label), SeqOp(kind, sub_ops, min_size, bound,
+// label, path) and ArrayOp(kind, sub_ops, count, label, path). That field order is what this
+// file reads (test_codec.py's test_op_fields_are_in_the_order_the_fast_path_reads pins it); any
+// other kind (BlobOp, WStringOp) makes walk() answer false.
 enum OpKind : long {kFixed = 0, kString = 1, kPseq = 2, kSeq = 3, kArray = 4};
 
 struct Reader
@@ -63,7 +69,7 @@ bool item(PyObject * op, Py_ssize_t index, Py_ssize_t * value)
   return !(*value == -1 && PyErr_Occurred());
 }
 
-/// codec._walk without pads: every check it makes, false where it would raise.
+/// codec.walker.walk without pads: every check it makes, false where it would raise.
 bool walk(PyObject * ops, const Reader & r, size_t * pos, int depth)
 {
   if (!PyTuple_Check(ops) || depth > 64) {
@@ -241,7 +247,8 @@ PyObject * decode_descriptor(PyObject *, PyObject * args)
   return result ? result : fall_back();
 }
 
-/// A copy of `msg` holding `empty` as its payload (codec._encode_head's clone), or nullptr.
+/// A copy of `msg` holding `empty` as its payload (the clone of _encode_head in
+/// rosidl_buffer_py/codec/encoder.py), or nullptr.
 PyObject * payload_free_clone(PyObject * msg, PyObject * slots, PyObject * payload_slot,
   PyObject * empty)
 {
