@@ -137,6 +137,7 @@ def native_extension(prefixes: list) -> Extension:
         language='c++',
     )
 
+
 class ParallelBuildExt(build_ext):
     """build_ext that compiles the extension's C++ sources side by side, one per core:
     setuptools compiles one source after another, and the extension is the slowest step of

@@ -27,14 +27,15 @@ def test_wheelhouse_installs_offline(tmp_path):
     assert not [n for n in names if 'ament-cmake' in n or n in ('numpy', 'pytest', 'setuptools')]
     assert {'ros-rclpy', 'ros-fastrtps', 'ros-sensor-msgs', 'mcap', 'empy'} <= set(names)
     assert 'python3 -m pip install --no-index --no-deps' in (out / 'INSTALL.txt').read_text()
-    # the documented install, offline, of the one wheel every other needs (rclpy's: the
-    # rest installs the same way; the GPU machine ran the whole of INSTALL.txt)
+    # the documented install, offline, of rclpy's wheel and the message package the demo uses
+    # (the rest installs the same way; the GPU machine ran the whole of INSTALL.txt)
     target = tmp_path / 'site'
-    rclpy = [w for w in wheels if w.name.startswith('ros_rclpy-')]
+    chosen = [w for w in wheels if w.name.startswith(('ros_rclpy-', 'ros_sensor_msgs-'))]
+    assert len(chosen) == 2, [w.name for w in wheels]
     installed = subprocess.run(
         [sys.executable, '-m', 'pip', 'install', '--no-index', '--no-deps', '--no-compile',
-         '--target', str(target), *map(str, rclpy)], capture_output=True, text=True,
+         '--target', str(target), *map(str, chosen)], capture_output=True, text=True,
         timeout=600)
     assert installed.returncode == 0, installed.stderr[-3000:]
-    assert (target / 'rclpy').is_dir()
+    assert (target / 'rclpy').is_dir() and (target / 'sensor_msgs').is_dir()
     assert sysconfig.get_platform().startswith('linux')
