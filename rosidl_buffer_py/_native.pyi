@@ -177,6 +177,11 @@ def discovery_stats(node: _Entity) -> Dict[str, int]:
     """installed, queued, known, wakeups, dropped, recorded."""
 
 
+def silence_discovery(node: _Entity) -> bool:
+    """Stop the node's participant listening to discovery (rmw's listener and the tap), with
+    bounded waits for running callbacks; True if this call did it. For shutdown and exit."""
+
+
 # channels -----------------------------------------------------------------------------------
 
 class ChannelPublisher:

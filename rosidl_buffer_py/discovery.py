@@ -12,7 +12,13 @@ QoS matches its own stays unmatched (that peer may have missed it: soon after th
 appeared, then once a second, see :mod:`rosidl_buffer_py.reannounce`); the peer sees it as a
 'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
 matching at every peer, and stock endpoints with incompatible QoS report it again.
+
+When the context shuts down, and at interpreter exit, the participant stops listening to
+discovery (``_native.silence_discovery``): rmw destroys a participant with an unbounded wait for
+running discovery callbacks that can spin forever in the PyPI build of Fast DDS (see
+src/native/README.md, "Discovery tap"), and a participant that no longer listens has none.
 """
+import atexit
 import threading
 import weakref
 from dataclasses import dataclass, field
@@ -22,7 +28,7 @@ from rclpy.logging import get_logger
 
 from rosidl_buffer_py import _dds, advertisement
 from rosidl_buffer_py._native import (
-    add_discovery_wakeup, install_discovery, remove_discovery_wakeup)
+    add_discovery_wakeup, install_discovery, remove_discovery_wakeup, silence_discovery)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import is_channel_topic
 
@@ -70,6 +76,7 @@ class ParticipantDiscovery:
         self._endpoints: Dict[bytes, PeerEndpoint] = {}
         self._watches: Dict[str, _Watch] = {}
         self._installed = install_discovery(node) or True
+        self._silenced = False
         self._nodes.add(node)
         for event in _dds.list_known_endpoints(node):
             self._apply(event)
@@ -108,9 +115,27 @@ class ParticipantDiscovery:
         except Exception as exc:  # the participant may already be gone at shutdown
             _logger.debug(f'remove_discovery_wakeup: {exc}')
 
+    def silence(self) -> None:
+        """The participant stops listening to discovery (its context shut down, or the process
+        exits); nothing is dispatched from now on."""
+        with self._lock:
+            if self._silenced:
+                return
+            self._silenced = True
+            nodes = list(self._nodes)
+        _forget(self)  # a context initialized again gets a new participant, and a new tap
+        for node in nodes:
+            try:
+                silence_discovery(node)
+                return
+            except Exception as exc:  # node destroyed: try another node of the participant
+                _logger.debug(f'silence_discovery: {exc}')
+
     def process(self) -> None:
         """Drain pending events and dispatch them (cheap when nothing is pending)."""
         with self._lock:
+            if self._silenced:
+                return
             events = None
             for node in list(self._nodes):
                 try:
@@ -163,6 +188,28 @@ def for_node(node) -> ParticipantDiscovery:
         if discovery is None:
             discovery = ParticipantDiscovery(node)
             _by_context[node.context] = discovery
+            node.context.on_shutdown(discovery.silence)  # held weakly by the context
         else:
             discovery.attach_node(node)
         return discovery
+
+
+def registered() -> List[ParticipantDiscovery]:
+    """The participants' discoveries in use (one per live, not shut down, context)."""
+    with _registry_lock:
+        return list(_by_context.values())
+
+
+def _forget(discovery: ParticipantDiscovery) -> None:
+    with _registry_lock:
+        for context, known in list(_by_context.items()):
+            if known is discovery:
+                del _by_context[context]
+
+
+@atexit.register
+def _silence_all() -> None:
+    """At exit, before nodes are collected (and rmw destroys their participants): every
+    participant with a tap stops listening."""
+    for discovery in registered():
+        discovery.silence()

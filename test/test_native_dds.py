@@ -945,6 +945,65 @@ def test_guard_condition_destroyed_while_pinned(ctx):
     node.destroy_node()
 
 
+def test_silence_discovery_stops_the_participant_listening(ctx):
+    """What shutdown and exit do before rmw destroys a participant (src/native/README.md,
+    "Never Fast DDS's default wait in set_listener")."""
+    node = _node(ctx, 'silenced')
+    other = _node(ctx, 'silenced_other')  # the same participant
+    remote_ctx = Context()
+    rclpy.init(context=remote_ctx)
+    try:
+        remote = _node(remote_ctx, 'silenced_remote')
+        assert _native.install_discovery(node) is True
+        before, after = '/' + _unique('before'), '/' + _unique('after')
+        remote.create_publisher(Image, before, 10)
+        assert _wait(lambda: node.count_publishers(before) == 1)  # the graph listens
+        assert _native.silence_discovery(node) is True
+        assert _native.silence_discovery(other) is False  # once per participant
+        assert _native.discovery_stats(node) == {'installed': False}
+        with pytest.raises(_dds.DdsError, match='stopped listening'):
+            _native.install_discovery(other)  # never a tap again
+        remote.create_publisher(Image, after, 10)
+        time.sleep(2.0)  # discovery of the first publisher took well under that
+        assert node.count_publishers(after) == 0
+        started = time.monotonic()
+        node.destroy_node()
+        other.destroy_node()  # the participant goes: nothing to wait for
+        assert time.monotonic() - started < 5.0
+    finally:
+        remote_ctx.try_shutdown()
+
+
+def test_context_shutdown_and_exit_silence_the_participant(ctx, tmp_path):
+    from rosidl_buffer_py import create_publisher, discovery
+    node = _node(ctx, 'shutdown_silenced')
+    create_publisher(node, Image, '/' + _unique('silenced'), 10)
+    first = discovery.for_node(node)
+    assert _native.discovery_stats(node)['installed']
+    ctx.shutdown()
+    assert _native.discovery_stats(node) == {'installed': False}
+    node.destroy_node()
+    assert first not in discovery.registered()  # forgotten with its context
+    # at exit, before the interpreter collects nodes (and rmw destroys their participant)
+    script = tmp_path / 'exit_silences.py'
+    script.write_text(
+        'import atexit, sys\n'
+        'import rclpy\n'
+        'from sensor_msgs.msg import Image\n'
+        'def after():  # registered before rosidl_buffer_py is imported: runs after its own\n'
+        '    print("STATS", sys.modules["rosidl_buffer_py._native"].discovery_stats(node))\n'
+        'atexit.register(after)\n'
+        'import rosidl_buffer_py\n'
+        'rclpy.init()\n'
+        'node = rclpy.create_node("exit_silenced")\n'
+        'sub = rosidl_buffer_py.create_subscription(node, Image, "exit_silenced", print, 10)\n'
+        'print("STATS", rosidl_buffer_py._native.discovery_stats(node)["installed"])\n')
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines() == ['STATS True', "STATS {'installed': False}"]
+
+
 def test_interpreter_exit_without_cleanup():
     peer = Peer('linger')
     try:

@@ -7,6 +7,7 @@
 //   add_discovery_wakeup(node, guard_condition) -> bool
 //   remove_discovery_wakeup(guard_condition) -> bool
 //   discovery_stats(node) -> dict
+//   silence_discovery(node) -> bool              (the participant stops listening: shutdown)
 //
 // event = (kind 'writer'|'reader', status 'discovered'|'changed'|'removed'|'ignored'|'known',
 //          gid: bytes[16], topic: str (DDS name, 'rt/...'), type_name: str, user_data: bytes,
@@ -26,6 +27,7 @@
 #include <deque>
 #include <map>
 #include <mutex>
+#include <set>
 #include <string>
 #include <utility>
 #include <vector>
@@ -407,6 +409,8 @@ struct Registry
 {
   std::mutex mutex;  // held across set_listener(); DDS callbacks never take it
   std::map<dds::DomainParticipant *, DiscoveryTap *> taps;
+  /// Participants that stopped listening (silence_discovery): no tap is installed on them again.
+  std::set<dds::DomainParticipant *> silenced;
 };
 
 Registry & registry()
@@ -477,6 +481,16 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
       reg.taps.erase(it);
       it = reg.taps.end();
     }
+    if (reg.silenced.count(participant) != 0) {
+      if (current == nullptr) {
+        if (install) {
+          error = "the participant stopped listening to discovery (its context shut down)";
+          failed = true;
+        }
+        return;
+      }
+      reg.silenced.erase(participant);  // a new participant at a recycled address
+    }
     if (it != reg.taps.end()) {
       tap = it->second;
     } else if (install) {
@@ -494,7 +508,7 @@ DiscoveryTap * tap_of(PyObject * node_arg, bool install, bool * installed_now = 
   });
   release_pins(stale_pins);
   if (failed) {
-    PyErr_Format(DdsError, "cannot install the discovery tap: %s", error.c_str());
+    PyErr_Format(DdsError, "no discovery tap: %s", error.c_str());
     return nullptr;
   }
   if (installed_now) {
@@ -572,6 +586,36 @@ PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
   });
   release_pins(pins);
   return error ? error.raise() : PyBool_FromLong(removed);
+}
+
+PyObject * silence_discovery(PyObject *, PyObject * node_arg)
+{
+  PinnedHandle node;
+  dds::DomainParticipant * participant = participant_of(node_arg, &node);
+  if (participant == nullptr) {
+    return nullptr;
+  }
+  PendingError error;
+  std::vector<PinnedHandle *> pins;
+  const bool silenced = with_registry([&](Registry & reg) {
+    if (reg.silenced.count(participant) != 0 && participant->get_listener() == nullptr) {
+      return false;
+    }
+    std::string why;
+    if (!rbpy_dds::rmw_private::set_participant_listener(participant, nullptr, &why)) {
+      error.set(DdsError, "cannot stop the participant's discovery listener: " + why);
+      return false;
+    }
+    auto it = reg.taps.find(participant);
+    if (it != reg.taps.end()) {
+      pins = it->second->detach();  // the tap stays allocated: a late callback is harmless
+      reg.taps.erase(it);
+    }
+    reg.silenced.insert(participant);
+    return true;
+  });
+  release_pins(pins);
+  return error ? error.raise() : PyBool_FromLong(silenced);
 }
 
 /// The events `read` returns from the node's tap (installed first; GIL released meanwhile).
@@ -691,6 +735,12 @@ PyMethodDef discovery_functions[] = {
     "remove_discovery_wakeup(guard_condition) -> bool\n\n"
     "Stop triggering it (on every participant) and unpin it; once this returns it is never\n"
     "triggered again. Works after rclpy was asked to destroy the guard condition."),
+  RBPY_FUNCTION(silence_discovery, METH_O,
+    "silence_discovery(node) -> bool\n\n"
+    "Stop the node's participant listening to discovery (rmw's graph listener and the tap),\n"
+    "waiting for running callbacks in bounded steps; no tap is installed on it again. For a\n"
+    "context that shut down or a process that exits: rmw's own unbounded wait when it\n"
+    "destroys the participant then has no callback to wait for. True if this call did it."),
   RBPY_FUNCTION(discovery_stats, METH_O,
     "discovery_stats(node) -> dict (installed, queued, known, wakeups, dropped, recorded)"),
   RBPY_METHODS_END,

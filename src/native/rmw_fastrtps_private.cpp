@@ -32,8 +32,10 @@
 #include "rmw_fastrtps_private.hpp"
 
 #include <atomic>
+#include <chrono>
 #include <mutex>
 #include <set>
+#include <string>
 
 #include "fastdds/dds/core/Entity.hpp"
 #include "fastdds/dds/domain/DomainParticipant.hpp"
@@ -180,6 +182,17 @@ bool rmw_matched_readers(
   return true;
 }
 
+// DomainParticipantImpl::set_listener (v2.14.6, DomainParticipantImpl.hpp) waits for running
+// discovery callbacks with condition_variable::wait_until on a steady_clock deadline, "forever"
+// (time_point::max()) by default. The PyPI build of Fast DDS links against a glibc without
+// pthread_cond_clockwait, so libstdc++ converts that deadline to system_clock, where max()
+// overflows into the past: the wait returns at once, finds its deadline not reached, and loops,
+// re-taking mtx_gs_, which the running callback needs to finish (its Sentry's destructor). On a
+// busy machine that livelock lasted as long as we watched (a process hung installing the tap,
+// or in rmw's destroy_participant at exit). A bounded deadline converts correctly and waits.
+constexpr int kListenerWaitSeconds = 1;
+constexpr int kListenerWaitAttempts = 30;
+
 bool set_participant_listener(
   eprosima::fastdds::dds::DomainParticipant * participant,
   eprosima::fastdds::dds::DomainParticipantListener * listener, std::string * error)
@@ -188,14 +201,19 @@ bool set_participant_listener(
     *error = kNotVerified;
     return false;
   }
-  // Not under any lock a callback takes: set_listener waits for running callbacks.
-  if (participant->set_listener(listener, participant->get_status_mask()) !=
-    eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
-  {
-    *error = "DomainParticipant::set_listener failed";
-    return false;
+  // Not under any lock a callback takes: set_listener waits for running callbacks, here always
+  // with a bounded wait (see kListenerWaitSeconds), repeated while callbacks keep running.
+  const eprosima::fastdds::dds::StatusMask mask = participant->get_status_mask();
+  for (int attempt = 0; attempt < kListenerWaitAttempts; ++attempt) {
+    if (participant->set_listener(listener, mask, std::chrono::seconds(kListenerWaitSeconds)) ==
+      eprosima::fastrtps::types::ReturnCode_t::RETCODE_OK)
+    {
+      return true;
+    }
   }
-  return true;
+  *error = "DomainParticipant::set_listener: discovery callbacks kept running for " +
+    std::to_string(kListenerWaitAttempts * kListenerWaitSeconds) + " s";
+  return false;
 }
 
 eprosima::fastrtps::rtps::RTPSWriter * rtps_writer_of(

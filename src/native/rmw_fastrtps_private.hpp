@@ -68,8 +68,10 @@ bool rmw_matched_readers(
   rmw_publisher_t * publisher, std::vector<eprosima::fastrtps::rtps::GUID_t> * guids,
   std::string * error);
 
-/// Set the participant's listener (our discovery tap, or rmw's own back), keeping its status
-/// mask. False with *error when not verified or when Fast DDS refuses.
+/// Set the participant's listener (our discovery tap, rmw's own back, or nullptr to stop
+/// listening), keeping its status mask; waits for running discovery callbacks in bounded steps,
+/// never with Fast DDS's default wait (see the .cpp). False with *error when not verified or
+/// when callbacks kept running for 30 s.
 bool set_participant_listener(
   eprosima::fastdds::dds::DomainParticipant * participant,
   eprosima::fastdds::dds::DomainParticipantListener * listener, std::string * error);
