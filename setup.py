@@ -170,10 +170,12 @@ PREFIXES = ros_prefixes()
 setup(
     name=PACKAGE,
     version=package_version(str(HERE), '.', 'package.xml'),
+    # the library with its nodes and tools, and the two backends; not launch_free_demos (the
+    # demo, the benchmarks, the process runner the tests start nodes with): ./dev and the tests
+    # run it from the checkout, and no installed program needs it
     packages=find_packages(include=[PACKAGE, f'{PACKAGE}.*', 'demo_buffer_backend',
                                     'demo_buffer_backend.*', 'cuda_buffer_backend',
-                                    'cuda_buffer_backend.*', 'launch_free_demos',
-                                    'launch_free_demos.*']),
+                                    'cuda_buffer_backend.*']),
     ext_modules=[native_extension(PREFIXES)],
     cmdclass={'build_ext': ParallelBuildExt},
     data_files=[

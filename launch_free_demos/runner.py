@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Set
 
-from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
+from rosidl_buffer_py.report import REPORT_PREFIX, last_report
 
 #: Executable name -> module run with ``python -m`` (the same names as the console scripts).
 #: Any other executable is the path of a Python file, run as a script (the tests' probe node).
@@ -223,7 +223,7 @@ class NodeProcess:
 
     @property
     def report(self) -> Optional[dict]:
-        """The process's report (:mod:`rosidl_buffer_py.nodes.report`), None before it."""
+        """The process's report (:mod:`rosidl_buffer_py.report`), None before it."""
         return last_report(self.output)
 
 

@@ -24,6 +24,15 @@ _ROOT = Path(__file__).resolve().parent.parent
 if not list((_ROOT / 'rosidl_buffer_py').glob('_native*.so')):
     sys.path[:] = [p for p in sys.path if Path(p or '.').resolve() != _ROOT]
     os.environ['PYTHONSAFEPATH'] = '1'
+# launch_free_demos (the demo, the benchmarks, the process runner) is not installed: this
+# process and the ones tests start find it in the checkout's root, put last on sys.path and on
+# PYTHONPATH. Under colcon the install space comes earlier on PYTHONPATH and wins; in the ./dev
+# venv the package under test is this checkout anyway (an editable install).
+if _ROOT not in {Path(p or '.').resolve() for p in sys.path}:
+    sys.path.append(str(_ROOT))
+_PYTHONPATH = [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]
+if str(_ROOT) not in _PYTHONPATH:
+    os.environ['PYTHONPATH'] = os.pathsep.join(_PYTHONPATH + [str(_ROOT)])
 
 from launch_free_demos.domains import claim_domain_ids  # noqa: E402 (after the path fix)
 

@@ -309,7 +309,7 @@ def test_a_fanout_series_whose_cpu_falls_with_more_subscribers_is_flagged():
 def test_a_peer_prints_the_report_line_of_the_nodes(capsys):
     """The peers write the report line themselves (rclpy-free); it reads as a node's."""
     from launch_free_demos.bench.peers import common
-    from rosidl_buffer_py.nodes.report import last_report
+    from rosidl_buffer_py.report import last_report
     common.print_report({'role': 'publisher', 'published': 3})
     assert last_report(capsys.readouterr().out.splitlines()) == {'role': 'publisher',
                                                                  'published': 3}

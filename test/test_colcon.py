@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pytest
 
-from rosidl_buffer_py.nodes.report import last_report
+from rosidl_buffer_py.report import last_report
 
 ROOT = Path(__file__).resolve().parent.parent
 INSIDE = 'RBPY_INSIDE_COLCON_TEST'

@@ -24,8 +24,10 @@ import time
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # run as a script: 'graph'
+# ... where launch_free_demos (not installed) is the checkout's, after the installed packages
+sys.path.append(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from harness.demo_backend_peer import Peer  # noqa: E402
-from launch_free_demos.runner import Run
+from launch_free_demos.runner import Run  # noqa: E402
 
 PEER_GID = bytes(range(16))  # what demo_backend_peer.py calls its peer
 RECEIVED = re.compile(r'received (\d+) \((\d+) distinct\)')

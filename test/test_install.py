@@ -4,6 +4,7 @@ package does in their own venv), and the one error a build without ROS gets.
 Slow (about a minute and a half: pip installs the ROS wheels twice, for the isolated build and
 for the venv, from its cache, and compiles the extension); it reuses pip's cache.
 """
+import os
 import shutil
 import subprocess
 import sys
@@ -32,6 +33,12 @@ def _checkout(tmp_path: Path) -> Path:
     return copy
 
 
+def _own_env() -> dict:
+    """This environment without PYTHONPATH: under colcon test it holds the install space and
+    the source tree (test/conftest.py), which the fresh venv would import instead of its own."""
+    return {name: value for name, value in os.environ.items() if name != 'PYTHONPATH'}
+
+
 def _venv(path: Path) -> Path:
     subprocess.run([_base_python(), '-m', 'venv', str(path)], check=True, timeout=120)
     return path / 'bin'
@@ -47,7 +54,7 @@ def test_pip_install_checkout_into_a_fresh_venv(tmp_path):
     bin_dir = _venv(tmp_path / 'v')
     install = subprocess.run([str(bin_dir / 'pip'), 'install', '--disable-pip-version-check',
                               str(_checkout(tmp_path))],
-                             capture_output=True, text=True, timeout=600)
+                             capture_output=True, text=True, timeout=600, env=_own_env())
     assert install.returncode == 0, install.stdout[-3000:] + install.stderr[-3000:]
     check = subprocess.run(
         [str(bin_dir / 'python'), '-c',
@@ -61,22 +68,27 @@ def test_pip_install_checkout_into_a_fresh_venv(tmp_path):
          'print(rosidl_buffer_py.__version__)\n'
          'node.destroy_node()\n'
          'rclpy.shutdown()\n'],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, env=_own_env())
     assert check.returncode == 0, check.stderr[-3000:]
     assert check.stdout.strip() == '0.1.0'
     package = next((tmp_path / 'v' / 'lib').glob('python3*/site-packages/rosidl_buffer_py'))
     assert (package / 'py.typed').is_file()
-    # the wheel ships the library, its tools and nodes, the demos and benchmarks and the demo
-    # backend; never the test harness
+    # the wheel ships the library with its nodes and tools, and the backends; never the demos,
+    # the benchmarks and the process runner (launch_free_demos, run from the checkout) nor the
+    # test harness
     site = package.parent
-    for shipped in ('rosidl_buffer_py/tools/record.py', 'rosidl_buffer_py/nodes/report.py',
-                    'launch_free_demos/image_demo.py', 'launch_free_demos/bench/suite.py',
-                    'launch_free_demos/bench/peers/common.py', 'demo_buffer_backend/pool.py'):
+    for shipped in ('rosidl_buffer_py/tools/record.py', 'rosidl_buffer_py/report.py',
+                    'rosidl_buffer_py/nodes/image_publisher.py', 'demo_buffer_backend/pool.py',
+                    'cuda_buffer_backend/backend.py'):
         assert (site / shipped).is_file(), shipped
-    assert not (site / 'harness').exists() and not (site / 'test').exists()
+    for left_out in ('launch_free_demos', 'harness', 'test'):
+        assert not (site / left_out).exists(), left_out
+    [record] = site.glob('rosidl_buffer_py-*.dist-info/RECORD')
+    installed = {line.split('/', 1)[0] for line in record.read_text().splitlines()}
+    assert not installed & {'launch_free_demos', 'harness', 'test'}, sorted(installed)
     # the executables are on the venv's PATH
     info = subprocess.run([str(bin_dir / 'buffer_bag_info'), '--help'], capture_output=True,
-                          text=True, timeout=60)
+                          text=True, timeout=60, env=_own_env())
     assert info.returncode == 0 and 'usage: buffer_bag_info' in info.stdout, info.stderr
 
 

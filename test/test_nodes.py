@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from harness.installed import executable
-from rosidl_buffer_py.nodes.report import last_report
+from rosidl_buffer_py.report import last_report
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGE = 'rosidl_buffer_py'
@@ -279,7 +279,8 @@ import signal
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from rosidl_buffer_py.nodes import common, report
+from rosidl_buffer_py import report
+from rosidl_buffer_py.nodes import common
 
 
 class Listener(Node):
@@ -329,7 +330,8 @@ _HUNG_TEARDOWN = '''
 import time
 import rclpy
 from rclpy.node import Node
-from rosidl_buffer_py.nodes import common, report
+from rosidl_buffer_py import report
+from rosidl_buffer_py.nodes import common
 
 common.TEARDOWN_TIMEOUT_SEC = 1.0
 

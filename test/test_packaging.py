@@ -1,7 +1,9 @@
-"""The package is a proper ament_python package and its dependency lists agree."""
+"""The package is a proper ament_python package, its dependency lists agree, and the wheel
+ships what is installed, nothing of the checkout's demos, benchmarks and tests."""
 import ast
 import configparser
 import re
+import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -32,6 +34,8 @@ OPTIONAL_TEST_MODULES = {'rosbags': 'test_reindex.py reads repaired bags back wi
 #: never declared (the cuda backend itself needs none of them), never installed by ./dev or CI.
 OPTIONAL_GPU_MODULES = {'torch', 'cupy'}
 GPU_FILES = ('launch_free_demos/cuda_peer.py', 'launch_free_demos/bench/cuda.py')
+#: What setup.py installs: the library with its nodes and tools, and the two backends.
+INSTALLED_PACKAGES = ('rosidl_buffer_py', 'demo_buffer_backend', 'cuda_buffer_backend')
 #: Modules of this repository (or made by the tests) that need no dependency.
 OWN_MODULES = {'rosidl_buffer_py', 'demo_buffer_backend', 'cuda_buffer_backend',
                'launch_free_demos', 'harness',
@@ -117,23 +121,25 @@ def bench_modules():
 
 
 def test_every_imported_module_is_declared():
-    """The package's imports are exec (or, for the benchmark's plots, test) dependencies; the
-    tests' imports are exec or test dependencies; setup.py's are build dependencies. Only the
-    benchmark's peer nodes import the optional modules of requirements-bench.txt."""
+    """The installed packages' imports are exec dependencies; the demos' and benchmarks' (run
+    from the checkout) exec dependencies too, or matplotlib for the benchmark's plots (a test
+    dependency, which ./dev installs); the tests' exec or test dependencies; setup.py's build
+    dependencies. Only the benchmark's peer nodes import the optional modules of
+    requirements-bench.txt."""
     keys = package_xml_keys()
     peers = ROOT / 'launch_free_demos' / 'bench' / 'peers'
-    package = [p for d in ('rosidl_buffer_py', 'demo_buffer_backend', 'cuda_buffer_backend',
-                           'launch_free_demos')
-               for p in (ROOT / d).rglob('*.py') if peers not in p.parents]
+    package = [p for d in INSTALLED_PACKAGES for p in (ROOT / d).rglob('*.py')]
+    demos = [p for p in (ROOT / 'launch_free_demos').rglob('*.py') if peers not in p.parents]
     tests = list((ROOT / 'test').rglob('*.py'))
-    for paths, allowed in ((package, keys['exec'] | {'python3-matplotlib'}),
+    for paths, allowed in ((package, keys['exec']),
+                           (demos, keys['exec'] | {'python3-matplotlib'}),
                            (tests, keys['exec'] | keys['test']),
                            ([ROOT / 'setup.py'], keys['build'])):
         modules = _imported_modules(paths)
         if paths is tests:
             modules -= set(OPTIONAL_TEST_MODULES)
-        if paths is package:
-            others = [p for p in package if p.relative_to(ROOT).as_posix() not in GPU_FILES]
+        if paths is demos:
+            others = [p for p in demos if p.relative_to(ROOT).as_posix() not in GPU_FILES]
             assert not _imported_modules(others) & OPTIONAL_GPU_MODULES
             modules -= OPTIONAL_GPU_MODULES
         unknown = modules - set(MODULE_KEYS)
@@ -167,6 +173,35 @@ def test_python_requires_matches_what_dev_requires():
     setup_py = (ROOT / 'setup.py').read_text()
     assert "python_requires='>=3.11'" in setup_py
     assert 'sys.version_info < (3, 11)' in (ROOT / 'dev').read_text()
+
+
+def test_the_wheel_holds_the_installed_packages_not_the_demos_benchmarks_or_runner(tmp_path):
+    """What setup.py packs into the wheel beside the extension (build_py: the Python files,
+    py.typed, the stub) is the library with its nodes and tools, and the backends, whole; not
+    launch_free_demos (the demo, the benchmarks, the process runner: ./dev and the tests run
+    them from the checkout), nor the tests. test_install.py checks a real pip install."""
+    built = subprocess.run(
+        [sys.executable, 'setup.py', '-q', 'egg_info', '--egg-base', str(tmp_path),
+         'build_py', '--build-lib', str(tmp_path / 'lib')],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert built.returncode == 0, built.stdout[-3000:] + built.stderr[-3000:]
+    [top_level] = tmp_path.glob('*.egg-info/top_level.txt')
+    assert sorted(top_level.read_text().split()) == sorted(INSTALLED_PACKAGES)
+    lib = tmp_path / 'lib'
+    assert sorted(p.name for p in lib.iterdir()) == sorted(INSTALLED_PACKAGES)
+    shipped = {p.relative_to(lib).as_posix() for p in lib.rglob('*') if p.is_file()}
+    sources = {p.relative_to(ROOT).as_posix()
+               for package in INSTALLED_PACKAGES for p in (ROOT / package).rglob('*.py')}
+    assert sources <= shipped, f'modules the wheel leaves out: {sorted(sources - shipped)}'
+    assert {'rosidl_buffer_py/py.typed', 'rosidl_buffer_py/_native.pyi',
+            'rosidl_buffer_py/report.py'} <= shipped
+    # every console script and backend entry point names a module the wheel ships
+    [entry_points] = tmp_path.glob('*.egg-info/entry_points.txt')
+    targets = re.findall(r'^\S+ = ([\w.]+):', entry_points.read_text(), re.M)
+    assert len(targets) >= 10, entry_points.read_text()
+    for module in targets:
+        path = module.replace('.', '/')
+        assert f'{path}.py' in shipped or f'{path}/__init__.py' in shipped, module
 
 
 def test_setup_cfg_installs_scripts_where_ros2_run_looks():

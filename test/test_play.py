@@ -13,8 +13,8 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import String
 
+from rosidl_buffer_py.report import REPORT_PREFIX
 from rosidl_buffer_py.tools.message_definition import full_definition
-from rosidl_buffer_py.nodes.report import REPORT_PREFIX
 
 IMAGES, TEXTS, PERIOD_NS = 45, 15, 50_000_000
 

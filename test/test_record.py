@@ -27,7 +27,7 @@ from harness import installed
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import codec
 from rosidl_buffer_py.nodes.frames import pattern
-from rosidl_buffer_py.nodes.report import REPORT_PREFIX, last_report
+from rosidl_buffer_py.report import REPORT_PREFIX, last_report
 from rosidl_buffer_py.tools.bag import qos_from_yaml
 from rosidl_buffer_py.tools.message_definition import full_definition
 

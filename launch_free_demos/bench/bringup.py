@@ -53,7 +53,7 @@ def run_subscriber(topic: str, after: int, timeout: float, stock: bool = False) 
     import rosidl_buffer_py
     from rosidl_buffer_py.nodes.common import run_node
     from rosidl_buffer_py.nodes.frames import check_frame
-    from rosidl_buffer_py.nodes.report import print_report
+    from rosidl_buffer_py.report import print_report
 
     class BringupSubscriber(Node):
         def __init__(self) -> None:

@@ -36,7 +36,7 @@ from typing import Dict, List, Optional
 from launch_free_demos.bench.measured import (
     StealMeter, claim_domain_id, cpu_clock_of, cpu_seconds)
 from launch_free_demos.runner import Run, remove_fastdds_leftovers
-from rosidl_buffer_py.nodes.report import last_report, print_report
+from rosidl_buffer_py.report import last_report, print_report
 from rosidl_buffer_py.tools.bag import BagError, BagReader
 
 TOPIC = '/bench/record'

@@ -18,7 +18,7 @@ from rosidl_buffer_py.nodes.common import (
     QOS_PARAMETERS, Param, ParameterError, backend_stats, bad_parameter, declare_parameters,
     qos_profile, run_node, with_default)
 from rosidl_buffer_py.nodes.frames import pattern, stamp_frame
-from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.report import print_report
 
 SUMMARY = ('Publish verifiable sensor_msgs/Image frames (a counter and a CRC32 in each) from '
            'CPU memory or a buffer backend; image_subscriber checks them.')

@@ -23,7 +23,7 @@ from rosidl_buffer_py.nodes.common import (
     qos_profile, run_node, with_default)
 from rosidl_buffer_py.registry import parse_acceptable_buffer_backends
 from rosidl_buffer_py.nodes.frames import check_frame, latency_ms
-from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.report import print_report
 
 DEFAULT_SENTINEL = '__default__'
 

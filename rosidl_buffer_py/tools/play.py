@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional
 
 from rosidl_buffer_py import _dds, discovery
-from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.report import print_report
 from rosidl_buffer_py.tools.bag import BagError, BagReader, qos_from_yaml
 from rosidl_buffer_py.tools.message_definition import import_message_type
 from rosidl_buffer_py.tools.native_output import native_stdout_to_stderr

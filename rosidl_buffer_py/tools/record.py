@@ -46,7 +46,7 @@ from typing import Dict, List, Optional
 import yaml
 
 from rosidl_buffer_py import _dds, discovery
-from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.report import print_report
 from rosidl_buffer_py.tools.bag import (
     FLUSH_PERIOD_SEC, BagError, BagWriter, Topic, format_size, qos_from_dict)
 from rosidl_buffer_py.tools.message_definition import (

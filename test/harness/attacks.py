@@ -32,7 +32,11 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import List, Optional
+
+if __package__ in (None, ''):  # run as a file: launch_free_demos (not installed) is the
+    sys.path.append(str(Path(__file__).resolve().parents[2]))  # checkout's, after the others
 
 #: The cases, in the order the table lists them.
 CASES = ('control', 'mappings_first', 'backlog', 'junk', 'rejected')

@@ -39,8 +39,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
-if __package__ in (None, ''):  # run as a file: harness is a package of test/
+if __package__ in (None, ''):  # run as a file: harness is a package of test/, and
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    # launch_free_demos (not installed) is the checkout's, after the installed packages
+    sys.path.append(str(Path(__file__).resolve().parents[2]))
 
 from harness.probe_node import PROBE_NODE, SIGNAL_PREFIX  # noqa: E402 (after the path fix)
 from launch_free_demos.domains import claim_domain_ids  # noqa: E402

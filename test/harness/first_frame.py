@@ -29,8 +29,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional
 
-if __package__ in (None, ''):  # run as a file: harness is a package of test/
+if __package__ in (None, ''):  # run as a file: harness is a package of test/, and
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    # launch_free_demos (not installed) is the checkout's, after the installed packages
+    sys.path.append(str(Path(__file__).resolve().parents[2]))
 
 from launch_free_demos.domains import fresh_domain  # noqa: E402 (after the path fix)
 

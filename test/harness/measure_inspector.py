@@ -17,8 +17,10 @@ import sys
 import time
 from pathlib import Path
 
-if __package__ in (None, ''):  # run as a file: harness is a package of test/
+if __package__ in (None, ''):  # run as a file: harness is a package of test/, and
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    # launch_free_demos (not installed) is the checkout's, after the installed packages
+    sys.path.append(str(Path(__file__).resolve().parents[2]))
 
 from harness.installed import executable  # noqa: E402 (after the path fix)
 from harness.scenarios import SMALL  # noqa: E402

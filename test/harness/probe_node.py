@@ -50,7 +50,7 @@ from rclpy.qos import (
 from sensor_msgs.msg import Image
 
 from rosidl_buffer_py.nodes.common import run_node
-from rosidl_buffer_py.nodes.report import print_report
+from rosidl_buffer_py.report import print_report
 
 #: What the process runner starts (``NodeProcess(label, PROBE_NODE, ...)``): this file.
 PROBE_NODE = str(Path(__file__).resolve())

@@ -10,9 +10,13 @@ import re
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Dict, List, Optional
 
-from launch_free_demos.runner import Run
+if __package__ in (None, ''):  # run as a file: launch_free_demos (not installed) is the
+    sys.path.append(str(Path(__file__).resolve().parents[2]))  # checkout's, after the others
+
+from launch_free_demos.runner import Run  # noqa: E402 (after the path fix)
 
 #: Frame size used by the scenarios (small: these check behaviour, the benchmark checks speed).
 SMALL = {'width': 64, 'height': 48, 'encoding': 'rgb8'}

@@ -27,8 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
 
-if __package__ in (None, ''):  # run as a file: harness is a package of test/
+if __package__ in (None, ''):  # run as a file: harness is a package of test/, and
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    # launch_free_demos (not installed) is the checkout's, after the installed packages
+    sys.path.append(str(Path(__file__).resolve().parents[2]))
 
 from harness import equivalence  # noqa: E402 (after the path fix)
 from harness.equivalence import Spread, run_scenario, scenarios, spread  # noqa: E402

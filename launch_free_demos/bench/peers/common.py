@@ -29,7 +29,7 @@ import numpy
 
 from launch_free_demos.bench.stats import percentiles
 
-#: The report line of rosidl_buffer_py.nodes.report (the benchmark reads a peer's as a node's),
+#: The report line of rosidl_buffer_py.report (the benchmark reads a peer's as a node's),
 #: written out here: importing that package would import rclpy, which a peer must not pay.
 REPORT_PREFIX = 'REPORT '
 

@@ -3,7 +3,8 @@
 Every runnable node (``image_publisher``, ``image_subscriber``, ...) and tool (``buffer_record``,
 ``buffer_play``) prints one report as it ends, on stdout, after everything else it prints there.
 The demos, the benchmarks and the tests read it; this module is the whole interface between
-them, and it imports nothing of the package.
+them, and it imports nothing of the package. It sits beside the library, not in :mod:`.nodes`,
+because the nodes and the tools (:mod:`.tools`) both write it.
 
 The line is ``REPORT `` followed by one JSON object on the same line, keys sorted::
 
