@@ -22,7 +22,7 @@ import atexit
 import threading
 import weakref
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional
+from typing import Dict, List, Mapping, Optional, Protocol
 
 from rclpy.logging import get_logger
 
@@ -58,6 +58,17 @@ class PeerEndpoint:
         return EndpointInfo(gid=self.gid, topic_name=ros_topic, endpoint_kind=self.kind)
 
 
+class Watcher(Protocol):
+    """What :meth:`ParticipantDiscovery.watch` dispatches a topic's events to (with the
+    discovery's lock held, on the thread that processes discovery)."""
+
+    def on_peer(self, peer: PeerEndpoint) -> None:
+        """An endpoint of the topic appeared or changed (its advertisement, say)."""
+
+    def on_peer_gone(self, gid: bytes) -> None:
+        """The endpoint ``gid`` of the topic went away."""
+
+
 @dataclass
 class _Watch:
     watchers: 'weakref.WeakSet' = field(default_factory=weakref.WeakSet)
@@ -66,8 +77,7 @@ class _Watch:
 class ParticipantDiscovery:
     """Endpoints of one participant's view of the DDS graph, dispatched to watchers by topic.
 
-    A watcher (a :class:`~rosidl_buffer_py.peers.PeerTable`) implements
-    ``_on_peer(peer: PeerEndpoint)`` and ``_on_peer_gone(gid: bytes)``.
+    A watcher (a :class:`~rosidl_buffer_py.peers.PeerTable`) is a :class:`Watcher`.
     """
 
     def __init__(self, node) -> None:
@@ -86,13 +96,13 @@ class ParticipantDiscovery:
         with self._lock:
             self._nodes.add(node)
 
-    def watch(self, dds_topic: str, watcher) -> List[PeerEndpoint]:
+    def watch(self, dds_topic: str, watcher: Watcher) -> List[PeerEndpoint]:
         """Start dispatching events of ``dds_topic`` to ``watcher``; return the known peers."""
         with self._lock:
             self._watches.setdefault(dds_topic, _Watch()).watchers.add(watcher)
             return [p for p in self._endpoints.values() if p.dds_topic == dds_topic]
 
-    def unwatch(self, dds_topic: str, watcher) -> None:
+    def unwatch(self, dds_topic: str, watcher: Watcher) -> None:
         with self._lock:
             watch = self._watches.get(dds_topic)
             if watch is not None:
@@ -155,9 +165,9 @@ class ParticipantDiscovery:
                 for watcher in list(watch.watchers) if watch else ():
                     try:
                         if peer is not None:
-                            watcher._on_peer(peer)
+                            watcher.on_peer(peer)
                         else:
-                            watcher._on_peer_gone(gid)
+                            watcher.on_peer_gone(gid)
                     except Exception as exc:  # one bad watcher must not starve the others
                         _logger.error(f'discovery dispatch to {watcher!r} failed: '
                                       f'{type(exc).__name__}: {exc}')

@@ -6,9 +6,9 @@ endpoint's topic in :mod:`rosidl_buffer_py.discovery`, keeps one record per buff
 asks the backends which of them can serve each peer, re-announces the endpoint while a peer's
 channel stays unmatched (:class:`~rosidl_buffer_py.reannounce.Reannouncer`) and destroys the
 channels at teardown (at interpreter exit at the latest, see :mod:`rosidl_buffer_py.teardown`).
-What it needs from its owner is a :class:`PeerOwner`, the endpoint's callables for each event
-(not hooks on the rclpy entity); what the owner keeps per peer (routes, streams, counters) stays
-in the owner's records (:class:`PeerRecord`).
+What it needs from its owner is :class:`PeerHandlers`, the endpoint's callables for each event
+(not hooks on the rclpy entity), and its ``announce``; what the owner keeps per peer (routes,
+streams, counters) stays in the owner's records (:class:`PeerRecord`).
 """
 import threading
 import time
@@ -35,17 +35,15 @@ class PeerRecord(Protocol):
 R = TypeVar('R', bound=PeerRecord)
 
 
-class PeerOwner(NamedTuple):
-    """What a :class:`PeerTable` needs from the endpoint that owns it: the endpoint's own
-    callables, one per event (the endpoint builds it from its methods; nothing of it is on the
-    rclpy entity users hold).
+class PeerHandlers(NamedTuple):
+    """What a :class:`PeerTable` does with its owner's records: the owner's own callables, one
+    per event (an endpoint builds them from its methods; nothing of it is on the rclpy entity
+    users hold).
 
     Every one is called with the table's lock held (the owner's lock, shared), on the thread
     that processes discovery (the executor's, or ``publish()``'s when the node is not spun).
     """
 
-    #: ``()``: (re-)set the endpoint's USER_DATA: peers discover, or re-discover, it.
-    announce: Callable[[], None]
     #: ``()``: discovery: an endpoint of the peer kind on the topic appeared or changed, a
     #: legacy one too: what routes a message takes may change.
     peer_seen: Callable[[], None]
@@ -72,12 +70,14 @@ class PeerOwner(NamedTuple):
 class PeerTable(Generic[R]):
     """The buffer-aware peers of one endpoint, and the discovery watch that finds them.
 
-    ``lock`` is the owner's: hold it around every use of the records. :meth:`open` starts
-    watching; :meth:`close` ends it and destroys every channel (once; ``closed`` then).
+    ``lock`` is the owner's: hold it around every use of the records. ``announce()`` (re-)sets
+    the endpoint's USER_DATA (peers discover, or re-discover, it: see the re-announcer).
+    :meth:`open` starts watching; :meth:`close` ends it and destroys every channel (once;
+    ``closed`` then).
     """
 
-    def __init__(self, owner: PeerOwner, node, callback_group, *, lock: threading.RLock,
-                 peer_kind: EndpointKind, topic_name: str, gid: bytes,
+    def __init__(self, owner: PeerHandlers, node, callback_group, *, announce: Callable[[], None],
+                 lock: threading.RLock, peer_kind: EndpointKind, topic_name: str, gid: bytes,
                  backends: Mapping[str, BufferBackend], logger) -> None:
         self.lock = lock
         self.peer_kind = peer_kind
@@ -92,7 +92,7 @@ class PeerTable(Generic[R]):
         self._records: Dict[bytes, R] = {}
         self._discovery = discovery.for_node(node)
         self._discovery_guard = None
-        self.reannouncer = Reannouncer(node, callback_group, self, owner.announce,
+        self.reannouncer = Reannouncer(node, callback_group, self, announce,
                                        owner.channels_checked)
 
     # the records ----------------------------------------------------------------------------
@@ -135,7 +135,7 @@ class PeerTable(Generic[R]):
         teardown.track(self)
         with self.lock:
             for peer in self._discovery.watch(dds_topic(self._topic_name), self):
-                self._on_peer(peer)
+                self.on_peer(peer)
 
     def poll(self) -> None:
         """Process discovery now (for a node no executor spins)."""
@@ -146,12 +146,12 @@ class PeerTable(Generic[R]):
         """Destroy the channels, stop discovery, release the owner (once).
 
         Lock order: discovery dispatch holds the discovery lock and then takes ours
-        (``_on_peer``), so ours is never held while taking the discovery's.
+        (``on_peer``), so ours is never held while taking the discovery's.
         """
         with self.lock:
             if self.closed:
                 return
-            self.closed = True  # from here on _on_peer adds nothing
+            self.closed = True  # from here on on_peer adds nothing
         self._discovery.unwatch(dds_topic(self._topic_name), self)
         if self._discovery_guard is not None:
             self._discovery.remove_wakeup(self._discovery_guard)
@@ -163,9 +163,9 @@ class PeerTable(Generic[R]):
             self._owner.release()
         teardown.untrack(self)
 
-    # discovery (the watcher interface of ParticipantDiscovery) ------------------------------
+    # discovery (a rosidl_buffer_py.discovery.Watcher) ---------------------------------------
 
-    def _on_peer(self, peer: discovery.PeerEndpoint) -> None:
+    def on_peer(self, peer: discovery.PeerEndpoint) -> None:
         """Discovery: an endpoint of our topic appeared or changed its advertisement."""
         if peer.kind is not self.peer_kind:
             return
@@ -196,7 +196,7 @@ class PeerTable(Generic[R]):
             known.backends = dict(peer.backends)
             self._owner.update_peer(known, compatible)
 
-    def _on_peer_gone(self, gid: bytes) -> None:
+    def on_peer_gone(self, gid: bytes) -> None:
         """Discovery: an endpoint of our topic went away."""
         with self.lock:
             self._owner.peer_gone(gid)

@@ -20,14 +20,11 @@ main-topic write and whom it is kept from. Every copy of a message carries the s
 source timestamp, increasing per publisher, so a subscription delivers every message once and in
 publish order (see :mod:`rosidl_buffer_py.subscription`).
 """
-import copy
 import dataclasses
-import threading
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Set, Tuple, Union
-
-import functools
 
 import rclpy.publisher
 from rclpy.duration import Duration
@@ -35,22 +32,23 @@ from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
-from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, codec, control, discovery, routes
 from rosidl_buffer_py._native import (
-    ChannelPublisher, endpoint_gid, exclude_from_next_write, get_user_data,
-    matched_subscription_gids, publish_serialized, remove_write_exclusions, set_user_data,
-    write_message)
+    endpoint_gid, exclude_from_next_write, matched_subscription_gids, publish_serialized,
+    remove_write_exclusions, write_message)
 from rosidl_buffer_py.backend import EndpointGone, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.channel import channel_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
-from rosidl_buffer_py.events import DeadlineMonitor, finite
-from rosidl_buffer_py.message_support import enable_buffer_fields
-from rosidl_buffer_py.registry import get_installed_backends
 from rosidl_buffer_py.diagnostics import PublisherStatistics, SubscriptionPeer
-from rosidl_buffer_py.peers import PeerOwner, PeerTable, destroy_node_entities
+from rosidl_buffer_py.endpoint import (
+    ChannelPeer, EndpointCore, advertise, advertised_backends, buffer_aware, split_deadline)
+from rosidl_buffer_py.message_support import enable_buffer_fields
+from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
+from rosidl_buffer_py.plain import PlainPublisher, check_wait_arguments
 from rosidl_buffer_py.qos import (
     incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
+from rosidl_buffer_py.registry import get_installed_backends
 
 
 #: ``wait_for_all_acked`` that only checks.
@@ -61,19 +59,14 @@ DISCOVERY_POLL_SECONDS = 0.02
 
 
 @dataclass
-class _SubscriptionPeer:
-    """A buffer-aware subscription of our topic, its channel and its route."""
+class _SubscriptionPeer(ChannelPeer):
+    """A buffer-aware subscription of our topic, its channel (a ChannelPublisher) and its
+    route."""
 
-    info: EndpointInfo
-    backends: Dict[str, str]
-    route: routes.Route
+    route: routes.Route = field(kw_only=True)
     compatible: Set[str] = field(default_factory=set)
-    channel: Optional['ChannelPublisher'] = None
-    channel_topic: str = ''
-    created_at: float = 0.0
     sent_descriptor: int = 0
     sent_cpu: int = 0
-    backend_in_use: Optional[str] = None
 
 
 class _RouteView:
@@ -163,40 +156,39 @@ class Publisher(rclpy.publisher.Publisher):
     Create it with :func:`rosidl_buffer_py.create_publisher`. ``publish(msg)`` takes a message
     whose ``uint8[]`` fields (at any depth) hold CPU data (``array.array``, ``bytes``, ...) or
     Buffers (for example ``DemoBuffer``), or already serialized CDR ``bytes``. A type without
-    ``uint8[]`` fields makes a stock publisher (no channels, no advertisement).
+    ``uint8[]`` fields gets a :class:`~rosidl_buffer_py.plain.PlainPublisher` instead.
 
-    Its buffer-aware subscriptions are a :class:`~rosidl_buffer_py.peers.PeerTable` it owns (it
-    is the table's :class:`~rosidl_buffer_py.peers.PeerOwner`); their routes are a
+    What it shares with the subscription (identity, advertisement, its buffer-aware
+    subscriptions as a :class:`~rosidl_buffer_py.peers.PeerTable`, deadline, teardown) is its
+    :class:`~rosidl_buffer_py.endpoint.EndpointCore`; their routes are a
     :class:`~rosidl_buffer_py.routes.RouteTable`.
     """
 
     def __init__(self, publisher_impl, msg_type, topic: str, qos_profile: QoSProfile, *,
                  event_callbacks: PublisherEventCallbacks, callback_group, node) -> None:
-        #: every uint8[] field, at any depth: a type without one is a stock publisher
+        #: every uint8[] field, at any depth
         self._paths = codec.buffer_paths(msg_type)
         enable_buffer_fields(msg_type)
         #: the one top-level uint8[] field when that is all the type has (Image: 'data'),
         #: read directly on the hot path
         self._single = (self._paths[0][0] if len(self._paths) == 1 and len(self._paths[0]) == 1
                         else None)
-        self._transport = _dds.is_supported() and bool(self._paths)
-        deadline_callback = None
-        if self._transport and event_callbacks.deadline and finite(qos_profile.deadline):
-            # counted over every route by a DeadlineMonitor (see rosidl_buffer_py.events)
-            deadline_callback = event_callbacks.deadline
-            event_callbacks = copy.copy(event_callbacks)
-            event_callbacks.deadline = None
-        if self._transport:
-            event_callbacks = incompatible_qos_once_per_peer(
-                event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
-                endpoint_gid(publisher_impl, 'publisher'), topic)
+        # the DataWriter was created disabled (create_publisher): its first announcement
+        # carries the advertisement, and it is enabled as soon as that is set (what runs
+        # meanwhile in other threads, a channel's creation say, waits for nothing of ours)
+        backends = get_installed_backends()
+        advertised = advertised_backends(backends, '')
+        user_data = advertise(publisher_impl, EndpointKind.PUBLISHER, advertised)
+        _dds.enable_created(node, 'publisher')
+        event_callbacks, deadline = split_deadline(event_callbacks, qos_profile)
+        event_callbacks = incompatible_qos_once_per_peer(
+            event_callbacks, node, publisher_impl, EndpointKind.PUBLISHER,
+            endpoint_gid(publisher_impl, 'publisher'), topic)
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._node = node
-        #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
-        self._logger = node.get_logger().get_child('rosidl_buffer_py')
-        self._lock = threading.RLock()
-        self._peers: Optional[PeerTable[_SubscriptionPeer]] = None
+        self._callback_group = callback_group
+        self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
         self._last_timestamp = 0
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
@@ -211,48 +203,27 @@ class Publisher(rclpy.publisher.Publisher):
         self._route_timer = None
         self._peers_added = 0
         self._peers_removed = 0
-        self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
-        if not self._transport:
-            if self._paths:
-                _dds.warn_unsupported('publisher', self._topic_name)
-            return
+        self._polled_at = 0.0
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
         #: joiners receive (as CPU bytes; their channels serve them from then on).
         self._table: routes.RouteTable[bytes] = routes.RouteTable(
             main_always=qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
-        self._callback_group = callback_group
         self._manual_liveliness = qos_profile.liveliness == LivelinessPolicy.MANUAL_BY_TOPIC
-        self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
-                                          callback_group)
-                          if deadline_callback else None)
-        self._gid = endpoint_gid(self, 'publisher')
-        self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.PUBLISHER,
-                                  node.get_name(), node.get_namespace())
-        self._backends = get_installed_backends()
-        advertised = {CPU_BACKEND: ''}
-        advertised.update({name: backend.get_backend_metadata()
-                           for name, backend in self._backends.items() if name != CPU_BACKEND})
-        self._advertised = advertised
         #: RELIABLE KEEP_LAST channels can acknowledge probes (see routes.Route)
         self._handshake = (qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT and
                            qos_profile.history != HistoryPolicy.KEEP_ALL)
-        self._user_data = advertisement.append(
-            get_user_data(self, 'publisher'), advertised)
-        self._peers = PeerTable(
-            PeerOwner(self._announce, self._peer_seen, self._channels_checked, self._add_peer,
-                      self._update_peer, self._forget_peer, self._peer_gone, self._release),
-            node, callback_group, lock=self._lock, peer_kind=EndpointKind.SUBSCRIPTION,
-            topic_name=self._topic_name, gid=self._gid, backends=self._backends,
-            logger=self._logger)
-        self._view = _RouteView(self, self._peers)
-        # the DataWriter is still disabled (create_publisher): its first announcement carries
-        # the advertisement, and it is enabled now
-        self._announce()
-        _dds.enable_created(node, 'publisher')
-        for backend in self._backends.values():
-            backend.on_creating_endpoint(self._info)
-        self._polled_at = 0.0
-        self._peers.open()
+        core = self._core = EndpointCore(
+            node, self, EndpointKind.PUBLISHER, topic_name=self._topic_name, backends=backends,
+            advertised=advertised, user_data=user_data, qos_profile=qos_profile,
+            callback_group=callback_group, deadline=deadline,
+            handlers=PeerHandlers(self._peer_seen, self._channels_checked, self._add_peer,
+                                  self._update_peer, self._forget_peer, self._peer_gone,
+                                  self._release))
+        self._lock = core.lock
+        self._logger = core.logger
+        self._peers: PeerTable[_SubscriptionPeer] = core.peers
+        self._view = _RouteView(self, core.peers)
+        core.open()
 
     # rclpy.publisher.Publisher surface ------------------------------------------------------
 
@@ -272,12 +243,7 @@ class Publisher(rclpy.publisher.Publisher):
         executor spins the node or not (discovery and the routes are moved on here too, as
         ``publish`` does); ``timeout_sec`` None waits forever, 0 only checks.
         """
-        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-            raise ValueError(f'count must be an int of at least 1, got {count!r}')
-        if timeout_sec is not None and not timeout_sec >= 0:
-            raise ValueError(f'timeout_sec must be None or >= 0, got {timeout_sec!r}')
-        if not self._transport:
-            return False  # a stock publisher (unsupported middleware, no uint8[] field)
+        check_wait_arguments(count, timeout_sec)
         deadline = None if timeout_sec is None else time.monotonic() + timeout_sec
         while True:
             now = time.monotonic()
@@ -304,8 +270,6 @@ class Publisher(rclpy.publisher.Publisher):
         deadline = None if timeout.nanoseconds < 0 else time.monotonic() + timeout.nanoseconds / 1e9
         if not super().wait_for_all_acked(timeout):
             return False
-        if not self._transport:
-            return True
         with self._lock:
             channels = [p.channel for p in self._peers if p.channel is not None]
         for channel in channels:
@@ -319,8 +283,7 @@ class Publisher(rclpy.publisher.Publisher):
 
     def destroy(self) -> None:
         """Destroy the channels, then the publisher (``Node.destroy_publisher`` calls this)."""
-        if self._transport:
-            self._peers.close()
+        self._core.close()
         super().destroy()
 
     def publish(self, msg) -> None:
@@ -337,11 +300,6 @@ class Publisher(rclpy.publisher.Publisher):
         else:
             raise TypeError(f'Expected {self.msg_type.__name__} or serialized bytes, '
                             f'got {type(msg).__name__}')
-        if not self._transport:
-            if serialized is None and self._paths and self._buffers_of(msg):
-                serialized = bytes(codec.encode(msg))  # stock rclpy cannot convert a Buffer
-            super().publish(bytes(serialized) if serialized is not None else msg)
-            return
         now = time.monotonic()
         if (now - self._polled_at >= DISCOVERY_POLL_SECONDS and
                 not self._peers.reannouncer.spinning(now)):
@@ -364,8 +322,7 @@ class Publisher(rclpy.publisher.Publisher):
                 self._sent_main += 1
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
-        if self._deadline is not None:
-            self._deadline.activity()
+        self._core.activity()
 
     def _write(self, encoder: '_Encoder', timestamp: int, dispatch: routes.Dispatch) -> None:
         """Write one message as ``dispatch`` says: on its routes' channels (after the route
@@ -486,32 +443,17 @@ class Publisher(rclpy.publisher.Publisher):
 
     def buffer_peers(self) -> List[SubscriptionPeer]:
         """The buffer-aware subscriptions this publisher serves, and how."""
-        if self._peers is None:
-            return []
-        names = self._peers.node_names()
-        with self._lock:
-            return [SubscriptionPeer(
-                gid=peer.info.gid_hex,
-                node=names.get(peer.info.gid, ''),
-                advertised_backends=dict(peer.backends),
-                compatible_backends=sorted(peer.compatible),
-                channel_topic=peer.channel_topic,
-                channel_matched=bool(peer.channel and peer.channel.matched_count()),
-                channel_serving=peer.route.on_channel,
-                route_state=peer.route.state.value,
-                backend_in_use=peer.backend_in_use,
-                sent_as_descriptor=peer.sent_descriptor,
-                sent_as_cpu=peer.sent_cpu,
-            ) for peer in self._peers]
+        return self._core.peer_rows(lambda peer, common: SubscriptionPeer(
+            **common, compatible_backends=sorted(peer.compatible),
+            channel_matched=bool(peer.channel and peer.channel.matched_count()),
+            channel_serving=peer.route.on_channel, route_state=peer.route.state.value,
+            sent_as_descriptor=peer.sent_descriptor, sent_as_cpu=peer.sent_cpu))
 
     def statistics(self) -> PublisherStatistics:
         """Counters: messages written on the main topic, and per-peer counts."""
         with self._lock:
             return PublisherStatistics(
-                gid=self._gid.hex() if self._transport else None,
-                buffer_aware=self._transport,
-                advertised_backends=dict(getattr(self, '_advertised', {})),
-                sent_on_main_topic=self._sent_main,
+                **self._core.identity(), sent_on_main_topic=self._sent_main,
                 main_topic_withheld=self._withheld,
                 cpu_copies_to_buffer_capable_peers=self._cpu_to_capable,
                 peers_added=self._peers_added, peers_removed=self._peers_removed,
@@ -542,7 +484,7 @@ class Publisher(rclpy.publisher.Publisher):
             if vendor not in peer.compatible:
                 continue
             try:
-                descriptor = self._backends[vendor].create_descriptor_with_endpoint(
+                descriptor = self._core.backends[vendor].create_descriptor_with_endpoint(
                     buffer, peer.info)
             except EndpointGone:
                 raise
@@ -555,11 +497,7 @@ class Publisher(rclpy.publisher.Publisher):
                 described.append((path, vendor, descriptor))
         return tuple(described)
 
-    # the PeerOwner protocol (rosidl_buffer_py.peers), under the lock ------------------------
-
-    def _announce(self) -> None:
-        """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        set_user_data(self, 'publisher', self._user_data)
+    # its PeerHandlers (rosidl_buffer_py.endpoint), under the lock --------------------------
 
     def _release(self) -> None:
         if self._exclusions:
@@ -567,15 +505,14 @@ class Publisher(rclpy.publisher.Publisher):
                 remove_write_exclusions(self)
             except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
                 self._logger.debug(f'removing the main-topic exclusions: {exc}')
-        destroy_node_entities(self._node, [
-            self._route_timer, self._deadline and self._deadline.timer], self._logger)
+        destroy_node_entities(self._node, [self._route_timer], self._logger)
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         # backends account per channel: which local publisher serves this peer, and what its
         # reader's history holds (it advertises it with its cpu entry)
-        info = dataclasses.replace(info, local_gid=self._gid,
+        info = dataclasses.replace(info, local_gid=self._core.gid,
                                    history_depth=parse_history_metadata(backends.get(CPU_BACKEND)))
-        topic = channel_topic(self._topic_name, self._gid, info.gid)
+        topic = channel_topic(self._topic_name, self._core.gid, info.gid)
         channel = _dds.create_channel_publisher(self._node, self.msg_type, topic,
                                                 self.qos_profile)
         # the route last: the route table never has a route without its channel
@@ -612,19 +549,23 @@ class Publisher(rclpy.publisher.Publisher):
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,
                      callback_group=None, event_callbacks=None,
-                     qos_overriding_options=None) -> Publisher:
+                     qos_overriding_options=None) -> Union[Publisher, PlainPublisher]:
     """Create a buffer-aware publisher on ``node`` (arguments as ``Node.create_publisher``).
 
     The node owns it like any publisher: ``node.destroy_publisher(pub)`` and
-    ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do.
+    ``node.destroy_node()`` destroy it, and its ``event_callbacks`` fire as rclpy's do. A type
+    that cannot be buffer-aware (:func:`rosidl_buffer_py.endpoint.buffer_aware`) gets a
+    :class:`~rosidl_buffer_py.plain.PlainPublisher`.
     """
+    aware = buffer_aware(msg_type)
     create = functools.partial(
         node.create_publisher, msg_type, topic, qos_profile, callback_group=callback_group,
         event_callbacks=event_callbacks, qos_overriding_options=qos_overriding_options,
-        publisher_class=functools.partial(Publisher, node=node))
-    if not (_dds.is_supported() and codec.buffer_paths(msg_type)):
+        publisher_class=functools.partial(Publisher if aware else PlainPublisher, node=node))
+    if not aware:
         return create()
     discovery.for_node(node)  # the tap goes first: peers re-announce when they see us
-    # created disabled: Publisher.__init__ sets the advertisement, then enables the DataWriter
+    # created disabled: Publisher.__init__ sets the advertisement first, then enables the
+    # DataWriter (the block's end only makes sure, should rclpy fail before that)
     with _dds.created_disabled(node, 'publisher'):
         return create()

@@ -45,7 +45,7 @@ class Reannouncer:
         self._peers = peers
         self._announce = announce
         #: called under the peers' lock after each look at the channels (see
-        #: PeerOwner.channels_checked)
+        #: PeerHandlers.channels_checked)
         self._checked = checked
         self._announced_at = time.monotonic()
         #: peers that were there at an announcement since they appeared

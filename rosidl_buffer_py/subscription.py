@@ -27,8 +27,6 @@ delivers, queues or drops them as it decides.
 Messages of legacy publishers arrive on the main topic only, as with stock.
 """
 import collections
-import copy
-import threading
 import time
 from dataclasses import dataclass
 from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple, Union
@@ -40,21 +38,22 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
 
-from rosidl_buffer_py import _dds, advertisement, codec, control, discovery, routes
+from rosidl_buffer_py import _dds, codec, control, discovery, routes
 from rosidl_buffer_py import rclpy_seams_7_1 as seams
 from rosidl_buffer_py._native import (
-    ChannelSubscription, discard_untaken, endpoint_gid, get_user_data, peek_untaken,
-    set_user_data, take_message_with_gid, take_serialized_with_gid)
+    discard_untaken, endpoint_gid, peek_untaken, take_message_with_gid, take_serialized_with_gid)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import channel_topic
-from rosidl_buffer_py.routes import Outcome
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
-from rosidl_buffer_py.events import DeadlineMonitor, finite
-from rosidl_buffer_py.message_support import enable_buffer_fields
-from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
-from rosidl_buffer_py.peers import PeerOwner, PeerTable, destroy_node_entities
+from rosidl_buffer_py.endpoint import (
+    ChannelPeer, EndpointCore, advertise, advertised_backends, buffer_aware, split_deadline)
+from rosidl_buffer_py.message_support import enable_buffer_fields
+from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
+from rosidl_buffer_py.plain import PlainSubscription
 from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
+from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
+from rosidl_buffer_py.routes import Outcome
 
 
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
@@ -80,17 +79,12 @@ class _Taken(NamedTuple):
 
 
 @dataclass
-class _PublisherPeer:
-    """A buffer-aware publisher of our topic and the channel it serves us on."""
+class _PublisherPeer(ChannelPeer):
+    """A buffer-aware publisher of our topic and the channel (a ChannelSubscription) it serves
+    us on."""
 
-    info: EndpointInfo
-    backends: Dict[str, str]
-    channel: Optional['ChannelSubscription'] = None
-    channel_topic: str = ''
-    created_at: float = 0.0
     received_descriptor: int = 0
     received_cpu: int = 0
-    backend_in_use: Optional[str] = None
     #: The publisher advertises a backend we accept besides CPU: descriptors may come.
     descriptors_possible: bool = False
     #: What its channel had delivered to our reader when the publisher went away.
@@ -189,8 +183,9 @@ class Subscription(rclpy.subscription.Subscription):
     ``(msg, message_info)`` like rclpy's; ``msg.<payload>`` is ``array.array('B')`` for CPU data and
     a Buffer of an accepted backend for descriptor data.
 
-    Its buffer-aware publishers are a :class:`~rosidl_buffer_py.peers.PeerTable` it owns (it is
-    the table's :class:`~rosidl_buffer_py.peers.PeerOwner`); per publisher, a
+    What it shares with the publisher (identity, advertisement, its buffer-aware publishers
+    as a :class:`~rosidl_buffer_py.peers.PeerTable`, deadline, teardown) is its
+    :class:`~rosidl_buffer_py.endpoint.EndpointCore`; per publisher, a
     :class:`~rosidl_buffer_py.routes.Stream` decides what is delivered.
     """
 
@@ -200,9 +195,6 @@ class Subscription(rclpy.subscription.Subscription):
         enable_buffer_fields(msg_type)
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         self._node = node
-        #: the node's logger: what this endpoint logs reaches /rosout, as the node's own lines
-        self._logger = node.get_logger().get_child('rosidl_buffer_py')
-        self._lock = threading.RLock()
         #: one stream per publisher: the route protocol's subscription side
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
             reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
@@ -214,28 +206,20 @@ class Subscription(rclpy.subscription.Subscription):
         self._suspects: Set[bytes] = set()  # publishers whose data C could not deserialize
         # the discovery tap goes first: peers re-announce as soon as they see our endpoint
         discovery.for_node(node)
-        deadline_callback = None
-        if event_callbacks.deadline and finite(qos_profile.deadline):
-            deadline_callback = event_callbacks.deadline  # counted over every route
-            event_callbacks = copy.copy(event_callbacks)
-            event_callbacks.deadline = None
+        event_callbacks, deadline = split_deadline(event_callbacks, qos_profile)
         _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
-        # the main topic's reader: the executor takes through it as through any subscription's
-        # handle, and its takes are this subscription's delivery path (set once it is ready)
-        # created disabled, its advertisement set, then enabled: its first announcement
-        # carries the advertisement (see _dds.created_disabled)
-        backends = get_installed_backends()
-        self._backends = {name: backends[name] for name in self._accepted}
-        self._advertised = {name: backend.get_backend_metadata()
-                            for name, backend in sorted(self._backends.items())}
+        installed = get_installed_backends()
+        backends = {name: installed[name] for name in self._accepted}
         # our history, which DDS discovery does not carry: publishers keep a descriptor's
         # memory while it can still be taken from it (see EndpointInfo.history_depth)
-        self._advertised[CPU_BACKEND] = history_metadata(qos_profile)
+        advertised = advertised_backends(backends, history_metadata(qos_profile))
+        # the main topic's reader: the executor takes through it as through any subscription's
+        # handle, and its takes are this subscription's delivery path (set once it is ready);
+        # created disabled, its advertisement set, then enabled: its first announcement
+        # carries the advertisement (see _dds.created_disabled)
         with _dds.created_disabled(node, 'subscription'):
             reader = seams.delegating_reader(node, msg_type, topic, qos_profile)
-            self._user_data = advertisement.append(
-                get_user_data(reader, 'subscription'), self._advertised)
-            set_user_data(reader, 'subscription', self._user_data)
+            user_data = advertise(reader, EndpointKind.SUBSCRIPTION, advertised)
         event_callbacks = incompatible_qos_once_per_peer(
             event_callbacks, node, reader, EndpointKind.SUBSCRIPTION,
             endpoint_gid(reader, 'subscription'), topic)
@@ -246,25 +230,21 @@ class Subscription(rclpy.subscription.Subscription):
             reader.destroy_when_not_in_use()
             raise
         self._topic_name = reader.get_topic_name()
-        self._gid = endpoint_gid(reader, 'subscription')
-        self._info = EndpointInfo(self._gid, self._topic_name, EndpointKind.SUBSCRIPTION,
-                                  node.get_name(), node.get_namespace())
-        self._peers: PeerTable[_PublisherPeer] = PeerTable(
-            PeerOwner(self._announce, self._peer_seen, self._channels_checked, self._add_peer,
-                      self._update_peer, self._forget_peer, self._peer_gone, self._release),
-            node, callback_group, lock=self._lock, peer_kind=EndpointKind.PUBLISHER,
-            topic_name=self._topic_name, gid=self._gid, backends=self._backends,
-            logger=self._logger)
-        for backend in self._backends.values():
-            backend.on_creating_endpoint(self._info)
-        self._deadline = (DeadlineMonitor(node, qos_profile.deadline, deadline_callback,
-                                          callback_group)
-                          if deadline_callback else None)
+        core = self._core = EndpointCore(
+            node, reader, EndpointKind.SUBSCRIPTION, topic_name=self._topic_name,
+            backends=backends, advertised=advertised, user_data=user_data,
+            qos_profile=qos_profile, callback_group=callback_group, deadline=deadline,
+            handlers=PeerHandlers(self._peer_seen, self._channels_checked, self._add_peer,
+                                  self._update_peer, self._forget_peer, self._peer_gone,
+                                  self._release))
+        self._lock = core.lock
+        self._logger = core.logger
+        self._peers: PeerTable[_PublisherPeer] = core.peers
         self._fence_timer = None
         self._channel_guard = node.create_guard_condition(self._deliver_available,
                                                           callback_group)
         # discovery wakes its own guard (the table's): data wake-ups do not poll discovery
-        self._peers.open()
+        core.open()
         reader.take = self._next  # None once closed: _next checks
 
     # rclpy.subscription.Subscription surface ------------------------------------------------
@@ -282,32 +262,23 @@ class Subscription(rclpy.subscription.Subscription):
     def destroy(self) -> None:
         """Destroy the channels, then the subscription (``Node.destroy_subscription`` calls
         this)."""
-        self._peers.close()
+        self._core.close()
         super().destroy()
 
     # diagnostics ----------------------------------------------------------------------------
 
     def buffer_peers(self) -> List[PublisherPeer]:
         """The buffer-aware publishers serving this subscription, and how."""
-        names = self._peers.node_names()
-        with self._lock:
-            return [PublisherPeer(
-                gid=peer.info.gid_hex,
-                node=names.get(peer.info.gid, ''),
-                advertised_backends=dict(peer.backends),
-                channel_topic=peer.channel_topic,
-                backend_in_use=peer.backend_in_use,
-                received_as_descriptor=peer.received_descriptor,
-                received_as_cpu=peer.received_cpu,
-            ) for peer in self._peers]
+        return self._core.peer_rows(lambda peer, common: PublisherPeer(
+            **common, received_as_descriptor=peer.received_descriptor,
+            received_as_cpu=peer.received_cpu))
 
     def statistics(self) -> SubscriptionStatistics:
         """Counters: delivered, duplicates dropped, rejected descriptors, by route."""
         with self._lock:
             fence_timeouts, fenced_lost = self._streams.fence_counts()
             return SubscriptionStatistics(
-                gid=self._gid.hex(), buffer_aware=True,
-                advertised_backends=dict(self._advertised),
+                **self._core.identity(),
                 **{key: self._counts[key] for key in (
                     'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
                     'rejected', 'fences')},
@@ -362,8 +333,7 @@ class Subscription(rclpy.subscription.Subscription):
 
     def _delivered(self, msg, taken: _Taken) -> Tuple[object, dict]:
         self._counts['delivered'] += 1
-        if self._deadline is not None:
-            self._deadline.activity()
+        self._core.activity()
         return msg, taken.info
 
     def _deliver_available(self) -> None:
@@ -438,7 +408,7 @@ class Subscription(rclpy.subscription.Subscription):
                 peer.received_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
                 return msg
-            decoded = codec.decode(raw, self.msg_type, known_backends=self._backends)
+            decoded = codec.decode(raw, self.msg_type, known_backends=self._core.backends)
             if not decoded.descriptors:
                 if peer is not None:
                     peer.received_cpu += 1
@@ -449,7 +419,7 @@ class Subscription(rclpy.subscription.Subscription):
                     f'descriptors from publisher {taken.publisher_gid.hex()}, which is not a '
                     'discovered buffer-aware publisher')
             for path, (backend, descriptor) in decoded.descriptors.items():
-                codec.set_at(decoded.msg, path, self._backends[backend]
+                codec.set_at(decoded.msg, path, self._core.backends[backend]
                              .from_descriptor_with_endpoint(descriptor, peer.info))
             peer.received_descriptor += 1
             peer.backend_in_use = backend
@@ -458,15 +428,11 @@ class Subscription(rclpy.subscription.Subscription):
             self._reject(taken, f'{type(exc).__name__}: {exc}')
             return None
 
-    # the PeerOwner protocol (rosidl_buffer_py.peers), under the lock ------------------------
-
-    def _announce(self) -> None:
-        """(Re-)set USER_DATA: peers discover, or re-discover, our advertisement."""
-        set_user_data(self.handle, 'subscription', self._user_data)
+    # its PeerHandlers (rosidl_buffer_py.endpoint), under the lock --------------------------
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _PublisherPeer:
         record = _PublisherPeer(info=info, backends=backends)
-        record.channel_topic = channel_topic(self._topic_name, info.gid, self._gid)
+        record.channel_topic = channel_topic(self._topic_name, info.gid, self._core.gid)
         record.channel = _dds.create_channel_subscription(
             self._node, self.msg_type, record.channel_topic, self.qos_profile,
             self._channel_guard)
@@ -477,7 +443,7 @@ class Subscription(rclpy.subscription.Subscription):
         # the others go to the codec. Either way a message of the other kind is still decoded
         # correctly: this only picks the cheaper conversion.
         record.descriptors_possible = any(
-            name != CPU_BACKEND and name in self._backends for name in record.backends)
+            name != CPU_BACKEND and name in self._core.backends for name in record.backends)
         self._poll_channels()
 
     def _poll_channels(self) -> None:
@@ -534,9 +500,7 @@ class Subscription(rclpy.subscription.Subscription):
         self._channels = [p for p in self._channels if p.info.gid != record.info.gid]
 
     def _release(self) -> None:
-        destroy_node_entities(self._node, [
-            self._channel_guard, self._fence_timer, self._deadline and self._deadline.timer],
-            self._logger)
+        destroy_node_entities(self._node, [self._channel_guard, self._fence_timer], self._logger)
 
 
 def create_subscription(node, msg_type, topic: str, callback: Callable,
@@ -575,41 +539,13 @@ def create_subscription(node, msg_type, topic: str, callback: Callable,
     seams.declare_qos_parameters(node, final_topic, qos, qos_overriding_options)
     check_is_valid_msg_type(msg_type)
     event_callbacks = event_callbacks or SubscriptionEventCallbacks()
-    cls = Subscription if _dds.is_supported() and codec.buffer_paths(msg_type) else \
-        _PlainSubscription
+    cls = Subscription if buffer_aware(msg_type) else PlainSubscription
     try:
         sub = cls(node, msg_type, topic, callback, qos, callback_group, event_callbacks,
                   acceptable_buffer_backends)
     except ValueError:
         seams.validate_topic_name(node, topic)  # rclpy's error for a bad name
         raise
-    if cls is _PlainSubscription and codec.buffer_paths(msg_type):
-        _dds.warn_unsupported('subscription', sub.topic_name)
     seams.register_subscription(node, sub, callback_group, sub.event_handlers)
     return sub
 
-
-class _PlainSubscription(rclpy.subscription.Subscription):
-    """What :func:`create_subscription` gives under another rmw: a plain rclpy subscription
-    (CPU bytes only) with the diagnostics surface of :class:`Subscription`."""
-
-    def __init__(self, node, msg_type, topic: str, callback: Callable, qos_profile: QoSProfile,
-                 callback_group, event_callbacks: SubscriptionEventCallbacks,
-                 acceptable_buffer_backends: Optional[str]) -> None:
-        self.acceptable_buffer_backends = parse_acceptable_buffer_backends(
-            acceptable_buffer_backends)
-        _dds.type_support(msg_type)  # imports the type support, as rclpy's create_* do
-        handle = seams.c_subscription(node, msg_type, topic, qos_profile)
-        super().__init__(handle, msg_type, topic, callback, callback_group, qos_profile, False,
-                         event_callbacks=event_callbacks)
-
-    @property
-    def topic_name(self) -> str:
-        with self.handle:
-            return self.handle.get_topic_name()
-
-    def buffer_peers(self) -> List[PublisherPeer]:
-        return []
-
-    def statistics(self) -> SubscriptionStatistics:
-        return SubscriptionStatistics(gid=None, buffer_aware=False, advertised_backends={})

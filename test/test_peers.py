@@ -1,5 +1,5 @@
 """PeerTable and Reannouncer against stand-ins for the node, the discovery and the owner (no DDS):
-the PeerOwner protocol's hooks are called as documented, and teardown happens once."""
+the PeerHandlers are called as documented, and teardown happens once."""
 from dataclasses import dataclass, field
 from typing import Dict, Optional
 import threading
@@ -90,7 +90,7 @@ class Record:
 
 
 class Owner:
-    """A PeerOwner that logs its hooks."""
+    """PeerHandlers (and an announce) that log their calls."""
 
     def __init__(self):
         self.calls, self.table = [], None
@@ -138,7 +138,7 @@ def table(monkeypatch):
     discovery = Discovery()
     monkeypatch.setattr(peers.discovery, 'for_node', lambda node: discovery)
     owner, node, backend = Owner(), Node(), Backend()
-    t = peers.PeerTable(owner, node, None, lock=threading.RLock(),
+    t = peers.PeerTable(owner, node, None, announce=owner.announce, lock=threading.RLock(),
                         peer_kind=EndpointKind.SUBSCRIPTION, topic_name=TOPIC, gid=OWN_GID,
                         backends={'demo': backend}, logger=None)
     owner.table = t
@@ -155,26 +155,26 @@ def test_a_buffer_aware_peer_gets_a_record_and_the_owner_hears_of_it(table):
     t, owner, _, discovery, _ = table
     assert discovery.watching == {'rt' + TOPIC} and discovery.wakeups
     gid = b'\x01' * 16
-    t._on_peer(peer(gid, {'cpu': '', 'demo': 'meta'}))
+    t.on_peer(peer(gid, {'cpu': '', 'demo': 'meta'}))
     # no announcement at once (see test_a_new_peers_unmatched_channel_is_announced_soon)
     assert owner.calls == [('add', gid), ('update', gid, frozenset({'demo'}))]
     assert gid in t and len(t) == 1 and t[gid].created_at > 0
     assert t.reannouncer.timer is not None  # the first peer brings the unmatched check
-    t._on_peer(peer(b'\x02' * 16, {'cpu': ''}, kind=EndpointKind.PUBLISHER))  # other kind
+    t.on_peer(peer(b'\x02' * 16, {'cpu': ''}, kind=EndpointKind.PUBLISHER))  # other kind
     assert owner.seen == 1
-    t._on_peer(peer(b'\x03' * 16))  # a legacy endpoint: no record, yet routes may change
+    t.on_peer(peer(b'\x03' * 16))  # a legacy endpoint: no record, yet routes may change
     assert len(t) == 1 and owner.seen == 2
 
 
 def test_a_withdrawn_or_gone_peer_is_dropped_with_its_channel(table):
     t, owner, _, _, backend = table
     a, b = b'\x01' * 16, b'\x02' * 16
-    t._on_peer(peer(a, {'cpu': ''}, local=True))
-    t._on_peer(peer(b, {'cpu': ''}, local=True))
+    t.on_peer(peer(a, {'cpu': ''}, local=True))
+    t.on_peer(peer(b, {'cpu': ''}, local=True))
     channel_a, channel_b = t[a].channel, t[b].channel
     owner.calls.clear()
-    t._on_peer(peer(a))  # withdrew its advertisement: a legacy endpoint now
-    t._on_peer_gone(b)
+    t.on_peer(peer(a))  # withdrew its advertisement: a legacy endpoint now
+    t.on_peer_gone(b)
     assert owner.calls == [('forget', a), ('gone', b), ('forget', b)]
     assert channel_a.destroyed and channel_b.destroyed and len(t) == 0
     assert backend.removed == [a, b]
@@ -182,13 +182,13 @@ def test_a_withdrawn_or_gone_peer_is_dropped_with_its_channel(table):
 
 def test_close_drops_every_peer_and_releases_the_owner_once(table):
     t, owner, node, discovery, _ = table
-    t._on_peer(peer(b'\x01' * 16, {'cpu': ''}, local=True))
+    t.on_peer(peer(b'\x01' * 16, {'cpu': ''}, local=True))
     t.close()
     t.close()
     assert t.closed and not discovery.watching and not discovery.wakeups
     assert owner.calls.count('release') == 1 and len(t) == 0
     assert t.reannouncer.timer in node.destroyed
-    t._on_peer(peer(b'\x02' * 16, {'cpu': ''}))  # nothing is added after teardown
+    t.on_peer(peer(b'\x02' * 16, {'cpu': ''}))  # nothing is added after teardown
     assert len(t) == 0
 
 
@@ -200,7 +200,7 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner.announce,
                                            owner.channels_checked)
     gid = b'\x01' * 16
-    t._on_peer(peer(gid, {'cpu': ''}, local=True))
+    t.on_peer(peer(gid, {'cpu': ''}, local=True))
     t[gid].created_at = now[0]
     assert not t.reannouncer.spinning(now[0])
     owner.calls.clear()
@@ -227,7 +227,7 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS  # the endpoint is not brand new
     missed, seen = b'\x01' * 16, b'\x02' * 16
     for gid in (missed, seen):
-        t._on_peer(peer(gid, {'cpu': ''}))
+        t.on_peer(peer(gid, {'cpu': ''}))
     assert 'announce' not in owner.calls
     t[seen].channel.matched = 1
     now[0] += reannounce.NEW_PEER_REANNOUNCE_SECONDS / 2
@@ -243,7 +243,7 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     assert owner.calls.count('announce') == 2
     # a peer that appears right after an announcement gets its own, not a second later
     late = b'\x03' * 16
-    t._on_peer(peer(late, {'cpu': ''}))
+    t.on_peer(peer(late, {'cpu': ''}))
     t[late].created_at = now[0]
     now[0] += reannounce.NEW_PEER_REANNOUNCE_SECONDS
     t.reannouncer._on_timer()
