@@ -59,8 +59,8 @@ class ServedEndpoints:
         return gid in self._peers
 
     def ledger(self, endpoint_info: EndpointInfo, token: str) -> EndpointLedger:
-        """The ledger of the peer endpoint (per local publisher when named), its depth
-        refreshed."""
+        """The ledger of the peer endpoint (per local publisher when named), its depth and
+        delivery check refreshed."""
         key = (endpoint_info.gid, endpoint_info.local_gid)
         depth = depth_of(endpoint_info)
         with self._lock:
@@ -69,6 +69,7 @@ class ServedEndpoints:
                 ledger = self._ledgers[key] = EndpointLedger(
                     token, depth, per_channel=key[1] is not None)
         ledger.depth = depth
+        ledger.delivered = endpoint_info.delivered
         return ledger
 
     def summary(self) -> Dict[str, dict]:

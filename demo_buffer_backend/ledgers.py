@@ -5,15 +5,20 @@ publisher when ``EndpointInfo.local_gid`` names it) has an :class:`EndpointLedge
 descriptors in flight, in send order. A descriptor stops pinning its slot (:mod:`.slots`) when
 the endpoint cannot take it any more or has used up its share, never by sending it CPU bytes:
 
-- *KEEP_LAST depth N* (``EndpointInfo.history_depth``): N newer messages on the channel pushed
-  it out of the endpoint's reader history (``released_window``);
+- *KEEP_LAST depth N* (``EndpointInfo.history_depth``): N newer messages on the channel
+  reached the endpoint's reader and pushed it out of its history (``released_window``). That
+  they reached it, ``EndpointInfo.delivered`` tells (DDS acknowledged every sample the channel
+  holds, and the channel holds at least N: the caller says False otherwise); without it, N
+  newer messages sent count. A reader whose process is stopped receives nothing: what its
+  history held stays takeable, and stays reserved until its share is reached;
 - *in order*: the endpoint took a newer one, so it dropped this one (``released_skipped``);
 - *share*: the endpoint has ``endpoint_share`` descriptors (or that part of the pool's bytes:
-  a third, half when its history is known) in flight. When its history is known (it
-  advertises KEEP_LAST N or KEEP_ALL), nothing it can still take is given up: it gets its
-  next messages as CPU bytes until it takes some (:meth:`EndpointLedger.full`;
-  ``cpu_past_share``), so a slow subscriber gets every frame its reader holds, as from stock
-  rclpy, and pins no more of the pool than its share. When its history is not known, its
+  a third, half when its history is known, and for KEEP_LAST N at most 2 N + 4 descriptors)
+  in flight. When its history is known (it advertises KEEP_LAST N or KEEP_ALL), nothing it
+  can still take is given up: it gets its next messages as CPU bytes until it takes some (or,
+  for KEEP_LAST, receives newer ones: :meth:`EndpointLedger.full`; ``cpu_past_share``), so a
+  slow subscriber gets every frame its reader holds, as from stock rclpy, and a stopped one
+  pins no more of the pool than its share. When its history is not known, its
   oldest are given up (``released_share``): it keeps getting descriptors, and a given-up one
   it takes later is refused as stale only if its slot was reused meanwhile;
 - *gone*: the endpoint's process hung up its link: nothing it was sent pins anything (the slots
@@ -24,7 +29,7 @@ endpoints of one process share those counts, which is why the in-order rule appl
 ledger of one channel (``per_channel``).
 """
 import collections
-from typing import Deque, List, NamedTuple, Optional
+from typing import Callable, Deque, List, NamedTuple, Optional
 
 from demo_buffer_backend import limits
 from demo_buffer_backend.diagnostics import Counters
@@ -44,16 +49,18 @@ class EndpointLedger:
 
     ``token``: the endpoint's process. ``depth``: its KEEP_LAST history depth, 0 for KEEP_ALL,
     None when unknown (or when the ledger may see the messages of several channels: not
-    ``per_channel``).
+    ``per_channel``). ``delivered``: whether its reader received everything sent so far
+    (``EndpointInfo.delivered``; None: not known, what was sent counts).
     """
 
-    __slots__ = ('token', 'depth', 'per_channel', 'seq', 'inflight')
+    __slots__ = ('token', 'depth', 'per_channel', 'delivered', 'seq', 'inflight')
 
-    def __init__(self, token: str, depth: Optional[int] = None,
-                 per_channel: bool = True) -> None:
+    def __init__(self, token: str, depth: Optional[int] = None, per_channel: bool = True,
+                 delivered: Optional[Callable[[], bool]] = None) -> None:
         self.token = token
         self.depth = depth
         self.per_channel = per_channel
+        self.delivered = delivered
         self.seq = 0  #: messages described for the endpoint
         self.inflight: Deque[InFlight] = collections.deque()
 
@@ -86,10 +93,16 @@ class EndpointLedger:
                 continue
             kept.append(entry)
         inflight = collections.deque(kept)
-        if self.depth:  # seq is the message being described now
-            while inflight and self.seq - inflight[0].seq >= self.depth:
-                counters.released_window += self._give_up(inflight.popleft())
-        if self.depth is None:  # it may no longer hold its oldest: give them up
+        depth = self.depth
+        if depth and inflight:  # seq is the message being described now
+            if self.delivered is None:  # sent counts: N newer were sent
+                while inflight and self.seq - inflight[0].seq >= depth:
+                    counters.released_window += self._give_up(inflight.popleft())
+            elif self.seq - inflight[0].seq > depth and self.delivered():
+                # everything sent (up to seq - 1) reached its reader: N newer did
+                while inflight and self.seq - inflight[0].seq > depth:
+                    counters.released_window += self._give_up(inflight.popleft())
+        if depth is None:  # it may no longer hold its oldest: give them up
             while inflight and _past_share(inflight, history_known=False):
                 counters.released_share += self._give_up(inflight.popleft())
         self.inflight = inflight
@@ -98,7 +111,7 @@ class EndpointLedger:
         """The endpoint, whose history is known, has its share of the pool in flight, all of it
         still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
         return (self.depth is not None and bool(self.inflight) and
-                _past_share(self.inflight, history_known=True))
+                _past_share(self.inflight, history_known=True, depth=self.depth))
 
     def _give_up(self, entry: InFlight) -> bool:
         """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
@@ -109,8 +122,20 @@ class EndpointLedger:
         return True
 
 
-def _past_share(inflight: Deque[InFlight], history_known: bool) -> bool:
-    """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes)."""
+def _past_share(inflight: Deque[InFlight], history_known: bool, depth: int = 0) -> bool:
+    """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes); for
+    a KEEP_LAST ``depth``, at most :func:`keep_last_share` descriptors."""
     share = limits.current
-    return (len(inflight) >= share.endpoint_share(history_known) or
+    count = share.endpoint_share(history_known)
+    if depth:
+        count = min(count, keep_last_share(depth))
+    return (len(inflight) >= count or
             sum(e.slot.capacity for e in inflight) >= share.endpoint_share_bytes(history_known))
+
+
+def keep_last_share(depth: int) -> int:
+    """Descriptors a KEEP_LAST ``depth`` endpoint may have in flight at most: its history, and
+    as many again plus a few for what is on its way and not yet acknowledged. A reader that
+    keeps receiving frees them as it goes (the window); a stopped one pins no more than this
+    (its later messages go as CPU bytes)."""
+    return 2 * depth + 4

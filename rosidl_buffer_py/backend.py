@@ -6,8 +6,8 @@ Backends are Python classes registered as entry points (see :mod:`rosidl_buffer_
 """
 import enum
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import List, Mapping, Optional, Sequence, Set, Tuple
+from dataclasses import dataclass, field
+from typing import Callable, List, Mapping, Optional, Sequence, Set, Tuple
 
 from rosidl_buffer_py.buffer import Buffer
 
@@ -46,13 +46,16 @@ class EndpointKind(enum.Enum):
 class EndpointInfo:
     """What a backend learns about a local or remote endpoint (rmw_topic_endpoint_info_t).
 
-    Two optional fields (not in upstream) describe a *peer* more closely, for backends that
+    Three optional fields (not in upstream) describe a *peer* more closely, for backends that
     account per channel: ``history_depth``, the peer's QoS history as far as it bounds what it
     can still take (``N > 0`` for KEEP_LAST depth N, ``0`` for KEEP_ALL, ``None`` when unknown),
-    and ``local_gid``, the GID of the local endpoint on whose behalf the backend is called (the
-    publisher whose channel to the peer carries the descriptor). With both, a backend may stop
-    reserving memory for a descriptor that N newer messages on that channel have pushed out of
-    the peer's reader history.
+    ``local_gid``, the GID of the local endpoint on whose behalf the backend is called (the
+    publisher whose channel to the peer carries the descriptor), and ``delivered``, a
+    callable that tells whether the peer's reader has received everything sent to it on that
+    channel so far (``None`` when the caller cannot tell). With them, a backend may stop
+    reserving memory for a descriptor once N newer messages on that channel *reached* the
+    peer's reader and so pushed it out of its history: a stopped process receives nothing, and
+    still holds what it had.
     """
 
     gid: bytes
@@ -62,6 +65,7 @@ class EndpointInfo:
     node_namespace: str = ''
     history_depth: Optional[int] = None
     local_gid: Optional[bytes] = None
+    delivered: Optional[Callable[[], bool]] = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.gid, (bytes, bytearray)) or len(self.gid) != GID_SIZE:

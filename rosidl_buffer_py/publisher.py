@@ -510,17 +510,28 @@ class Publisher(rclpy.publisher.Publisher):
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         # backends account per channel: which local publisher serves this peer, and what its
         # reader's history holds (it advertises it with its cpu entry)
-        info = dataclasses.replace(info, local_gid=self._core.gid,
-                                   history_depth=parse_history_metadata(backends.get(CPU_BACKEND)))
+        depth = parse_history_metadata(backends.get(CPU_BACKEND))
         topic = channel_topic(self._topic_name, self._core.gid, info.gid)
         channel = _dds.create_channel_publisher(self._node, self.msg_type, topic,
                                                 self.qos_profile)
+        info = dataclasses.replace(info, local_gid=self._core.gid, history_depth=depth,
+                                   delivered=self._delivery_check(channel, depth))
         # the route last: the route table never has a route without its channel
         route = self._table.add(info.gid, handshake=self._handshake and reliable_subscription(
             self._node, self._topic_name, info.gid), depth=self.qos_profile.depth)
         self._peers_added += 1
         return _SubscriptionPeer(info=info, backends=backends, route=route, channel=channel,
                                  channel_topic=topic)
+
+    def _delivery_check(self, channel, reader_depth: Optional[int]):
+        """``EndpointInfo.delivered`` of a peer: did everything sent on its channel reach its
+        reader? The channel's acknowledgments tell when the channel holds at least the
+        reader's KEEP_LAST depth (a stopped reader that resumes then receives at least that
+        many newer messages, which push out what it held); a shallower channel cannot."""
+        qos = self.qos_profile
+        if qos.history == HistoryPolicy.KEEP_LAST and reader_depth and qos.depth < reader_depth:
+            return _never
+        return functools.partial(_all_acknowledged, channel)
 
     def _peer_seen(self) -> None:
         # any subscription of our topic coming or changing, legacy ones too, may change routes
@@ -545,6 +556,17 @@ class Publisher(rclpy.publisher.Publisher):
     def _forget_peer(self, record: _SubscriptionPeer) -> None:
         self._peers_removed += 1
         self._table.remove(record.info.gid)
+
+
+def _all_acknowledged(channel) -> bool:
+    try:
+        return channel.wait_for_all_acked(0.0)
+    except _dds.DdsError:  # destroyed: its peer left, and receives nothing more
+        return True
+
+
+def _never() -> bool:
+    return False
 
 
 def create_publisher(node, msg_type, topic: str, qos_profile: Union[QoSProfile, int], *,

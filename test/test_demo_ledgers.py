@@ -1,13 +1,13 @@
 """Unit tests of the demo backend's per-endpoint ledgers (demo_buffer_backend/ledgers.py): what
-an endpoint gives up by its KEEP_LAST window, by taking in order and, when its history is not
-bounded or not known, past its share."""
+an endpoint gives up by its KEEP_LAST window (once newer messages reached its reader), by taking
+in order and, when its history is not bounded or not known, past its share."""
 import os
 
 import pytest
 
 from demo_buffer_backend import limits, memory
 from demo_buffer_backend.diagnostics import Counters
-from demo_buffer_backend.ledgers import EndpointLedger
+from demo_buffer_backend.ledgers import EndpointLedger, keep_last_share
 from demo_buffer_backend.slots import Slot
 
 TOKEN = f'{os.getpid()}_00000000000000aa'
@@ -46,6 +46,25 @@ def test_keep_last_depth_gives_up_what_left_the_readers_history(new_slot):
     assert [e.slot for e in ledger.inflight] == slots[2:]
     assert counters.released_window == 2
     assert [s.released.get(TOKEN, 0) for s in slots] == [1, 1, 0, 0]
+
+
+def test_the_window_waits_until_newer_messages_reached_the_reader(new_slot):
+    """With ``delivered`` (EndpointInfo.delivered), N newer messages must have *reached* the
+    reader: a stopped reader's history still holds what it had, so nothing is given up, and
+    the endpoint is full at its KEEP_LAST share (2 N + 4); once everything sent reached it,
+    what is more than N behind is given up."""
+    reached = [False]
+    ledger, counters = EndpointLedger(TOKEN, depth=1, delivered=lambda: reached[0]), Counters()
+    slots = [new_slot() for _ in range(6)]
+    for slot in slots:
+        _send(ledger, slot, counters)
+    assert [e.slot for e in ledger.inflight] == slots and counters.released_window == 0
+    assert ledger.full() and keep_last_share(1) == 6
+    reached[0] = True  # it resumed and received everything sent (messages 1 to 6)
+    ledger.seq += 1  # describing message 7: 6 stays (its reader may hold it), 1 to 5 go
+    ledger.settle(counters)
+    assert [e.slot for e in ledger.inflight] == slots[5:] and counters.released_window == 5
+    assert not ledger.full()
 
 
 def test_a_newer_take_gives_up_the_older_ones_on_one_channel_only(new_slot):
