@@ -295,10 +295,12 @@ class Probe:
             self.endpoints[eid].destroy()
 
     def step_wait_matched(self, step: dict) -> None:
+        """Until the endpoints matched ``count`` peers: the bound (30 s) only ends a run whose
+        discovery never completes (a stock-only graph once took over 10 s, under load)."""
         ends = [self.endpoints[eid] for eid in step['ids']]
         count = step.get('count', 1)
         self.spin_until(lambda: all(e.matched() >= count for e in ends),
-                        step.get('timeout', 10.0), f'wait_matched {step["ids"]} >= {count}')
+                        step.get('timeout', 30.0), f'wait_matched {step["ids"]} >= {count}')
 
     def step_publish(self, step: dict) -> None:
         ends = [self.endpoints[eid] for eid in step['ids']]
