@@ -19,6 +19,7 @@ subscriber missed (the first 20). It asserts nothing about time.
 """
 import argparse
 import multiprocessing
+import re
 import sys
 import time
 from typing import Dict, List, Tuple
@@ -26,6 +27,12 @@ from typing import Dict, List, Tuple
 from launch_free_demos.runner import NodeProcess, Run
 
 STEADY = {'demo': {'acceptable_buffer_backends': 'demo'}, 'cpu': {}, 'plain': {'legacy': True}}
+
+#: What a steady subscriber logs once it has frames (its summary, every REPORT_SEC).
+FIRST_FRAMES = re.compile(r'\breceived [1-9][0-9]* \(')
+REPORT_SEC = 0.1
+#: How long the steady subscribers may take to get their first frame.
+START_TIMEOUT_SEC = 60.0
 
 #: After the last frame: how long the publisher stays for subscribers still taking, and then
 #: how long the steady subscribers may go on taking what is in flight. A subscriber that got
@@ -40,11 +47,26 @@ def _busy(stop) -> None:
         sum(range(10000))
 
 
+def _wait_for_first_frames(run: Run, labels: List[str]) -> None:
+    """Until each of ``labels`` logged frames (or exited, or START_TIMEOUT_SEC passed: the
+    table then shows what it got)."""
+    deadline = time.monotonic() + START_TIMEOUT_SEC
+    waiting = set(labels)
+    while waiting and time.monotonic() < deadline:
+        for label in list(waiting):
+            node = run.nodes[label]
+            if node.process.poll() is not None or any(
+                    FIRST_FRAMES.search(line) for line in list(node.stderr)):
+                waiting.discard(label)
+        time.sleep(0.05)
+
+
 def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
               come_go: float, kill_every: float) -> Dict[str, object]:
     topic = f'/churn_{"ours" if ours else "stock"}_{time.monotonic_ns()}'
     count = int(seconds * rate)
-    common = {'topic': topic, 'depth': 50, 'timeout_sec': seconds + 60.0}
+    common = {'topic': topic, 'depth': 50, 'timeout_sec': seconds + 60.0,
+              'report_period_sec': REPORT_SEC}
     with Run() as run:
         for label, params in STEADY.items():
             run.start(label, 'image_subscriber', expected_count=count, **common,
@@ -53,6 +75,11 @@ def run_graph(ours: bool, seconds: float, width: int, height: int, rate: float,
                   width=width, height=height, wait_for_subscribers=3, wait_timeout_sec=60.0,
                   linger_sec=DRAIN_SEC, **({'backend': 'demo', 'wait_for_buffer_peers': 2}
                                      if ours else {'legacy': True}))
+        # the churners come once every steady subscriber has frames: the publisher's wait for
+        # three subscriptions (two served on channels) then counts the steady ones in both
+        # graphs. A churner counted instead let the publisher start while a steady one had not
+        # matched, and that one lost the first frames (a volatile reader), in one graph only.
+        _wait_for_first_frames(run, list(STEADY))
         churn = {'acceptable_buffer_backends': 'demo'} if ours else {'legacy': True}
         # label -> (period, how the previous one ends: Ctrl-C or SIGKILL), next start
         churners = {'come_go': (come_go, NodeProcess.stop),
