@@ -95,12 +95,12 @@ class EndpointLedger:
         inflight = collections.deque(kept)
         depth = self.depth
         if depth and inflight:  # seq is the message being described now
-            if self.delivered is None:  # sent counts: N newer were sent
-                while inflight and self.seq - inflight[0].seq >= depth:
-                    counters.released_window += self._give_up(inflight.popleft())
-            elif self.seq - inflight[0].seq > depth and self.delivered():
-                # everything sent (up to seq - 1) reached its reader: N newer did
-                while inflight and self.seq - inflight[0].seq > depth:
+            # what was sent counts (N newer), or, with ``delivered``, what reached the reader:
+            # everything up to seq - 1, so more than N newer must have been sent
+            behind = depth if self.delivered is None else depth + 1
+            if self.seq - inflight[0].seq >= behind and (
+                    self.delivered is None or self.delivered()):
+                while inflight and self.seq - inflight[0].seq >= behind:
                     counters.released_window += self._give_up(inflight.popleft())
         if depth is None:  # it may no longer hold its oldest: give them up
             while inflight and _past_share(inflight, history_known=False):

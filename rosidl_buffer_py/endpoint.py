@@ -101,7 +101,6 @@ class EndpointCore:
                  deadline: Optional[Callable], handlers: PeerHandlers) -> None:
         self.node = node
         self.kind = kind
-        self.topic_name = topic_name
         self.backends = dict(backends)
         self.advertised = dict(advertised)
         #: the node's logger: what the endpoint logs reaches /rosout, as the node's own lines
@@ -136,10 +135,6 @@ class EndpointCore:
     def close(self) -> None:
         """Destroy the channels, stop discovery, release what the endpoint holds (once)."""
         self.peers.close()
-
-    @property
-    def closed(self) -> bool:
-        return self.peers.closed
 
     def peer_rows(self, row: Callable[[Any, Dict[str, Any]], T]) -> List[T]:
         """``row(record, common)`` for each peer, for diagnostics; ``common`` holds the fields

@@ -558,7 +558,11 @@ PyObject * install_discovery(PyObject *, PyObject * node_arg)
   return PyBool_FromLong(created);
 }
 
-PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
+/// `change(reg, participant, &error)` under the registry's lock, for the node's participant;
+/// the pins of a tap it detached (with `detach_tap`) are released once the lock is let go.
+/// Returns its bool, or raises what it set in `error`.
+template<typename F>
+PyObject * change_listener(PyObject * node_arg, F && change)
 {
   PinnedHandle node;
   dds::DomainParticipant * participant = participant_of(node_arg, &node);
@@ -567,55 +571,62 @@ PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
   }
   PendingError error;
   std::vector<PinnedHandle *> pins;
-  const bool removed = with_registry([&](Registry & reg) {
-    auto it = reg.taps.find(participant);
-    if (it == reg.taps.end()) {
-      return false;
-    }
-    DiscoveryTap * tap = it->second;
-    std::string why;
-    if (participant->get_listener() == tap &&
-      !rbpy_dds::rmw_private::set_participant_listener(participant, tap->original(), &why))
-    {
-      error.set(DdsError, "cannot give rmw its participant listener back: " + why);
-      return false;
-    }
-    pins = tap->detach();  // the tap itself stays allocated: a late callback is harmless
-    reg.taps.erase(it);
-    return true;
+  const bool changed = with_registry([&](Registry & reg) {
+    return change(reg, participant, &error, &pins);
   });
   release_pins(pins);
-  return error ? error.raise() : PyBool_FromLong(removed);
+  return error ? error.raise() : PyBool_FromLong(changed);
+}
+
+/// Forget the participant's tap, if any: its queue and wakeups go (their pins into `pins`); the
+/// tap itself stays allocated, so a late callback is harmless.
+void detach_tap(Registry & reg, dds::DomainParticipant * participant,
+  std::vector<PinnedHandle *> * pins)
+{
+  auto it = reg.taps.find(participant);
+  if (it != reg.taps.end()) {
+    *pins = it->second->detach();
+    reg.taps.erase(it);
+  }
+}
+
+PyObject * uninstall_discovery(PyObject *, PyObject * node_arg)
+{
+  return change_listener(node_arg, [](Registry & reg, dds::DomainParticipant * participant,
+    PendingError * error, std::vector<PinnedHandle *> * pins) {
+      auto it = reg.taps.find(participant);
+      if (it == reg.taps.end()) {
+        return false;
+      }
+      std::string why;
+      if (participant->get_listener() == it->second &&
+        !rbpy_dds::rmw_private::set_participant_listener(participant, it->second->original(),
+        &why))
+      {
+        error->set(DdsError, "cannot give rmw its participant listener back: " + why);
+        return false;
+      }
+      detach_tap(reg, participant, pins);
+      return true;
+    });
 }
 
 PyObject * silence_discovery(PyObject *, PyObject * node_arg)
 {
-  PinnedHandle node;
-  dds::DomainParticipant * participant = participant_of(node_arg, &node);
-  if (participant == nullptr) {
-    return nullptr;
-  }
-  PendingError error;
-  std::vector<PinnedHandle *> pins;
-  const bool silenced = with_registry([&](Registry & reg) {
-    if (reg.silenced.count(participant) != 0 && participant->get_listener() == nullptr) {
-      return false;
-    }
-    std::string why;
-    if (!rbpy_dds::rmw_private::set_participant_listener(participant, nullptr, &why)) {
-      error.set(DdsError, "cannot stop the participant's discovery listener: " + why);
-      return false;
-    }
-    auto it = reg.taps.find(participant);
-    if (it != reg.taps.end()) {
-      pins = it->second->detach();  // the tap stays allocated: a late callback is harmless
-      reg.taps.erase(it);
-    }
-    reg.silenced.insert(participant);
-    return true;
-  });
-  release_pins(pins);
-  return error ? error.raise() : PyBool_FromLong(silenced);
+  return change_listener(node_arg, [](Registry & reg, dds::DomainParticipant * participant,
+    PendingError * error, std::vector<PinnedHandle *> * pins) {
+      if (reg.silenced.count(participant) != 0 && participant->get_listener() == nullptr) {
+        return false;
+      }
+      std::string why;
+      if (!rbpy_dds::rmw_private::set_participant_listener(participant, nullptr, &why)) {
+        error->set(DdsError, "cannot stop the participant's discovery listener: " + why);
+        return false;
+      }
+      detach_tap(reg, participant, pins);
+      reg.silenced.insert(participant);
+      return true;
+    });
 }
 
 /// The events `read` returns from the node's tap (installed first; GIL released meanwhile).
