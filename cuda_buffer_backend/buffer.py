@@ -186,6 +186,21 @@ class CudaBuffer(Buffer):
             return False
         return lifecycle.get_pool(self.device).renew(self._pin, timeout)
 
+    def wait_released(self, timeout: Optional[float] = None) -> bool:
+        """Wait until every subscriber is done with this published buffer (as :meth:`renew`,
+        their reads on the GPU complete), without making it a new frame: True once they are,
+        False when ``timeout`` seconds passed first (0: only checks). Private memory is never
+        shared: True at once. A received buffer: False."""
+        if self._pin is None:
+            return self._hold is None
+        return lifecycle.get_pool(self.device).released(self._pin, timeout)
+
+    @property
+    def released(self) -> bool:
+        """Whether every subscriber is done with this published buffer now
+        (``wait_released(0)``), as pyzmq's ``MessageTracker.done``."""
+        return self.wait_released(0)
+
     # --- synchronization -------------------------------------------------------------------------
     def _export_to(self, handle: int) -> None:
         """The consumer's stream ``handle`` is about to read (or, publisher side, write)."""

@@ -112,6 +112,22 @@ class DemoBuffer(Buffer):
             return False
         return lifecycle.get_pool().renew(self._pin, timeout)
 
+    def wait_released(self, timeout: Optional[float] = None) -> bool:
+        """Wait until every subscriber is done with this published buffer, as :meth:`renew`
+        does, without making it a new frame: True once they are (free it, or hand it back to
+        a pool of your own), False when ``timeout`` seconds passed first (0: only checks).
+        Private memory is never shared: True at once. A received buffer: False (it is not
+        this process's to track)."""
+        if self._pin is None:
+            return self._hold is None
+        return lifecycle.get_pool().released(self._pin, timeout)
+
+    @property
+    def released(self) -> bool:
+        """Whether every subscriber is done with this published buffer now
+        (``wait_released(0)``), as pyzmq's ``MessageTracker.done``."""
+        return self.wait_released(0)
+
     @property
     def in_shm(self) -> bool:
         """True when the bytes live in a shared-memory slot (False: private fallback memory,

@@ -26,7 +26,7 @@ what a process holds the kernel frees with it.
 """
 import os
 import time
-from typing import Any, Optional, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -41,7 +41,8 @@ from demo_buffer_backend.porter import Porter
 from demo_buffer_backend.slots import Pin, Slot, Slots
 
 
-#: How often :meth:`Pool.renew` looks again: from the first pause up to the last (seconds).
+#: How often :meth:`Pool.renew` and :meth:`Pool.released` look again: from the first pause up
+#: to the last (seconds).
 RENEW_POLL_SECONDS = (0.0005, 0.01)
 
 
@@ -50,7 +51,8 @@ class Pool:
 
     - publisher side: :meth:`allocate` (a slot for a new buffer), :meth:`describe` (a
       descriptor of it for one endpoint), :meth:`decline` (count a buffer sent as CPU bytes),
-      :meth:`renew` (the same slot for a new frame, once its subscribers are done with it);
+      :meth:`renew` (the same slot for a new frame, once its subscribers are done with it),
+      :meth:`released` (whether they are);
     - subscriber side: :meth:`advertise` (listen; our token), :meth:`expect` and
       :meth:`forget` (the matched publishers discovery shows), :meth:`open_descriptor` (a view
       of what a descriptor names), :meth:`sweep` (take handovers, close unused segments);
@@ -179,11 +181,30 @@ class Pool:
 
     def renew(self, pin: Pin, timeout: Optional[float]) -> bool:
         """Make ``pin``'s slot a new generation, for the publisher to write a new frame into
-        the same memory: once every descriptor of its current generation is settled (taken,
-        given up, or sent to a process that hung up) and no subscriber holds a view of it (for
-        a medium read asynchronously: its reads are complete). Waits up to ``timeout`` seconds
-        (None: for ever) without the guard; False when that passed first, or the pin is
-        stale. Descriptors of the old generation are refused as stale from then on."""
+        the same memory, once it is :meth:`released`. Waits up to ``timeout`` seconds (None:
+        for ever) without the guard; False when that passed first, or the pin is stale.
+        Descriptors of the old generation are refused as stale from then on."""
+        def renewed(slot: Slot) -> bool:
+            if not self.slots.renew(slot, pin.size, self.links.gone):
+                return False
+            pin.generation = slot.generation
+            pin.packed = None
+            return True
+        return self._wait(pin, timeout, renewed)
+
+    def released(self, pin: Pin, timeout: Optional[float]) -> bool:
+        """Whether subscribers are done with what ``pin`` published: every descriptor of its
+        generation settled (taken, given up, or sent to a process that hung up) and no
+        subscriber holding a view of it (for a medium read asynchronously: its reads are
+        complete). Waits up to ``timeout`` seconds (None: for ever; 0: only checks) without
+        the guard; False when that passed first, or the pin is stale."""
+        return self._wait(pin, timeout, lambda slot: self.slots.released(slot, self.links.gone))
+
+    def _wait(self, pin: Pin, timeout: Optional[float], done: Callable[[Slot], bool]) -> bool:
+        """Poll ``done`` on ``pin``'s current slot under the guard until it is true, backing off
+        between polls; False once ``timeout`` passed or the pin went stale."""
+        if timeout is not None and not timeout >= 0:
+            raise ValueError(f'timeout must be None (for ever) or >= 0 seconds, got {timeout!r}')
         deadline = None if timeout is None else time.monotonic() + timeout
         pause = RENEW_POLL_SECONDS[0]
         while True:
@@ -192,9 +213,7 @@ class Pool:
                 if self.closed or pin.owner is not self.slots or not slot.current(pin.generation):
                     return False
                 self.links.drain_all()  # takes acknowledged meanwhile
-                if self.slots.renew(slot, pin.size, self.links.gone):
-                    pin.generation = slot.generation
-                    pin.packed = None
+                if done(slot):
                     return True
             if deadline is not None and time.monotonic() >= deadline:
                 return False

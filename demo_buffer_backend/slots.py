@@ -177,12 +177,21 @@ class Slots:
             return None  # some process holds views of it
         return pinning
 
+    def released(self, slot: Slot, gone: AbstractSet[str]) -> bool:
+        """Whether subscribers are done with a slot's current generation: every descriptor of
+        it settled (``gone``: tokens of processes that hung up) and no reader holding a view
+        (the exclusive lock can be taken)."""
+        if slot.closed or slot.pinning(gone) > 0:
+            return False
+        if not memory.try_lock(slot.segment.fd, exclusive=True):
+            return False  # some process holds views of it
+        memory.unlock(slot.segment.fd)
+        return True
+
     def renew(self, slot: Slot, nbytes: int, gone: AbstractSet[str]) -> bool:
-        """Start a new generation of a slot that its one pin (the caller's) keeps: when every
-        descriptor of the current one is settled (``gone``: tokens of processes that hung up)
-        and no reader holds a view (the exclusive lock). False when some subscriber may still
-        take or read it."""
-        if slot.closed or slot.pins != 1 or slot.pinning(gone) > 0:
+        """Start a new generation of a slot that its one pin (the caller's) keeps, once it is
+        :meth:`released`. False when some subscriber may still take or read it."""
+        if slot.pins != 1 or slot.closed or slot.pinning(gone) > 0:
             return False
         if not memory.try_lock(slot.segment.fd, exclusive=True):
             return False  # some process holds views of it

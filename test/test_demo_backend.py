@@ -956,3 +956,31 @@ def test_renew_waits_until_subscribers_are_done_then_gives_a_new_frame_in_the_sa
     assert numpy.asarray(again)[0] == 2 and again.segment == segment
     assert not again.renew()  # a received buffer is not the subscriber's to renew
     assert not DemoBuffer(bytearray(4)).renew()  # private memory: nothing to wait for
+
+
+def test_wait_released_says_when_subscribers_are_done_and_leaves_the_frame_as_it_is(backend):
+    """A publisher that only wants to know (pyzmq's MessageTracker): wait_released() is False
+    while a descriptor is in flight or a view is held, True once both are gone, and the
+    buffer stays the same frame (no new generation: its descriptor still opens)."""
+    ep = _endpoint()
+    buf = DemoBuffer.allocate(1 << 16)
+    generation = buf.generation
+    assert buf.released  # never described: nobody to wait for
+    numpy.asarray(buf)[:] = 3
+    first = backend.create_descriptor_with_endpoint(buf, ep)
+    assert not buf.released and not buf.wait_released(timeout=0.05)  # in flight
+    got = backend.from_descriptor_with_endpoint(first, ep)
+    assert not buf.wait_released(timeout=0.05)  # taken, a view of it held
+    del got
+    gc.collect()
+    start = time.monotonic()
+    assert buf.wait_released(timeout=5.0) and buf.released
+    assert time.monotonic() - start < 5.0
+    assert buf.generation == generation  # not renewed
+    again = backend.from_descriptor_with_endpoint(
+        backend.create_descriptor_with_endpoint(buf, ep), ep)
+    assert numpy.asarray(again)[0] == 3 and not buf.released
+    assert not again.wait_released(0) and not again.released  # received: not ours to track
+    assert DemoBuffer(bytearray(4)).released  # private memory is never shared
+    with pytest.raises(ValueError, match='timeout'):
+        buf.wait_released(timeout=-1)

@@ -404,6 +404,7 @@ def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
     assert vout.strip() == "('DemoBuffer', (2160, 3840, 3), 0) ('DemoBuffer', (2160, 3840, 3), " \
         "29)", vout + verr[-2000:]
     assert 'sent_on_main_topic=0,' in cout, cout  # print(pub.statistics())
+    assert cout.splitlines()[-1] == 'True', cout  # the viewer released the last frame
 
 
 def test_camera_publishes_for_a_plain_subscriber_alone(tmp_path):
