@@ -87,6 +87,8 @@ class _PublisherPeer(ChannelPeer):
     received_cpu: int = 0
     #: The publisher advertises a backend we accept besides CPU: descriptors may come.
     descriptors_possible: bool = False
+    #: Its messages were said (once) to arrive as CPU copies where zero-copy was on offer.
+    copies_said: bool = False
     #: What its channel had delivered to our reader when the publisher went away.
     departed: Optional[Deque[_Taken]] = None
 
@@ -303,9 +305,11 @@ class Subscription(rclpy.subscription.Subscription):
                     if outcome is not Outcome.DELIVER:
                         self._counts['duplicates_dropped'] += 1
                         continue
-                    msg = self._decode(taken, self._peers.get(taken.publisher_gid))
+                    peer = self._peers.get(taken.publisher_gid)
+                    msg = self._decode(taken, peer)
                     if msg is None:
                         continue
+                    self._say_copies(peer, on_channel=False)
                     if self._streams.any_holding:
                         self._wake()  # it may open a fence: the channel guard delivers the rest
                     return self._delivered(msg, taken)
@@ -328,8 +332,34 @@ class Subscription(rclpy.subscription.Subscription):
                     continue
                 msg = self._decode(taken, step.channel)
                 if msg is not None:
+                    self._say_copies(step.channel, on_channel=True)
                     return self._delivered(msg, taken)
             return None
+
+    def _say_copies(self, peer: Optional[_PublisherPeer], on_channel: bool) -> None:
+        """Say once per publisher, in the node's log, that its messages arrive as CPU copies
+        although it offers a backend: because this subscription does not accept it, or because
+        the publisher sent CPU data on a channel that could carry descriptors. Copies before a
+        channel serves us are the documented start-up, not said."""
+        if peer is None or peer.copies_said or peer.backend_in_use != CPU_BACKEND:
+            return
+        offered = sorted(name for name in peer.backends if name != CPU_BACKEND)
+        if not offered:
+            return  # a CPU-only publisher: copies are all it sends
+        if not peer.descriptors_possible:
+            why = (f'it offers {", ".join(offered)} and this subscription accepts '
+                   f'{", ".join(sorted(self._accepted))} (acceptable_buffer_backends='
+                   f'{offered[0]!r} or \'any\' takes them zero-copy)')
+        elif on_channel:
+            common = ", ".join(n for n in offered if n in self._core.backends)
+            why = (f'its channel could carry {common} descriptors, but the publisher sent CPU '
+                   f'data (a payload not in {common} memory, or one its backend could not '
+                   "describe: see the publisher's log)")
+        else:
+            return
+        peer.copies_said = True
+        self._logger.info(f'messages on {self._topic_name} from publisher {peer.info.gid_hex} '
+                          f'arrive as CPU copies, not zero-copy: {why}')
 
     def _delivered(self, msg, taken: _Taken) -> Tuple[object, dict]:
         self._counts['delivered'] += 1
