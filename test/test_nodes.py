@@ -78,6 +78,8 @@ def test_ros_args_parameters_and_every_script_runs():
     assert report['node'] == 'short_pub' and report['published'] == 3, report
     assert report['params']['backend'] == 'demo' and report['params']['width'] == 16
     assert report['params']['encoding'] == 'mono8'
+    assert 'publishing 3 frames of 16x' in err and 'mono8 on /' in err, err
+    assert 'with backend demo (allocate)' in err and 'published 3 frames' in err, err
     code, out, err = _run([str(executable('legacy_image_publisher'))] + _short_publisher_args())
     assert code == 0, err
     assert _report(out)['params']['legacy'] is True
@@ -97,7 +99,7 @@ NODE_PARAMETERS = {
     'image_publisher': ['topic', 'backend', 'fill', 'width', 'height', 'encoding', 'rate_hz',
                         'count', 'reliability', 'depth', 'wait_for_subscribers',
                         'wait_for_buffer_peers', 'wait_timeout_sec', 'settle_sec', 'linger_sec',
-                        'first_frame', 'phase_sec', 'legacy'],
+                        'first_frame', 'phase_sec', 'legacy', 'report_period_sec'],
     'image_subscriber': ['topic', 'acceptable_buffer_backends', 'expected_backend',
                          'expected_count', 'timeout_sec', 'reliability', 'depth', 'legacy', 'raw',
                          'report_period_sec'],

@@ -53,6 +53,8 @@ PARAMETERS = (
           '(1 / rate_hz) == phase_sec; -1 = off'),
     Param('legacy', False, 'publish with a plain rclpy publisher (no rosidl_buffer_py); only '
           'backend cpu'),
+    Param('report_period_sec', 5.0, 'log a summary line this often while publishing; 0 = '
+          'never', minimum=0),
 )
 
 
@@ -105,6 +107,7 @@ class ImagePublisher(Node):
         self.backend = None if p['backend'] == 'cpu' else rosidl_buffer_py.get_backend(
             p['backend'])
         self.published = 0
+        self.get_logger().info(self.start_line())
 
     def make_frame(self, counter: int) -> Image:
         p = self.params
@@ -124,6 +127,28 @@ class ImagePublisher(Node):
         stamp_frame(msg, counter, flat)
         return msg
 
+    def start_line(self) -> str:
+        """What this publisher sends, where, and what it waits for, said once at start."""
+        p = self.params
+        how = 'a plain rclpy publisher' if p['legacy'] else f"backend {p['backend']}" + (
+            f" ({p['fill']})" if p['backend'] != 'cpu' else '')
+        rate = f"{p['rate_hz']:g} Hz" if p['rate_hz'] > 0 else 'as fast as possible'
+        count = f"{p['count']} frames" if p['count'] else 'frames until stopped'
+        waits = [f"{p['wait_for_subscribers']} subscriptions"] if p['wait_for_subscribers'] \
+            else []
+        if p['wait_for_buffer_peers']:
+            waits.append(f"{p['wait_for_buffer_peers']} served on descriptor channels")
+        waiting = (f"; waiting up to {p['wait_timeout_sec']:g} s for " + ' and '.join(waits)
+                   if waits else '')
+        return (f"publishing {count} of {p['width']}x{p['height']} {p['encoding']} on "
+                f"{self.publisher.topic_name} at {rate} with {how}{waiting}")
+
+    def log_summary(self) -> None:
+        """Cheap on purpose (no statistics query): frames so far and who is matched."""
+        self.get_logger().info(
+            f'published {self.published} frames; {self.publisher.get_subscription_count()} '
+            f'subscriptions matched, {self.served_buffer_peers()} served on descriptor channels')
+
     def served_buffer_peers(self) -> int:
         if not hasattr(self.publisher, 'buffer_peers'):
             return 0
@@ -142,6 +167,9 @@ class ImagePublisher(Node):
                                    f"{p['wait_timeout_sec']} s; peers: "
                                    f"{getattr(self.publisher, 'buffer_peers', list)()}")
             rclpy.spin_once(self, timeout_sec=0.05)
+        if p['report_period_sec'] > 0:
+            self.log_summary()  # what it waited for is there: frames start
+            self.create_timer(p['report_period_sec'], self.log_summary)
         settle_until = time.monotonic() + p['settle_sec']
         while time.monotonic() < settle_until:
             rclpy.spin_once(self, timeout_sec=0.05)
@@ -157,6 +185,8 @@ class ImagePublisher(Node):
             self.published += 1
             next_time += period
             self.spin_until(next_time)
+        if p['report_period_sec'] > 0:
+            self.log_summary()
         linger_until = time.monotonic() + p['linger_sec']
         while self.publisher.get_subscription_count() > 0 and time.monotonic() < linger_until:
             rclpy.spin_once(self, timeout_sec=0.05)
