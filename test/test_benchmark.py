@@ -195,6 +195,26 @@ def test_bench_mixed_prints_cpu_per_frame_of_every_process_of_every_graph():
                 float(cell.split()[0])  # a number of ms (it may be negative for so few frames)
 
 
+def test_bench_mixed_threads_splits_the_demo_subscriber_by_thread():
+    """./dev bench mixed --threads, small and short, with the publisher's two-subscriber graph:
+    a row per graph, the executor's thread and Fast DDS's receive threads among the columns,
+    each cell CPU ms / wake-ups per frame."""
+    completed = subprocess.run(
+        [sys.executable, '-m', 'launch_free_demos.bench.mixed', '--threads', '--graphs',
+         'pure 2,mixed', '--payload', '64x48', '--frames', '14', '--rounds', '1'],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    header = rows.pop('graph')
+    assert set(rows) == {'pure 2', 'mixed'}, completed.stdout
+    assert header[0] == 'total CPU' and header[1] == 'main', completed.stdout
+    assert any(name.startswith('dds.shm') for name in header), completed.stdout
+    for cells in rows.values():
+        float(cells[0])
+        cpu, wakes = cells[1].split(' / ')
+        float(cpu), int(wakes)
+
+
 def test_under_churn_on_a_loaded_machine_steady_subscribers_get_what_stocks_get_zero_copy():
     """Issue #19's churn and load scenarios, stock as the oracle: bench_churn's graph (a
     subscriber coming and going, one SIGKILLed, two busy processes holding both cores), once

@@ -10,6 +10,8 @@ Graphs, each a demo publisher (frames filled in place) of ``--payload`` at ``--r
   plain subscriber): what the same graph costs without this package;
 - ``cpu``, ``cpu mixed``: ``pure`` and ``mixed`` with a publisher of CPU frames (the
   buffer-aware subscriber then gets whole frames on its channel; its column is still "demo");
+- ``pure 2``, ``pure 4``: ``pure`` with 2 and 4 subscribers accepting ``demo`` (the
+  publisher's column: what each more zero-copy subscriber costs it);
 - ``neighbour``: ``pure``, with a stock publisher and a plain subscriber of the same frames on
   *another* topic: the machine as loaded as in ``mixed`` (two more processes copying 25 MB
   frames, on 2 cores), with nothing shared. What ``mixed`` costs the demo subscriber beyond this
@@ -22,7 +24,12 @@ with ``--frames`` and with ``--frames`` + ``--extra`` frames, and each process's
 by ``--extra``. Every frame is checked (counter and CRC32) by every subscriber. It prints a
 table; it asserts nothing about time.
 
-``python -m launch_free_demos.bench.mixed [--payload 3840x2160] [--rate 10] [--rounds 2]``
+``--threads`` shows instead where the demo subscriber's CPU goes, by thread (the executor,
+Fast DDS's receive and event threads) with their wake-ups per frame: what a legacy listener's
+traffic costs it, thread by thread.
+
+``python -m launch_free_demos.bench.mixed [--payload 3840x2160] [--rate 10] [--rounds 2]
+[--threads]``
 """
 import argparse
 import os
@@ -53,6 +60,15 @@ GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
     'cpu mixed': [('demo_sub', 'image_subscriber', {}),
                   ('plain_sub', 'legacy_image_subscriber', {}),
                   ('pub', 'image_publisher', {'backend': 'cpu', 'wait_for_buffer_peers': 1})],
+    # the publisher's cost in the number of zero-copy subscribers (1: pure)
+    'pure 2': [*[(f'demo_sub{n}', 'image_subscriber', {'acceptable_buffer_backends': 'demo'})
+                 for n in ('', '2')],
+               ('pub', 'image_publisher', {'backend': 'demo', 'fill': 'allocate',
+                                           'wait_for_buffer_peers': 2})],
+    'pure 4': [*[(f'demo_sub{n}', 'image_subscriber', {'acceptable_buffer_backends': 'demo'})
+                 for n in ('', '2', '3', '4')],
+               ('pub', 'image_publisher', {'backend': 'demo', 'fill': 'allocate',
+                                           'wait_for_buffer_peers': 4})],
     'neighbour': [('demo_sub', 'image_subscriber', {'acceptable_buffer_backends': 'demo'}),
                   ('plain_sub', 'legacy_image_subscriber', {'topic_suffix': '_neighbour'}),
                   ('neighbour_pub', 'legacy_image_publisher', {'topic_suffix': '_neighbour'}),
@@ -150,6 +166,113 @@ def run_latency(graph: str, width: int, height: int, frames: int, rate: float, d
     return result
 
 
+#: Clock ticks per second of /proc/<pid>/task/<tid>/stat's CPU times.
+_TICKS = os.sysconf('SC_CLK_TCK')
+
+
+def thread_sample(pid: int) -> Dict[str, Tuple[float, int]]:
+    """Per thread of ``pid``: (group name, CPU seconds, voluntary context switches). Fast DDS
+    names its threads (``dds.shm.<port>``, ``dds.udp.<port>``, ``dds.ev.<n>``...): the group is
+    the name without its number; the main thread is ``main``, other unnamed ones ``python``."""
+    sample = {}
+    try:
+        tids = os.listdir(f'/proc/{pid}/task')
+    except OSError:
+        return sample
+    for tid in tids:
+        try:
+            with open(f'/proc/{pid}/task/{tid}/stat') as f:
+                stat = f.read()
+            with open(f'/proc/{pid}/task/{tid}/comm') as f:
+                name = f.read().strip()
+            with open(f'/proc/{pid}/task/{tid}/status') as f:
+                switches = next(int(line.split()[1]) for line in f
+                                if line.startswith('voluntary_ctxt_switches'))
+        except (OSError, StopIteration):
+            continue
+        fields = stat[stat.rindex(')') + 2:].split()
+        group = 'main' if int(tid) == pid else name.rstrip('0123456789').rstrip('.') or name
+        sample[tid] = (group, (int(fields[11]) + int(fields[12])) / _TICKS, switches)
+    return sample
+
+
+def run_threads(graph: str, width: int, height: int, frames: int, rate: float,
+                topic: str) -> Dict[str, Tuple[float, float]]:
+    """The demo subscriber's threads over one run of ``graph``: per thread group, CPU ms and
+    wake-ups (voluntary context switches) per frame, between its 5th frame and 3 frames
+    before the last (start-up and teardown left out)."""
+    nodes = GRAPHS[graph]
+    with MeasuredRun() as run:
+        started = {}
+        for label, executable, params in nodes:
+            params = dict(params)
+            suffix = params.pop('topic_suffix', '')
+            subscribers = sum(1 for _, exe, other in nodes if exe.endswith('subscriber')
+                              and other.get('topic_suffix', '') == suffix)
+            params.update(topic=topic + suffix, width=width, height=height, encoding='rgb8',
+                          depth=10)
+            if executable.endswith('publisher'):
+                params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
+                              wait_timeout_sec=30.0, linger_sec=3.0)
+            else:
+                params.update(expected_count=frames, timeout_sec=60.0 + frames / rate,
+                              report_period_sec=0.2)
+            started[label] = run.start(label, executable, **params)
+        sub = started['demo_sub']
+
+        def frames_now() -> int:
+            sub.read_log()
+            return sub.distinct_now()
+
+        deadline = time.monotonic() + 90.0 + frames / rate
+        while frames_now() < 5 and time.monotonic() < deadline and not sub.try_reap():
+            time.sleep(0.02)
+        first, first_frames = thread_sample(sub.process.pid), frames_now()
+        while frames_now() < frames - 3 and time.monotonic() < deadline and not sub.try_reap():
+            time.sleep(0.02)
+        last, last_frames = thread_sample(sub.process.pid), frames_now()
+        while not all([node.try_reap() for node in started.values()]) and \
+                time.monotonic() < deadline:
+            time.sleep(0.05)
+        run.stop_all()
+    counted = last_frames - first_frames
+    if counted < 1:
+        raise RuntimeError(f'{graph}: the demo subscriber got no frames to measure between its '
+                           f'5th and its {frames - 3}th of {frames}')
+    groups: Dict[str, List[float]] = {}
+    for tid, (group, cpu, switches) in last.items():
+        _, cpu0, switches0 = first.get(tid, (group, 0.0, 0))
+        totals = groups.setdefault(group, [0.0, 0.0])
+        totals[0] += (cpu - cpu0) * 1000.0 / counted
+        totals[1] += (switches - switches0) / counted
+    return {group: (cpu, wakes) for group, (cpu, wakes) in groups.items()}
+
+
+def threads_table(results: Dict[str, List[Dict[str, Tuple[float, float]]]],
+                  graphs: List[str], payload: str, rate: float, frames: int) -> str:
+    """A markdown table: per graph, the demo subscriber's CPU and wake-ups per frame by thread
+    group (medians over rounds)."""
+    groups = sorted({g for runs in results.values() for run in runs for g in run},
+                    key=lambda g: (g != 'main', g))
+    lines = [f'The demo subscriber\'s threads, {payload} rgb8 at {rate:g} Hz, {frames} frames '
+             'per run: CPU ms / wake-ups per frame (median of the runs; wake-ups are voluntary '
+             'context switches). main: the executor and callbacks (its CRC32 of every frame '
+             'included); dds.*: Fast DDS\'s threads.\n',
+             '| graph | total CPU | ' + ' | '.join(groups) + ' |',
+             '|---|---|' + '---|' * len(groups)]
+    for graph in graphs:
+        runs = results.get(graph, [])
+        total = statistics.median(sum(c for c, _ in run.values()) for run in runs)
+        cells = []
+        for group in groups:
+            values = [run[group] for run in runs if group in run]
+            cells.append('-' if not values else
+                         f'{statistics.median(c for c, _ in values):.2f} / '
+                         f'{statistics.median(w for _, w in values):.0f}')
+        lines.append(f'| {graph} | {total:.2f} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
+
+
 def latency_table(results: Dict[str, List[Dict[str, dict]]], graphs: List[str], payload: str,
                   rate: float, frames: int, depth: int) -> str:
     """A markdown table: per graph and run, the demo and plain subscribers' latencies."""
@@ -224,6 +347,10 @@ def main(argv=None) -> int:
                         help='measure latency instead of CPU: --frames frames per run, each '
                         'graph --rounds times (interleaved), at --depth')
     parser.add_argument('--depth', type=int, default=10, help='QoS depth (with --latency)')
+    parser.add_argument('--threads', action='store_true',
+                        help="the demo subscriber's CPU and wake-ups per frame by thread "
+                        '(Fast DDS threads apart) instead of each process\'s CPU: --frames '
+                        'frames per run, each graph --rounds times (interleaved)')
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.payload.split('x'))
     graphs = [g.strip() for g in args.graphs.split(',') if g.strip()]
@@ -243,6 +370,15 @@ def main(argv=None) -> int:
                 print(f'bench_mixed: {graph}: {run}', file=sys.stderr, flush=True)
                 results.setdefault(graph, []).append(run)
         print(latency_table(results, graphs, args.payload, args.rate, args.frames, args.depth))
+        return 0
+    if args.threads:
+        by_thread: Dict[str, List[Dict[str, Tuple[float, float]]]] = {}
+        for serial in range(args.rounds * len(graphs)):
+            graph = graphs[serial % len(graphs)]
+            topic = f'/bench_mixed_{os.getpid()}/{graph.replace(" ", "_")}_t{serial}'
+            by_thread.setdefault(graph, []).append(
+                run_threads(graph, width, height, args.frames, args.rate, topic))
+        print(threads_table(by_thread, graphs, args.payload, args.rate, args.frames))
         return 0
     per_frame = measure(width, height, args.rate, args.frames, args.extra, args.rounds, graphs)
     print(table(per_frame, graphs, args.payload, args.rate, args.frames, args.extra,
