@@ -373,17 +373,39 @@ def _write_snippet(directory, name):
 
 
 def _popen(command, **kwargs):
+    # faulthandler: a process stopped at the timeout prints every thread's Python stack
+    env = dict(kwargs.pop('env', None) or os.environ, PYTHONFAULTHANDLER='1')
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, **kwargs)
+                            start_new_session=True, env=env, **kwargs)
+
+
+class _Stuck(AssertionError):
+    """A documented program did not end in time; carries what each one printed."""
 
 
 def _communicate_all(processes, timeout):
-    """Wait for every process (killed at the timeout); return their (code, out, err)."""
+    """Wait for every process; return their (code, out, err). One still running at the
+    timeout gets SIGABRT (its faulthandler prints its threads' stacks), and the test fails
+    with every process's last output."""
+    deadline = time.monotonic() + timeout
     results = []
     try:
         for process in processes:
-            out, err = process.communicate(timeout=timeout)
+            out, err = process.communicate(timeout=max(0.1, deadline - time.monotonic()))
             results.append((process.returncode, out, err))
+    except subprocess.TimeoutExpired:
+        report = []
+        for process in processes:
+            if process.poll() is None:
+                process.send_signal(signal.SIGABRT)
+            try:
+                out, err = process.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                out, err = process.communicate()
+            report.append(f'--- {process.args} (exit {process.returncode}):\n'
+                          f'{(out or "")[-1000:]}\n{(err or "")[-4000:]}')
+        raise _Stuck(f'not done in {timeout} s:\n' + '\n'.join(report)) from None
     finally:
         for process in processes:
             if process.poll() is None:
