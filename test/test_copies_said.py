@@ -2,11 +2,12 @@
 copies although the publisher offers zero-copy (#29: "a fallback to copies is said once"), and
 says nothing when they arrive zero-copy. Publisher and subscriber are separate processes over
 Fast DDS."""
-import subprocess
 import sys
 import textwrap
 
 import pytest
+
+from harness.stuck import communicate_all, popen
 
 FRAMES = 20
 
@@ -56,18 +57,17 @@ def test_copies_are_said_once_per_publisher(tmp_path, published, accepted, said)
     script = tmp_path / 'copies.py'
     script.write_text(_SCRIPT)
     topic = f'/copies_{published}_{accepted}'
-    sub = subprocess.Popen([sys.executable, str(script), 'sub', topic, accepted, str(FRAMES)],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    sub = popen([sys.executable, str(script), 'sub', topic, accepted, str(FRAMES)])
     try:
         assert sub.stdout.readline().strip() == 'subscribed'
-        pub = subprocess.run([sys.executable, str(script), 'pub', topic, published,
-                              str(FRAMES)], capture_output=True, text=True, timeout=90)
-        out, err = sub.communicate(timeout=90)
-    finally:
+    except BaseException:
         sub.kill()
-        sub.wait()
-    assert pub.returncode == 0, pub.stderr[-2000:]
-    assert sub.returncode == 0, err[-2000:]
+        sub.communicate()
+        raise
+    pub = popen([sys.executable, str(script), 'pub', topic, published, str(FRAMES)])
+    (pcode, _, perr), (scode, out, err) = communicate_all([pub, sub], 90)
+    assert pcode == 0, perr[-2000:]
+    assert scode == 0, err[-2000:]
     kind = 'DemoBuffer' if said is None else 'array'
     assert out.strip() == f"['{kind}'] True", (out, err[-2000:])
     lines = [line for line in err.splitlines() if 'arrive as CPU copies' in line]

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from harness.installed import executable, in_dev_venv
+from harness.stuck import communicate_all, popen
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The documents whose commands and programs are run: README.md, then docs/*.md.
@@ -64,6 +65,10 @@ COVERAGE = {
     # run_latency, the measurement this command prints per run, on the mixed graph
     './dev bench mixed --latency --graphs pure,mixed --payload 640x480 --rate 30 --frames 600':
         'test_mixed_latency.py',
+    './dev bench mixed --threads': 'test_benchmark.py',   # two graphs, small frames
+    './dev bench mixed --graphs mixed --rounds 2': 'test_benchmark.py',  # one graph of the same
+    # the hotpath benchmark's own module, as the A B rounds of benchmarks.md ran it per tree
+    'python -m launch_free_demos.bench.hotpath --frames 40 --rate 10': 'test_benchmark.py',
     './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
     './dev bench record': 'test_record.py',               # 1 s of small frames
     './dev bench churn': 'test_benchmark.py',             # 4 s of 640x480, 2 busy processes
@@ -373,45 +378,13 @@ def _write_snippet(directory, name):
 
 
 def _popen(command, **kwargs):
-    # faulthandler: a process stopped at the timeout prints every thread's Python stack
-    env = dict(kwargs.pop('env', None) or os.environ, PYTHONFAULTHANDLER='1')
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, env=env, **kwargs)
-
-
-class _Stuck(AssertionError):
-    """A documented program did not end in time; carries what each one printed."""
+    return popen(command, **kwargs)
 
 
 def _communicate_all(processes, timeout):
-    """Wait for every process; return their (code, out, err). One still running at the
-    timeout gets SIGABRT (its faulthandler prints its threads' stacks), and the test fails
-    with every process's last output."""
-    deadline = time.monotonic() + timeout
-    results = []
-    try:
-        for process in processes:
-            out, err = process.communicate(timeout=max(0.1, deadline - time.monotonic()))
-            results.append((process.returncode, out, err))
-    except subprocess.TimeoutExpired:
-        report = []
-        for process in processes:
-            if process.poll() is None:
-                process.send_signal(signal.SIGABRT)
-            try:
-                out, err = process.communicate(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                out, err = process.communicate()
-            report.append(f'--- {process.args} (exit {process.returncode}):\n'
-                          f'{(out or "")[-1000:]}\n{(err or "")[-4000:]}')
-        raise _Stuck(f'not done in {timeout} s:\n' + '\n'.join(report)) from None
-    finally:
-        for process in processes:
-            if process.poll() is None:
-                process.kill()
-                process.communicate()
-    return results
+    """Wait for every process; their (code, out, err) (:func:`harness.stuck.communicate_all`:
+    one still running at the timeout prints its stacks, and the test fails)."""
+    return communicate_all(processes, timeout)
 
 
 def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
