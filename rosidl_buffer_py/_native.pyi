@@ -182,6 +182,11 @@ def silence_discovery(node: _Entity) -> bool:
     bounded waits for running callbacks; True if this call did it. For shutdown and exit."""
 
 
+def silence_discovery_if_last_node(node: _Entity) -> bool:
+    """:func:`silence_discovery` when ``node`` is the only node of its context (rmw destroys
+    the participant with it); False, nothing done, while other nodes share it."""
+
+
 # channels -----------------------------------------------------------------------------------
 
 class ChannelPublisher:

@@ -13,12 +13,15 @@ appeared, then once a second, see :mod:`rosidl_buffer_py.reannounce`); the peer 
 'changed' event. Nothing else re-announces: each re-announce makes DDS re-check
 matching at every peer, and stock endpoints with incompatible QoS report it again.
 
-When the context shuts down, and at interpreter exit, the participant stops listening to
-discovery (``_native.silence_discovery``): rmw destroys a participant with an unbounded wait for
+When the context's last node is destroyed (rmw destroys the participant with it, in
+``destroy_node()``, before the context shuts down), when the context shuts down, and at
+interpreter exit, the participant stops listening to discovery
+(``_native.silence_discovery``): rmw destroys a participant with an unbounded wait for
 running discovery callbacks that can spin forever in the PyPI build of Fast DDS (see
 src/native/README.md, "Discovery tap"), and a participant that no longer listens has none.
 """
 import atexit
+import functools
 import threading
 import weakref
 from dataclasses import dataclass, field
@@ -27,8 +30,10 @@ from typing import Dict, List, Mapping, Optional, Protocol
 from rclpy.logging import get_logger
 
 from rosidl_buffer_py import _dds, advertisement
+from rosidl_buffer_py import rclpy_seams_7_1 as seams
 from rosidl_buffer_py._native import (
-    add_discovery_wakeup, install_discovery, remove_discovery_wakeup, silence_discovery)
+    add_discovery_wakeup, install_discovery, remove_discovery_wakeup, silence_discovery,
+    silence_discovery_if_last_node)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
 from rosidl_buffer_py.channel import is_channel_topic
 
@@ -125,6 +130,27 @@ class ParticipantDiscovery:
         except Exception as exc:  # the participant may already be gone at shutdown
             _logger.debug(f'remove_discovery_wakeup: {exc}')
 
+    def nodes(self) -> List:
+        """The live nodes of this participant that use it."""
+        with self._lock:
+            return list(self._nodes)
+
+    def silence_if_last(self, node) -> None:
+        """:meth:`silence`, when ``node`` is the last node of the participant's context: rmw
+        destroys the participant with it, waiting without bound for running discovery
+        callbacks (see the module docstring)."""
+        with self._lock:
+            if self._silenced:
+                return
+            try:
+                if not silence_discovery_if_last_node(node):
+                    return
+            except Exception as exc:  # the node's handle is gone already
+                _logger.debug(f'silence_discovery_if_last_node: {exc}')
+                return
+            self._silenced = True
+        _forget(self)
+
     def silence(self) -> None:
         """The participant stops listening to discovery (its context shut down, or the process
         exits); nothing is dispatched from now on."""
@@ -199,9 +225,14 @@ def for_node(node) -> ParticipantDiscovery:
             discovery = ParticipantDiscovery(node)
             _by_context[node.context] = discovery
             node.context.on_shutdown(discovery.silence)  # held weakly by the context
+        elif node in discovery.nodes():
+            return discovery
         else:
             discovery.attach_node(node)
-        return discovery
+    # rmw destroys the participant with the context's last node, in destroy_node(), before
+    # the context shuts down: it stops listening first if this node is that last one
+    seams.before_node_handle_destroyed(node, functools.partial(discovery.silence_if_last, node))
+    return discovery
 
 
 def registered() -> List[ParticipantDiscovery]:

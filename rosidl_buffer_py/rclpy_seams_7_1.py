@@ -112,3 +112,24 @@ def delegating_reader(node, msg_type, topic: str, qos: QoSProfile) -> Delegating
 def is_c_endpoint(endpoint, kind: str) -> bool:
     """Whether ``endpoint`` is rclpy's C publisher or subscription (``kind``)."""
     return isinstance(endpoint, _rclpy.Publisher if kind == 'publisher' else _rclpy.Subscription)
+
+
+def before_node_handle_destroyed(node, callback: Callable[[], None]) -> None:
+    """Call ``callback()`` in ``node.destroy_node()`` after the node's endpoints are destroyed
+    and before its rcl node is (rmw destroys the context's participant with its last node).
+
+    rclpy 7.1's ``Node.destroy_node`` destroys publishers, subscriptions, clients, services,
+    timers, then guard conditions (each through its ``destroy()``), then the node's handle: a
+    guard condition of ours whose ``destroy`` runs ``callback`` first is that point. It never
+    triggers, so executors never call it.
+    """
+    guard = node.create_guard_condition(lambda: None)
+    destroy = guard.destroy
+
+    def destroy_after_callback() -> None:
+        try:
+            callback()
+        finally:
+            destroy()
+
+    guard.destroy = destroy_after_callback

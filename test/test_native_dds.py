@@ -1004,6 +1004,31 @@ def test_context_shutdown_and_exit_silence_the_participant(ctx, tmp_path):
     assert done.stdout.splitlines() == ['STATS True', "STATS {'installed': False}"]
 
 
+def test_the_last_node_destroyed_silences_the_participant_first(ctx):
+    """rmw destroys the context's participant with its last node, inside destroy_node(), with
+    the unbounded wait the context's shutdown avoids: the participant stops listening before,
+    and only then (another node keeps rmw's graph and the tap)."""
+    from rosidl_buffer_py import create_publisher, create_subscription, discovery
+    first, second = _node(ctx, 'last_node_a'), _node(ctx, 'last_node_b')
+    topic = '/' + _unique('last_node')
+    create_publisher(first, Image, topic, 10)
+    create_subscription(second, Image, topic, print, 10)
+    tap = discovery.for_node(second)
+    assert _native.silence_discovery_if_last_node(first) is False  # two nodes share it
+    assert _native.discovery_stats(second)['installed']
+    first.destroy_node()
+    assert _native.discovery_stats(second)['installed']  # the other node still listens
+    assert tap in discovery.registered()
+    assert second.count_publishers(topic) == 0  # rmw's graph saw the publisher go
+    second.destroy_node()  # the last one: silenced, then rmw destroys the participant
+    assert tap not in discovery.registered()
+    third = _node(ctx, 'last_node_c')  # a new participant of the same context: a new tap
+    create_publisher(third, Image, topic, 10)
+    assert _native.discovery_stats(third)['installed']
+    assert discovery.for_node(third) is not tap
+    third.destroy_node()
+
+
 def test_interpreter_exit_without_cleanup():
     peer = Peer('linger')
     try:

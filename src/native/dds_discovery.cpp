@@ -8,6 +8,7 @@
 //   remove_discovery_wakeup(guard_condition) -> bool
 //   discovery_stats(node) -> dict
 //   silence_discovery(node) -> bool              (the participant stops listening: shutdown)
+//   silence_discovery_if_last_node(node) -> bool (the same, when node is its context's last)
 //
 // event = (kind 'writer'|'reader', status 'discovered'|'changed'|'removed'|'ignored'|'known',
 //          gid: bytes[16], topic: str (DDS name, 'rt/...'), type_name: str, user_data: bytes,
@@ -629,6 +630,23 @@ PyObject * silence_discovery(PyObject *, PyObject * node_arg)
     });
 }
 
+PyObject * silence_discovery_if_last_node(PyObject *, PyObject * node_arg)
+{
+  PinnedHandle pin;
+  if (pin.acquire(node_arg, "node") < 0) {
+    return nullptr;
+  }
+  rmw_node_t * node = fastrtps_handle(pin.get(), rcl_node_get_rmw_handle, "node");
+  if (node == nullptr) {
+    return nullptr;
+  }
+  std::string why;
+  if (!rbpy_dds::rmw_private::only_node_of_context(node, &why)) {
+    Py_RETURN_FALSE;  // other nodes share the participant, or rmw's context is not verified
+  }
+  return silence_discovery(nullptr, node_arg);
+}
+
 /// The events `read` returns from the node's tap (installed first; GIL released meanwhile).
 PyObject * events_of(PyObject * node_arg, std::vector<EndpointEvent> (DiscoveryTap::* read)())
 {
@@ -746,6 +764,11 @@ PyMethodDef discovery_functions[] = {
     "remove_discovery_wakeup(guard_condition) -> bool\n\n"
     "Stop triggering it (on every participant) and unpin it; once this returns it is never\n"
     "triggered again. Works after rclpy was asked to destroy the guard condition."),
+  RBPY_FUNCTION(silence_discovery_if_last_node, METH_O,
+    "silence_discovery_if_last_node(node) -> bool\n\n"
+    "silence_discovery(node) when node is the only node of its context, which rmw destroys\n"
+    "the participant with (its unbounded set_listener wait then finds nothing running);\n"
+    "False, nothing done, while other nodes share the participant."),
   RBPY_FUNCTION(silence_discovery, METH_O,
     "silence_discovery(node) -> bool\n\n"
     "Stop the node's participant listening to discovery (rmw's graph listener and the tap),\n"

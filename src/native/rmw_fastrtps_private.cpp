@@ -18,7 +18,10 @@
 //   custom_participant_info.hpp: rmw_context_impl_s::participant_info, a CustomParticipantInfo
 //   whose subscriber_ is the one Subscriber rmw creates every DataReader with (read to adjust
 //   the default DataReaderQos around a channel subscription's creation, dds_channels.cpp), and
-//   publisher_ the one Publisher of every DataWriter;
+//   publisher_ the one Publisher of every DataWriter; and rmw_context_impl_s::count, the
+//   context's node count, under its mutex: rmw_fastrtps_shared_cpp/src/
+//   init_rmw_context_impl.cpp destroys the participant when it drops to 0
+//   (only_node_of_context);
 // - Fast DDS's installed Entity.hpp: the protected `enable_` flag of a Publisher or Subscriber,
 //   which PublisherImpl::create_datawriter and SubscriberImpl::create_datareader read (with
 //   autoenable_created_entities) to enable what they create, and which only set_qos reads
@@ -312,6 +315,15 @@ eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::s
 {
   CustomParticipantInfo * info = participant_info_of(node, error);
   return info == nullptr ? nullptr : info->subscriber_;
+}
+
+bool only_node_of_context(rmw_node_t * node, std::string * error)
+{
+  if (participant_info_of(node, error) == nullptr) {  // verified, and the node's own context
+    return false;
+  }
+  std::lock_guard<std::mutex> lock(node->context->impl->mutex);
+  return node->context->impl->count == 1;
 }
 
 bool hold_enabling(rmw_node_t * node, bool writers, bool hold, std::string * error)

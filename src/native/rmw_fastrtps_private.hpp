@@ -105,6 +105,11 @@ eprosima::fastdds::dds::Subscriber * rmw_subscriber_of(rmw_node_t * node, std::s
 /// when Fast DDS refuses to enable one.
 bool hold_enabling(rmw_node_t * node, bool writers, bool hold, std::string * error);
 
+/// Whether `node` is the only node of its context: rmw_fastrtps destroys the context's
+/// participant when that node is destroyed (rmw_context_impl_s::count, the nodes' reference
+/// count, read under the context's mutex). False with *error when not verified.
+bool only_node_of_context(rmw_node_t * node, std::string * error);
+
 }  // namespace rmw_private
 }  // namespace rbpy_dds
 
