@@ -77,25 +77,36 @@ GRAPHS: Dict[str, List[Tuple[str, str, dict]]] = {
 }
 
 
+def start_graph(run: MeasuredRun, graph: str, width: int, height: int, frames: int,
+                rate: float, topic: str, depth: int, **subscriber_params) -> Dict[str, object]:
+    """Start ``graph``'s nodes in ``run``, subscribers first: ``frames`` frames at ``rate`` Hz
+    on ``topic`` (plus each node's suffix), every publisher waiting for its topic's
+    subscribers. Their MeasuredNodes by label."""
+    nodes = GRAPHS[graph]
+    started = {}
+    for label, executable, params in nodes:
+        params = dict(params)
+        suffix = params.pop('topic_suffix', '')
+        subscribers = sum(1 for _, exe, other in nodes if exe.endswith('subscriber')
+                          and other.get('topic_suffix', '') == suffix)
+        params.update(topic=topic + suffix, width=width, height=height, encoding='rgb8',
+                      depth=depth)
+        if executable.endswith('publisher'):
+            params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
+                          wait_timeout_sec=30.0, linger_sec=3.0)
+        else:
+            params.update(expected_count=frames, timeout_sec=60.0 + frames / rate,
+                          **subscriber_params)
+        started[label] = run.start(label, executable, **params)
+    return started
+
+
 def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
               topic: str) -> Dict[str, float]:
     """CPU seconds of each process for one run of ``frames`` frames; also checks delivery."""
     nodes = GRAPHS[graph]
     with MeasuredRun() as run:
-        started = {}
-        for label, executable, params in nodes:
-            params = dict(params)
-            suffix = params.pop('topic_suffix', '')
-            subscribers = sum(1 for _, exe, other in nodes if exe.endswith('subscriber')
-                              and other.get('topic_suffix', '') == suffix)
-            params.update(topic=topic + suffix, width=width, height=height, encoding='rgb8',
-                          depth=frames)
-            if executable.endswith('publisher'):
-                params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
-                              wait_timeout_sec=30.0, linger_sec=3.0)
-            else:
-                params.update(expected_count=frames, timeout_sec=60.0 + frames / rate)
-            started[label] = run.start(label, executable, **params)
+        started = start_graph(run, graph, width, height, frames, rate, topic, depth=frames)
         deadline = time.monotonic() + 90.0 + frames / rate
         while not all([node.try_reap() for node in started.values()]) and \
                 time.monotonic() < deadline:
@@ -201,23 +212,9 @@ def run_threads(graph: str, width: int, height: int, frames: int, rate: float,
     """The demo subscriber's threads over one run of ``graph``: per thread group, CPU ms and
     wake-ups (voluntary context switches) per frame, between its 5th frame and 3 frames
     before the last (start-up and teardown left out)."""
-    nodes = GRAPHS[graph]
     with MeasuredRun() as run:
-        started = {}
-        for label, executable, params in nodes:
-            params = dict(params)
-            suffix = params.pop('topic_suffix', '')
-            subscribers = sum(1 for _, exe, other in nodes if exe.endswith('subscriber')
-                              and other.get('topic_suffix', '') == suffix)
-            params.update(topic=topic + suffix, width=width, height=height, encoding='rgb8',
-                          depth=10)
-            if executable.endswith('publisher'):
-                params.update(count=frames, rate_hz=rate, wait_for_subscribers=subscribers,
-                              wait_timeout_sec=30.0, linger_sec=3.0)
-            else:
-                params.update(expected_count=frames, timeout_sec=60.0 + frames / rate,
+        started = start_graph(run, graph, width, height, frames, rate, topic, depth=10,
                               report_period_sec=0.2)
-            started[label] = run.start(label, executable, **params)
         sub = started['demo_sub']
 
         def frames_now() -> int:
