@@ -10,7 +10,9 @@ microsecond each). Prints:
 - the latency split at the DDS timestamps: from the frame's stamp (taken right before
   ``publish()``) to its reception by the subscriber's DataReader (the publisher's work and DDS),
   and from there to the start of the callback (the subscriber's wake-up, take and delivery);
-- every timed stage's time per message (its total over the run / the messages);
+- every timed stage's time per message (its total over the run / the messages), from the
+  moment the route is up (the publisher once its subscriber is served, the subscriber from its
+  10th message: a route's bring-up probes are no per-message cost);
 - one native call of the publish path timed back to back and after ``--rate``'s idle time: the
   factor by which this machine's cold caches multiply everything above.
 
@@ -40,6 +42,9 @@ from rosidl_buffer_py import codec, publisher, routes, subscription
 #: Frames left out of the latency medians (the first after bring-up); calls left out of the
 #: warm and cold medians.
 SKIP = 5
+#: The subscriber's stages are timed from this message on (at most half the frames): by then
+#: its route is up, and the bring-up's probes on the channel are no per-message cost.
+STAGES_FROM = 10
 TOPIC = '/bench/hotpath'
 TRANSPORTS = ('stock rclpy', 'cpu', 'demo')
 
@@ -167,11 +172,14 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
     context = rclpy.Context()
     rclpy.init(context=context)
     split: List[Tuple[int, int]] = []
+    stages_from = min(STAGES_FROM, frames // 2)
 
     def on_frame(msg, info) -> None:
         now = time.time_ns()
         stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         split.append((info['received_timestamp'] - stamp, now - info['received_timestamp']))
+        if len(split) == stages_from:
+            _subscriber_stages(stages, transport)
 
     pub_params = dict(topic=TOPIC, count=frames, rate_hz=rate, wait_for_subscribers=1,
                       width=width, height=1, encoding='mono8', linger_sec=1.0)
@@ -188,7 +196,6 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
             pub_params.update(backend=transport, wait_for_buffer_peers=1)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        _subscriber_stages(stages, transport)
         try:
             with Run() as run:
                 run.start('hotpath_pub', pub_exe, **pub_params)
@@ -245,7 +252,8 @@ def main(argv=None) -> int:
         splits[transport] = [statistics.median(s[i] for s in split[SKIP:]) / 1e3
                              for i in (0, 1)]
         stage_rows[transport] = (pub_stages.per_message_us(args.frames),
-                                 sub_stages.per_message_us(len(split)))
+                                 sub_stages.per_message_us(
+                                     len(split) - min(STAGES_FROM, args.frames // 2)))
         print(f'{transport}: {len(split)} frames', file=sys.stderr, flush=True)
     print(f'\nOne {args.nbytes}-byte frame at {args.rate:g} Hz, publisher and subscriber in '
           f'two processes; medians of {args.frames - SKIP} frames, in µs.\n')
