@@ -177,24 +177,26 @@ class Slots:
             return None  # some process holds views of it
         return pinning
 
+    @staticmethod
+    def _lock_released(slot: Slot, gone: AbstractSet[str]) -> bool:
+        """Take the exclusive lock of a slot whose current generation subscribers are done
+        with: every descriptor of it settled (``gone``: tokens of processes that hung up) and
+        no reader holding a view (else the lock is not free). The caller unlocks."""
+        return (not slot.closed and slot.pinning(gone) == 0 and
+                memory.try_lock(slot.segment.fd, exclusive=True))
+
     def released(self, slot: Slot, gone: AbstractSet[str]) -> bool:
-        """Whether subscribers are done with a slot's current generation: every descriptor of
-        it settled (``gone``: tokens of processes that hung up) and no reader holding a view
-        (the exclusive lock can be taken)."""
-        if slot.closed or slot.pinning(gone) > 0:
+        """Whether subscribers are done with a slot's current generation."""
+        if not self._lock_released(slot, gone):
             return False
-        if not memory.try_lock(slot.segment.fd, exclusive=True):
-            return False  # some process holds views of it
         memory.unlock(slot.segment.fd)
         return True
 
     def renew(self, slot: Slot, nbytes: int, gone: AbstractSet[str]) -> bool:
         """Start a new generation of a slot that its one pin (the caller's) keeps, once it is
         :meth:`released`. False when some subscriber may still take or read it."""
-        if slot.pins != 1 or slot.closed or slot.pinning(gone) > 0:
+        if slot.pins != 1 or not self._lock_released(slot, gone):
             return False
-        if not memory.try_lock(slot.segment.fd, exclusive=True):
-            return False  # some process holds views of it
         try:
             slot.start_generation(slot.generation + 1, nbytes)
         finally:

@@ -87,6 +87,8 @@ class _PublisherPeer(ChannelPeer):
     received_cpu: int = 0
     #: The publisher advertises a backend we accept besides CPU: descriptors may come.
     descriptors_possible: bool = False
+    #: The backends besides CPU it advertises, sorted (what a copy of its was offered as).
+    offered: Tuple[str, ...] = ()
     #: Its messages were said (once) to arrive as CPU copies where zero-copy was on offer.
     copies_said: bool = False
     #: What its channel had delivered to our reader when the publisher went away.
@@ -341,22 +343,20 @@ class Subscription(rclpy.subscription.Subscription):
         although it offers a backend: because this subscription does not accept it, or because
         the publisher sent CPU data on a channel that could carry descriptors. Copies before a
         channel serves us are the documented start-up, not said."""
-        if peer is None or peer.copies_said or peer.backend_in_use != CPU_BACKEND:
-            return
-        offered = sorted(name for name in peer.backends if name != CPU_BACKEND)
-        if not offered:
-            return  # a CPU-only publisher: copies are all it sends
+        if (peer is None or peer.copies_said or not peer.offered or
+                peer.backend_in_use != CPU_BACKEND or
+                (peer.descriptors_possible and not on_channel)):
+            return  # said, a CPU-only publisher, zero-copy, or its channel not up yet
+        offered = peer.offered
         if not peer.descriptors_possible:
             why = (f'it offers {", ".join(offered)} and this subscription accepts '
                    f'{", ".join(sorted(self._accepted))} (acceptable_buffer_backends='
                    f'{offered[0]!r} or \'any\' takes them zero-copy)')
-        elif on_channel:
+        else:
             common = ", ".join(n for n in offered if n in self._core.backends)
             why = (f'its channel could carry {common} descriptors, but the publisher sent CPU '
                    f'data (a payload not in {common} memory, or one its backend could not '
                    "describe: see the publisher's log)")
-        else:
-            return
         peer.copies_said = True
         self._logger.info(f'messages on {self._topic_name} from publisher {peer.info.gid_hex} '
                           f'arrive as CPU copies, not zero-copy: {why}')
@@ -472,8 +472,8 @@ class Subscription(rclpy.subscription.Subscription):
         # Small CPU messages of a peer that cannot send us descriptors are deserialized in C;
         # the others go to the codec. Either way a message of the other kind is still decoded
         # correctly: this only picks the cheaper conversion.
-        record.descriptors_possible = any(
-            name != CPU_BACKEND and name in self._core.backends for name in record.backends)
+        record.offered = tuple(sorted(name for name in record.backends if name != CPU_BACKEND))
+        record.descriptors_possible = any(name in self._core.backends for name in record.offered)
         self._poll_channels()
 
     def _poll_channels(self) -> None:
