@@ -377,24 +377,14 @@ def _write_snippet(directory, name):
     return path
 
 
-def _popen(command, **kwargs):
-    return popen(command, **kwargs)
-
-
-def _communicate_all(processes, timeout):
-    """Wait for every process; their (code, out, err) (:func:`harness.stuck.communicate_all`:
-    one still running at the timeout prints its stacks, and the test fails)."""
-    return communicate_all(processes, timeout)
-
-
 def test_camera_and_viewer_exchange_zero_copy_frames(tmp_path):
     """README's quick start programs as a pair: all 30 4K frames arrive as demo Buffers
     (nothing on the main topic)."""
     camera = _write_snippet(tmp_path, 'camera.py')
     viewer = _write_snippet(tmp_path, 'viewer.py')
-    processes = [_popen([sys.executable, str(viewer)], cwd=tmp_path),
-                 _popen([sys.executable, str(camera)], cwd=tmp_path)]
-    (vcode, vout, verr), (ccode, cout, cerr) = _communicate_all(processes, 120)
+    processes = [popen([sys.executable, str(viewer)], cwd=tmp_path),
+                 popen([sys.executable, str(camera)], cwd=tmp_path)]
+    (vcode, vout, verr), (ccode, cout, cerr) = communicate_all(processes, 120)
     assert vcode == 0 and ccode == 0, verr[-2000:] + cerr[-2000:]
     assert vout.strip() == "('DemoBuffer', (2160, 3840, 3), 0) ('DemoBuffer', (2160, 3840, 3), " \
         "29)", vout + verr[-2000:]
@@ -409,10 +399,10 @@ def test_camera_publishes_for_a_plain_subscriber_alone(tmp_path):
     # the subscriber stops after 20 s (camera.py waits 5 s for a buffer-aware one first):
     # camera.py's frames are not image_publisher's, whose count it would wait for
     processes = [
-        _popen([str(executable('legacy_image_subscriber')), '--ros-args', '-p',
+        popen([str(executable('legacy_image_subscriber')), '--ros-args', '-p',
                 'topic:=/camera/image', '-p', 'timeout_sec:=20']),
-        _popen([sys.executable, str(camera)], cwd=tmp_path)]
-    (scode, sout, serr), (ccode, cout, cerr) = _communicate_all(processes, 150)
+        popen([sys.executable, str(camera)], cwd=tmp_path)]
+    (scode, sout, serr), (ccode, cout, cerr) = communicate_all(processes, 150)
     assert ccode == 0, cerr[-2000:]
     report = json.loads(next(line for line in sout.splitlines()
                              if line.startswith('REPORT '))[len('REPORT '):])
@@ -423,8 +413,8 @@ def test_camera_publishes_for_a_plain_subscriber_alone(tmp_path):
 
 
 def test_pointcloud_program(tmp_path):
-    code, out, err = _communicate_all(
-        [_popen([sys.executable, str(_write_snippet(tmp_path, 'points.py'))], cwd=tmp_path)],
+    code, out, err = communicate_all(
+        [popen([sys.executable, str(_write_snippet(tmp_path, 'points.py'))], cwd=tmp_path)],
         120)[0]
     assert code == 0, err[-2000:]
     assert out.strip() == "[('DemoBuffer', (100000, 4))]", out + err[-2000:]
@@ -450,15 +440,15 @@ def test_backend_guide_module_serves_the_nodes_and_leaves_nothing(tmp_path):
     before = {n for n in os.listdir('/dev/shm') if n.startswith('mymem_')}
     topic = f'/mymem_{os.getpid()}'
     processes = [
-        _popen([str(executable('image_subscriber')), '--ros-args', '-p', f'topic:={topic}',
+        popen([str(executable('image_subscriber')), '--ros-args', '-p', f'topic:={topic}',
                 '-p', 'acceptable_buffer_backends:=mymem', '-p', 'expected_backend:=mymem',
                 '-p', 'expected_count:=20', '-p', 'timeout_sec:=60', '-p', 'depth:=20'], env=env),
-        _popen([str(executable('image_publisher')), '--ros-args', '-p', f'topic:={topic}',
+        popen([str(executable('image_publisher')), '--ros-args', '-p', f'topic:={topic}',
                 '-p', 'backend:=mymem', '-p', 'count:=20', '-p', 'rate_hz:=20',
                 '-p', 'width:=640', '-p', 'height:=480', '-p', 'depth:=20',
                 '-p', 'wait_for_subscribers:=1', '-p', 'wait_for_buffer_peers:=1',
                 '-p', 'linger_sec:=10'], env=env)]
-    (scode, sout, serr), (pcode, pout, perr) = _communicate_all(processes, 120)
+    (scode, sout, serr), (pcode, pout, perr) = communicate_all(processes, 120)
     assert scode == 0 and pcode == 0, serr[-2000:] + perr[-2000:]
     report = json.loads(sout.split('REPORT ', 1)[1])
     assert report['backends'] == {'mymem': 20} and report['distinct'] == 20, report
@@ -486,9 +476,9 @@ def test_gpu_camera_and_viewer_exchange_zero_copy_tensors(tmp_path):
         pytest.skip(why)
     camera = _write_snippet(tmp_path, 'gpu_camera.py')
     viewer = _write_snippet(tmp_path, 'gpu_viewer.py')
-    v = _popen([sys.executable, str(viewer)], cwd=tmp_path)
+    v = popen([sys.executable, str(viewer)], cwd=tmp_path)
     time.sleep(3)
-    c = _popen([sys.executable, str(camera)], cwd=tmp_path)
-    (vcode, vout, verr), (ccode, _, cerr) = _communicate_all([v, c], 120)
+    c = popen([sys.executable, str(camera)], cwd=tmp_path)
+    (vcode, vout, verr), (ccode, _, cerr) = communicate_all([v, c], 120)
     assert vcode == 0 and ccode == 0, verr[-2000:] + cerr[-2000:]
     assert "('CudaBuffer', 'cuda:0', 0) ('CudaBuffer', 'cuda:0', 29)" in vout, vout

@@ -36,7 +36,7 @@ import os
 import statistics
 import sys
 import time
-from typing import Dict, List, Tuple
+from typing import Dict, List, NamedTuple, Tuple
 
 from launch_free_demos.bench.measured import MeasuredRun
 
@@ -181,10 +181,25 @@ def run_latency(graph: str, width: int, height: int, frames: int, rate: float, d
 _TICKS = os.sysconf('SC_CLK_TCK')
 
 
-def thread_sample(pid: int) -> Dict[str, Tuple[float, int]]:
-    """Per thread of ``pid``: (group name, CPU seconds, voluntary context switches). Fast DDS
-    names its threads (``dds.shm.<port>``, ``dds.udp.<port>``, ``dds.ev.<n>``...): the group is
-    the name without its number; the main thread is ``main``, other unnamed ones ``python``."""
+class ThreadSample(NamedTuple):
+    """One thread's counters at one moment."""
+
+    group: str         #: its name without its number (``main`` for the main thread)
+    cpu_seconds: float
+    switches: int      #: voluntary context switches: its wake-ups
+
+
+class ThreadCost(NamedTuple):
+    """A thread group's cost per frame over a run."""
+
+    cpu_ms: float
+    wakeups: float
+
+
+def thread_sample(pid: int) -> Dict[str, ThreadSample]:
+    """Per thread id of ``pid``, its :class:`ThreadSample`. Fast DDS names its threads
+    (``dds.shm.<port>``, ``dds.udp.<port>``, ``dds.ev.<n>``...): the group is the name without
+    its number; the main thread is ``main``, other unnamed ones ``python``."""
     sample = {}
     try:
         tids = os.listdir(f'/proc/{pid}/task')
@@ -203,12 +218,13 @@ def thread_sample(pid: int) -> Dict[str, Tuple[float, int]]:
             continue
         fields = stat[stat.rindex(')') + 2:].split()
         group = 'main' if int(tid) == pid else name.rstrip('0123456789').rstrip('.') or name
-        sample[tid] = (group, (int(fields[11]) + int(fields[12])) / _TICKS, switches)
+        sample[tid] = ThreadSample(group, (int(fields[11]) + int(fields[12])) / _TICKS,
+                                   switches)
     return sample
 
 
 def run_threads(graph: str, width: int, height: int, frames: int, rate: float,
-                topic: str) -> Dict[str, Tuple[float, float]]:
+                topic: str) -> Dict[str, ThreadCost]:
     """The demo subscriber's threads over one run of ``graph``: per thread group, CPU ms and
     wake-ups (voluntary context switches) per frame, between its 5th frame and 3 frames
     before the last (start-up and teardown left out)."""
@@ -236,16 +252,17 @@ def run_threads(graph: str, width: int, height: int, frames: int, rate: float,
     if counted < 1:
         raise RuntimeError(f'{graph}: the demo subscriber got no frames to measure between its '
                            f'5th and its {frames - 3}th of {frames}')
-    groups: Dict[str, List[float]] = {}
-    for tid, (group, cpu, switches) in last.items():
-        _, cpu0, switches0 = first.get(tid, (group, 0.0, 0))
-        totals = groups.setdefault(group, [0.0, 0.0])
-        totals[0] += (cpu - cpu0) * 1000.0 / counted
-        totals[1] += (switches - switches0) / counted
-    return {group: (cpu, wakes) for group, (cpu, wakes) in groups.items()}
+    costs: Dict[str, ThreadCost] = {}
+    for tid, now in last.items():
+        before = first.get(tid, ThreadSample(now.group, 0.0, 0))  # a thread started between
+        cost = costs.get(now.group, ThreadCost(0.0, 0.0))
+        costs[now.group] = ThreadCost(
+            cost.cpu_ms + (now.cpu_seconds - before.cpu_seconds) * 1000.0 / counted,
+            cost.wakeups + (now.switches - before.switches) / counted)
+    return costs
 
 
-def threads_table(results: Dict[str, List[Dict[str, Tuple[float, float]]]],
+def threads_table(results: Dict[str, List[Dict[str, ThreadCost]]],
                   graphs: List[str], payload: str, rate: float, frames: int) -> str:
     """A markdown table: per graph, the demo subscriber's CPU and wake-ups per frame by thread
     group (medians over rounds)."""
@@ -259,13 +276,13 @@ def threads_table(results: Dict[str, List[Dict[str, Tuple[float, float]]]],
              '|---|---|' + '---|' * len(groups)]
     for graph in graphs:
         runs = results.get(graph, [])
-        total = statistics.median(sum(c for c, _ in run.values()) for run in runs)
+        total = statistics.median(sum(c.cpu_ms for c in run.values()) for run in runs)
         cells = []
         for group in groups:
             values = [run[group] for run in runs if group in run]
             cells.append('-' if not values else
-                         f'{statistics.median(c for c, _ in values):.2f} / '
-                         f'{statistics.median(w for _, w in values):.0f}')
+                         f'{statistics.median(c.cpu_ms for c in values):.2f} / '
+                         f'{statistics.median(c.wakeups for c in values):.0f}')
         lines.append(f'| {graph} | {total:.2f} | ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
 
@@ -369,7 +386,7 @@ def main(argv=None) -> int:
         print(latency_table(results, graphs, args.payload, args.rate, args.frames, args.depth))
         return 0
     if args.threads:
-        by_thread: Dict[str, List[Dict[str, Tuple[float, float]]]] = {}
+        by_thread: Dict[str, List[Dict[str, ThreadCost]]] = {}
         for serial in range(args.rounds * len(graphs)):
             graph = graphs[serial % len(graphs)]
             topic = f'/bench_mixed_{os.getpid()}/{graph.replace(" ", "_")}_t{serial}'
