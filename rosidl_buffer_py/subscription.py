@@ -34,6 +34,7 @@ from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple
 import rclpy.subscription
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidTopicNameException
+from rclpy.logging import LoggingSeverity
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
 from rclpy.serialization import deserialize_message
@@ -62,6 +63,8 @@ MAX_BATCH = 64
 #: Python-level work); longer ones are decoded by the codec, which splices the payload with one
 #: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
 C_DESERIALIZE_MAX_BYTES = 64 * 1024
+#: At most one "rejected a message" line per this many seconds (all are counted).
+REJECTION_LOG_SECONDS = 5.0
 #: A GID is the DDS GUID: a 12-byte participant prefix, then the 4-byte entity id.
 _GUID_PREFIX = 12
 
@@ -203,6 +206,7 @@ class Subscription(rclpy.subscription.Subscription):
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
             reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
         self._counts = collections.Counter()
+        self._rejection_logged_at = -REJECTION_LOG_SECONDS
         self._receiver: routes.Receiver[_PublisherPeer, _Taken] = routes.Receiver(self._streams)
         self._view = _ReceiveView(self)
         #: the peers with a channel (and departed ones with samples left), polled in turn
@@ -358,8 +362,10 @@ class Subscription(rclpy.subscription.Subscription):
                    f'data (a payload not in {common} memory, or one its backend could not '
                    "describe: see the publisher's log)")
         peer.copies_said = True
-        self._logger.info(f'messages on {self._topic_name} from publisher {peer.info.gid_hex} '
-                          f'arrive as CPU copies, not zero-copy: {why}')
+        # on the delivery path: rclpy's own logger call would hold the executor (see seams.log)
+        seams.log(self._logger, LoggingSeverity.INFO,
+                  f'messages on {self._topic_name} from publisher {peer.info.gid_hex} arrive as '
+                  f'CPU copies, not zero-copy: {why}', Subscription._say_copies)
 
     def _delivered(self, msg, taken: _Taken) -> Tuple[object, dict]:
         self._counts['delivered'] += 1
@@ -418,9 +424,14 @@ class Subscription(rclpy.subscription.Subscription):
     def _reject(self, taken: _Taken, why: str) -> None:
         """Data from the network that is not to be delivered: counted and logged (throttled)."""
         self._counts['rejected'] += 1
-        self._logger.warning(f'rejected a message on {self._topic_name} from '
-                        f'{taken.publisher_gid.hex()}: {why} ({self._counts["rejected"]} '
-                        'rejected so far)', throttle_duration_sec=5.0)
+        now = time.monotonic()
+        if now - self._rejection_logged_at < REJECTION_LOG_SECONDS:
+            return  # throttled here: rclpy's throttle looks its caller up on every call
+        self._rejection_logged_at = now
+        seams.log(self._logger, LoggingSeverity.WARN,
+                  f'rejected a message on {self._topic_name} from '
+                  f'{taken.publisher_gid.hex()}: {why} ({self._counts["rejected"]} '
+                  'rejected so far)', Subscription._reject)
 
     def _decode(self, taken: _Taken, peer: Optional[_PublisherPeer]):
         """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes."""

@@ -1,7 +1,11 @@
 """rclpy's private parts: all in rosidl_buffer_py/rclpy_seams_7_1.py, and that module mirrors
 the rclpy that is running (a new rclpy release fails here first: read those parts again)."""
+import os
 import pathlib
 import re
+import subprocess
+import sys
+import textwrap
 
 from rclpy.node import Node
 
@@ -56,3 +60,29 @@ def test_a_delegating_reader_takes_what_its_take_gives():
         node.destroy_node()
     finally:
         rclpy.shutdown()
+
+
+def test_log_writes_what_rclpys_logger_writes_and_nothing_below_the_level():
+    """seams.log is rclpy's logger call without its caller lookup: the same console line (a
+    node's logger, so /rosout too: test_rclpy_citizenship), nothing when the level is off."""
+    script = textwrap.dedent('''
+        import rclpy
+        from rclpy.logging import LoggingSeverity
+        from rosidl_buffer_py import rclpy_seams_7_1 as seams
+        rclpy.init()
+        logger = rclpy.create_node('seams_log').get_logger().get_child('child')
+        def caller():
+            pass
+        logger.info('the same line')
+        assert seams.log(logger, LoggingSeverity.INFO, 'the same line', caller)
+        assert not seams.log(logger, LoggingSeverity.DEBUG, 'not this one', caller)
+        rclpy.shutdown()
+    ''')
+    env = {**os.environ, 'RCUTILS_CONSOLE_OUTPUT_FORMAT':
+           '[{severity}] [{name}]: {message} ({function_name})'}
+    done = subprocess.run([sys.executable, '-c', script], capture_output=True, text=True,
+                          timeout=60, env=env)
+    assert done.returncode == 0, done.stderr
+    lines = [line for line in done.stderr.splitlines() if 'seams_log' in line]
+    assert lines == ['[INFO] [seams_log.child]: the same line (<module>)',
+                     '[INFO] [seams_log.child]: the same line (caller)'], done.stderr
