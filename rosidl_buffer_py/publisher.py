@@ -29,10 +29,12 @@ from typing import Dict, List, Optional, Set, Tuple, Union
 import rclpy.publisher
 from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks
+from rclpy.logging import LoggingSeverity
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy)
 
 from rosidl_buffer_py import _dds, codec, control, discovery, routes
+from rosidl_buffer_py import rclpy_seams_7_1 as seams
 from rosidl_buffer_py._native import (
     endpoint_gid, exclude_from_next_write, matched_subscription_gids, publish_serialized,
     remove_write_exclusions, write_message)
@@ -56,6 +58,8 @@ _NO_WAIT = Duration(seconds=0)
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
+#: At most one "failed to describe" line per this many seconds.
+DESCRIBE_FAILURE_LOG_SECONDS = 5.0
 
 
 @dataclass
@@ -193,6 +197,7 @@ class Publisher(rclpy.publisher.Publisher):
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
         self._withheld = 0
+        self._describe_failure_logged_at = -DESCRIBE_FAILURE_LOG_SECONDS
         #: CPU copies written on channels to peers that share a backend with the message's
         #: Buffers (the backend declined: pool exhausted, or the peer cannot be reached)
         self._cpu_to_capable = 0
@@ -489,9 +494,14 @@ class Publisher(rclpy.publisher.Publisher):
             except EndpointGone:
                 raise
             except Exception as exc:  # a failing backend degrades to CPU bytes for this field
-                self._logger.error(f'backend {vendor!r} failed to describe a buffer for '
+                now = time.monotonic()
+                if now - self._describe_failure_logged_at >= DESCRIBE_FAILURE_LOG_SECONDS:
+                    # throttled here: rclpy's throttle looks its caller up on every call
+                    self._describe_failure_logged_at = now
+                    seams.log(self._logger, LoggingSeverity.ERROR,
+                              f'backend {vendor!r} failed to describe a buffer for '
                               f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU '
-                              'bytes', throttle_duration_sec=5.0)
+                              'bytes', Publisher._describe)
                 continue
             if descriptor is not None:
                 described.append((path, vendor, descriptor))

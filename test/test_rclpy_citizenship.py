@@ -102,6 +102,38 @@ def test_wait_for_all_acked_covers_the_channels(context):
     node.destroy_node()
 
 
+def test_a_backend_that_fails_to_describe_costs_a_cpu_copy_and_one_error_line(
+        context, monkeypatch, capfd):
+    """A backend raising in create_descriptor_with_endpoint: the message still arrives, as CPU
+    bytes, and the publisher's node logs the failure once per throttle period, not per
+    message."""
+    from demo_buffer_backend.backend import DemoBackend
+    node = rclpy.create_node('describe_fails', context=context)
+    got = []
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/describe_fails', RELIABLE)
+    rosidl_buffer_py.create_subscription(node, Image, '/describe_fails', got.append, RELIABLE,
+                                         acceptable_buffer_backends='demo')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+
+    def fails(self, buffer, endpoint_info):
+        raise RuntimeError('no descriptor today')
+
+    monkeypatch.setattr(DemoBackend, 'create_descriptor_with_endpoint', fails)
+    sent = [frame(counter, 'demo') for counter in range(3)]
+    for msg in sent:
+        pub.publish(msg)
+    assert spin_until(executor, lambda: len(got) == 3)
+    assert [type(m.data).__name__ for m in got] == ['array'] * 3
+    assert [bytes(m.data) for m in got] == [bytes(memoryview(m.data)) for m in sent]
+    node.destroy_node()
+    lines = [line for line in capfd.readouterr().err.splitlines()
+             if 'failed to describe' in line]
+    assert len(lines) == 1 and '[ERROR]' in lines[0] and 'describe_fails' in lines[0] and \
+        "RuntimeError: no descriptor today" in lines[0], lines
+
+
 def test_wait_for_buffer_peers_returns_once_the_channels_serve(context):
     """A publisher whose node nobody spins waits for a buffer-aware subscription (spun by an
     executor in another thread, as in another process) to be served on its channel; the next

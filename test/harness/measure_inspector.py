@@ -26,6 +26,9 @@ from harness.installed import executable  # noqa: E402 (after the path fix)
 from harness.scenarios import SMALL  # noqa: E402
 from launch_free_demos.runner import Run  # noqa: E402
 
+#: How long the nodes may take until the viewer reports demo frames.
+STARTUP_SECONDS = 60.0
+
 
 def main(argv) -> int:
     runs, extra = int(argv[0]), argv[1:]
@@ -42,7 +45,13 @@ def main(argv) -> int:
         run.start('viewer', 'image_subscriber', topic=topic, acceptable_buffer_backends='demo',
                   timeout_sec=0.0, report_period_sec=0.2)
         run.start('recorder', 'legacy_image_subscriber', topic=topic, timeout_sec=0.0)
+        deadline = time.monotonic() + STARTUP_SECONDS
         while not any("'demo'" in line for line in run.nodes['viewer'].stderr):
+            gone = [name for name, node in run.nodes.items() if node.process.poll() is not None]
+            if gone or time.monotonic() > deadline:
+                print(f'no demo frames at the viewer after {STARTUP_SECONDS} s' if not gone
+                      else f'{", ".join(gone)} exited before frames flowed', file=sys.stderr)
+                return 1
             time.sleep(0.1)
         for i in range(runs):
             started = time.monotonic()
