@@ -134,6 +134,36 @@ def test_a_backend_that_fails_to_describe_costs_a_cpu_copy_and_one_error_line(
         "RuntimeError: no descriptor today" in lines[0], lines
 
 
+def test_the_first_delivery_logs_without_rclpys_caller_lookup(context, monkeypatch, capfd):
+    """The "arrive as CPU copies" line comes with a subscription's first delivery: logged the
+    way rclpy's logger would look its caller up (inspect, 17 ms for a first line), it held
+    the executor long enough for a plain KEEP_LAST reader in the same process to lose a
+    sample under load. It is logged, and nothing on the delivery path calls inspect."""
+    import inspect
+    node = rclpy.create_node('copies_in_process', context=context)
+    got = []
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/copies_in_process', RELIABLE)
+    rosidl_buffer_py.create_subscription(node, Image, '/copies_in_process', got.append,
+                                         RELIABLE, acceptable_buffer_backends='cpu')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    looked_up = []
+    getframeinfo = inspect.getframeinfo
+
+    def counting(*args, **kwargs):
+        looked_up.append(args)
+        return getframeinfo(*args, **kwargs)
+
+    monkeypatch.setattr(inspect, 'getframeinfo', counting)
+    pub.publish(frame(0, 'demo'))
+    assert spin_until(executor, lambda: len(got) == 1)
+    monkeypatch.undo()
+    assert looked_up == []
+    node.destroy_node()
+    assert 'arrive as CPU copies' in capfd.readouterr().err
+
+
 def test_wait_for_buffer_peers_returns_once_the_channels_serve(context):
     """A publisher whose node nobody spins waits for a buffer-aware subscription (spun by an
     executor in another thread, as in another process) to be served on its channel; the next
