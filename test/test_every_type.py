@@ -7,6 +7,7 @@
   identical CPU bytes to a plain one (real processes);
 - creating endpoints with bad arguments raises what rclpy raises, stock against ours.
 """
+import select
 import subprocess
 import sys
 import textwrap
@@ -19,6 +20,7 @@ from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String
 
 import rosidl_buffer_py
+from harness import stuck
 from harness.in_process import spin_until
 from test_codec_general import installed_message_types
 
@@ -89,6 +91,7 @@ _PUBLISHER = textwrap.dedent('''
            not any(p['channel_serving'] for p in pub.buffer_peers())):
         assert time.monotonic() < deadline, pub.buffer_peers()
         rclpy.spin_once(node, timeout_sec=0.05)
+    sys.stdin.readline()  # both subscriptions matched us too: go
     for counter in range(5):
         msg = DisparityImage()
         msg.image = allocate_image_msg(48, 64, 'rgb8', backend='demo')
@@ -112,10 +115,13 @@ _SUBSCRIBER = textwrap.dedent('''
         got.append((type(data).__name__, getattr(data, 'backend_type', 'cpu'),
                     bytes(memoryview(data)) == bytes([int(msg.min_disparity)]) * (48 * 64 * 3)))
     if sys.argv[1] == 'demo':
-        rosidl_buffer_py.create_subscription(node, DisparityImage, '/disparity', on, 10,
-                                             acceptable_buffer_backends='demo')
+        sub = rosidl_buffer_py.create_subscription(node, DisparityImage, '/disparity', on, 10,
+                                                   acceptable_buffer_backends='demo')
     else:
-        node.create_subscription(DisparityImage, '/disparity', on, 10)
+        sub = node.create_subscription(DisparityImage, '/disparity', on, 10)
+    while sub.get_publisher_count() < 1:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    print('ready', flush=True)
     while len(got) < 5:
         rclpy.spin_once(node, timeout_sec=0.1)
     print(got, flush=True)
@@ -124,30 +130,28 @@ _SUBSCRIBER = textwrap.dedent('''
 
 def test_a_nested_payload_travels_as_a_descriptor_and_as_identical_bytes():
     """stereo_msgs/DisparityImage with a demo Buffer in image.data, three processes: the demo
-    subscription gets a demo Buffer there, the plain one the same bytes."""
-    subs = {kind: subprocess.Popen([sys.executable, '-c', _SUBSCRIBER, kind],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    subscription gets a demo Buffer there, the plain one the same bytes. The publisher starts
+    once both subscriptions matched it on their side too (its own count says only that it
+    matched them: a plain reader that matches later misses the first frames, as with stock)."""
+    subs = {kind: stuck.popen([sys.executable, '-c', _SUBSCRIBER, kind])
             for kind in ('demo', 'plain')}
-    pub = subprocess.Popen([sys.executable, '-c', _PUBLISHER], stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
-    try:
-        try:
-            outputs = {kind: proc.communicate(timeout=60) for kind, proc in subs.items()}
-        except subprocess.TimeoutExpired as exc:  # say what the publisher saw (issue 27)
-            pub.kill()
-            _, pub_err = pub.communicate()
-            pytest.fail(f'{exc}\npublisher exit {pub.returncode}, stderr:\n{pub_err[-3000:]}')
-        pub.communicate(timeout=30)
-    finally:
-        for proc in (pub, *subs.values()):
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-    assert pub.returncode == 0
-    demo = eval(outputs['demo'][0])  # noqa: S307 (our own subprocess's repr of a list)
-    plain = eval(outputs['plain'][0])  # noqa: S307
-    assert demo == [('DemoBuffer', 'demo', True)] * 5, outputs['demo']
-    assert [(backend, ok) for _, backend, ok in plain] == [('cpu', True)] * 5, outputs['plain']
+    pub = stuck.popen([sys.executable, '-c', _PUBLISHER], stdin=subprocess.PIPE)
+    processes = [*subs.values(), pub]
+    deadline = time.monotonic() + 60
+    for kind, proc in subs.items():
+        if not select.select([proc.stdout], [], [], max(0.0, deadline - time.monotonic()))[0]:
+            raise stuck.Stuck(f'the {kind} subscription never matched the publisher:\n' +
+                              stuck.abort_and_report(processes))
+        assert proc.stdout.readline() == 'ready\n', stuck.abort_and_report(processes)
+    pub.stdin.write('go\n')
+    pub.stdin.flush()
+    (demo_code, demo_out, _), (plain_code, plain_out, _), (pub_code, _, pub_err) = \
+        stuck.communicate_all(processes, timeout=60)
+    assert (demo_code, plain_code, pub_code) == (0, 0, 0), pub_err[-3000:]
+    demo = eval(demo_out)  # noqa: S307 (our own subprocess's repr of a list)
+    plain = eval(plain_out)  # noqa: S307
+    assert demo == [('DemoBuffer', 'demo', True)] * 5, demo_out
+    assert [(backend, ok) for _, backend, ok in plain] == [('cpu', True)] * 5, plain_out
 
 
 # --- rclpy's contract: the same arguments raise the same errors --------------------------------
