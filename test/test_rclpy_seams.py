@@ -31,6 +31,8 @@ def test_every_private_part_the_seams_name_exists_in_the_running_rclpy():
     from rclpy import qos_overriding_options
     assert callable(qos_overriding_options._declare_qos_parameters)
     assert hasattr(seams.DelegatingReader, 'take_message')
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+    assert callable(rclpy_implementation.rclpy_logging_rcutils_log)  # seams.log
 
 
 def test_no_other_module_of_the_package_reaches_into_rclpy():
