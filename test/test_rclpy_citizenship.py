@@ -83,17 +83,24 @@ def test_destroy_node_and_shutdown_in_any_order(order):
     assert not list(node.publishers) and not list(node.subscriptions)
 
 
-def test_wait_for_all_acked_covers_the_channels(context):
-    """With every subscription served on its channel the main topic carries nothing; the
-    publisher still waits for the channel's acknowledgements, as stock waits for its readers."""
-    node = rclpy.create_node('acked', context=context)
+def _served_pair(context, name: str, accept: str):
+    """A node with a buffer-aware publisher and subscription (``accept``) of ``/<name>``, spun
+    until the channel serves: (node, publisher, received messages, executor)."""
+    node = rclpy.create_node(name, context=context)
     got = []
-    pub = rosidl_buffer_py.create_publisher(node, Image, '/acked', RELIABLE)
-    rosidl_buffer_py.create_subscription(node, Image, '/acked', got.append, RELIABLE,
-                                         acceptable_buffer_backends='any')
+    pub = rosidl_buffer_py.create_publisher(node, Image, f'/{name}', RELIABLE)
+    rosidl_buffer_py.create_subscription(node, Image, f'/{name}', got.append, RELIABLE,
+                                         acceptable_buffer_backends=accept)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    return node, pub, got, executor
+
+
+def test_wait_for_all_acked_covers_the_channels(context):
+    """With every subscription served on its channel the main topic carries nothing; the
+    publisher still waits for the channel's acknowledgements, as stock waits for its readers."""
+    node, pub, got, executor = _served_pair(context, 'acked', 'any')
     for counter in range(5):
         pub.publish(frame(counter, 'demo'))
     assert pub.statistics()['sent_on_main_topic'] == 0
@@ -108,14 +115,7 @@ def test_a_backend_that_fails_to_describe_costs_a_cpu_copy_and_one_error_line(
     bytes, and the publisher's node logs the failure once per throttle period, not per
     message."""
     from demo_buffer_backend.backend import DemoBackend
-    node = rclpy.create_node('describe_fails', context=context)
-    got = []
-    pub = rosidl_buffer_py.create_publisher(node, Image, '/describe_fails', RELIABLE)
-    rosidl_buffer_py.create_subscription(node, Image, '/describe_fails', got.append, RELIABLE,
-                                         acceptable_buffer_backends='demo')
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    node, pub, got, executor = _served_pair(context, 'describe_fails', 'demo')
 
     def fails(self, buffer, endpoint_info):
         raise RuntimeError('no descriptor today')
@@ -140,14 +140,7 @@ def test_the_first_delivery_logs_without_rclpys_caller_lookup(context, monkeypat
     the executor long enough for a plain KEEP_LAST reader in the same process to lose a
     sample under load. It is logged, and nothing on the delivery path calls inspect."""
     import inspect
-    node = rclpy.create_node('copies_in_process', context=context)
-    got = []
-    pub = rosidl_buffer_py.create_publisher(node, Image, '/copies_in_process', RELIABLE)
-    rosidl_buffer_py.create_subscription(node, Image, '/copies_in_process', got.append,
-                                         RELIABLE, acceptable_buffer_backends='cpu')
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+    node, pub, got, executor = _served_pair(context, 'copies_in_process', 'cpu')
     looked_up = []
     getframeinfo = inspect.getframeinfo
 
