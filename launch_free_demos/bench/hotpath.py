@@ -155,6 +155,9 @@ def run_publisher_here(transport: str, width: int, frames: int, rate: float,
             time.sleep(0.5)
             run.stop_all()
         executor.shutdown()
+        # gone from DDS before the next run's subscriber starts in this process: a context's
+        # shutdown leaves its nodes (and their publishers) alive until they are collected
+        node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
 
@@ -206,6 +209,7 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
         finally:
             stages.restore()
         executor.shutdown()
+        node.destroy_node()  # as the publisher's run does
     finally:
         rclpy.try_shutdown(context=context)
     return split
