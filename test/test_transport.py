@@ -526,3 +526,44 @@ def test_a_raising_callback_leaves_spin_once_and_the_next_spin_delivers_the_next
             raised += 1
     assert raised == 1 and got == [0, 1, 2, 3, 4], (raised, got)
     node.destroy_node()
+
+
+def test_a_quiet_publishers_channel_costs_no_take_per_message_of_another(context, monkeypatch):
+    """Two buffer-aware publishers of a topic, one of them silent: the subscription takes
+    from the busy one's channel only (a take per message), never from the silent one's; what
+    lands on a channel announces itself through its guard condition. The silent one then
+    publishes: its message is taken too."""
+    from rosidl_buffer_py import subscription
+    takes = {}
+    take = subscription._PublisherPeer.take
+
+    def counting(peer):
+        taken = take(peer)
+        key = peer.info.gid
+        takes[key] = takes.get(key, 0) + 1
+        return taken
+
+    monkeypatch.setattr(subscription._PublisherPeer, 'take', counting)
+    node = rclpy.create_node('quiet_channel', context=context)
+    busy = rosidl_buffer_py.create_publisher(node, Image, '/quiet_channel', RELIABLE)
+    quiet = rosidl_buffer_py.create_publisher(node, Image, '/quiet_channel', RELIABLE)
+    got = []
+    rosidl_buffer_py.create_subscription(
+        node, Image, '/quiet_channel', lambda m: got.append(check_frame(m).counter), RELIABLE,
+        acceptable_buffer_backends='any')
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: all(
+        any(p['channel_serving'] for p in pub.buffer_peers()) for pub in (busy, quiet)))
+    executor.spin_once(timeout_sec=0.2)  # what bring-up left on the channels
+    takes.clear()
+    for counter in range(20):
+        busy.publish(frame(counter, 'demo'))
+        assert spin_until(executor, lambda: len(got) == counter + 1)
+    quiet_gid, busy_gid = (_dds.endpoint_gid(p, 'publisher') for p in (quiet, busy))
+    assert takes.get(quiet_gid, 0) == 0, takes
+    assert 20 <= takes[busy_gid] <= 22, takes  # an over-counted announcement: one empty take
+    quiet.publish(frame(20, 'demo'))
+    assert spin_until(executor, lambda: got[-1:] == [20])
+    assert takes[quiet_gid] >= 1
+    node.destroy_node()

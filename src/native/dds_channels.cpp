@@ -68,14 +68,17 @@ struct NewMessageNotify
   /// Samples announced by the callback and not taken since: never fewer than the announced
   /// samples still in the reader (a take of a sample not announced yet clamps at 0, and its
   /// announcement later over-counts, which costs one empty take), reset by a take that finds
-  /// none. So `pending() == 0` right after a take means that every sample still unread will
-  /// trigger, or has triggered since, the guard condition.
+  /// none. So `pending() == 0` means that every sample still unread will trigger, or has
+  /// triggered since, the guard condition: a channel with nothing pending need not be taken.
   std::atomic<uint64_t> notified{0};
 
-  void taken(bool any)
+  /// After a take: `any` when it found a sample; `seen` is the count read before it. An empty
+  /// take forgets only what was announced before it: an announcement that came in meanwhile
+  /// (its sample may have landed after the take looked) stays pending.
+  void taken(bool any, uint64_t seen)
   {
     if (!any) {
-      notified.store(0);
+      notified.compare_exchange_strong(seen, 0);
       return;
     }
     uint64_t value = notified.load();
@@ -762,6 +765,7 @@ PyObject * sub_take_impl(
   if (self->subscription == nullptr) {
     valid = false;
   } else {
+    const uint64_t seen = self->notify != nullptr ? self->notify->notified.load() : 0;
     ret = rmw_take_serialized_message_with_info(
       self->subscription, self->buffer, &taken, &info, nullptr);
     if (ret != RMW_RET_OK) {
@@ -770,7 +774,7 @@ PyObject * sub_take_impl(
       deserialized = try_deserialize(*support, *self->buffer, &ros_message);
     }
     if (self->notify != nullptr && ret == RMW_RET_OK) {
-      self->notify->taken(taken);
+      self->notify->taken(taken, seen);
     }
   }
   PyEval_RestoreThread(ts);
