@@ -67,6 +67,7 @@ COVERAGE = {
         'test_mixed_latency.py',
     './dev bench mixed --threads': 'test_benchmark.py',   # two graphs, small frames
     './dev bench mixed --graphs mixed --rounds 2': 'test_benchmark.py',  # one graph of the same
+    './dev bench mixed --graphs pure,mixed': 'test_benchmark.py',  # the same two graphs
     # the hotpath benchmark's own module, as the A B rounds of benchmarks.md ran it per tree
     'python -m launch_free_demos.bench.hotpath --frames 40 --rate 10': 'test_benchmark.py',
     './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
