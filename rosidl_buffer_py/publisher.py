@@ -149,15 +149,8 @@ class _Encoder:
             cache = self._described = {}
         data = cache.get(described)
         if data is None:
-            if self._single is not None:
-                # the type's one uint8[] field: encode's bare-pair form, without a mapping of
-                # paths to check for every message (a third of a warm publish)
-                (_, backend, descriptor), = described
-                data = codec.encode(self.msg, (backend, descriptor))
-            else:
-                data = codec.encode(self.msg, {path: (backend, descriptor)
-                                               for path, backend, descriptor in described})
-            cache[described] = data
+            data = cache[described] = codec.encode(
+                self.msg, {path: (backend, descriptor) for path, backend, descriptor in described})
         return data
 
 
