@@ -51,6 +51,7 @@ from rosidl_buffer_py.plain import PlainPublisher, check_wait_arguments
 from rosidl_buffer_py.qos import (
     incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
 from rosidl_buffer_py.registry import get_installed_backends
+from rosidl_buffer_py.throttle import Throttle
 
 
 #: ``wait_for_all_acked`` that only checks.
@@ -197,7 +198,7 @@ class Publisher(rclpy.publisher.Publisher):
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
         self._withheld = 0
-        self._describe_failure_logged_at = -DESCRIBE_FAILURE_LOG_SECONDS
+        self._describe_failures_logged = Throttle(DESCRIBE_FAILURE_LOG_SECONDS)
         #: CPU copies written on channels to peers that share a backend with the message's
         #: Buffers (the backend declined: pool exhausted, or the peer cannot be reached)
         self._cpu_to_capable = 0
@@ -494,10 +495,7 @@ class Publisher(rclpy.publisher.Publisher):
             except EndpointGone:
                 raise
             except Exception as exc:  # a failing backend degrades to CPU bytes for this field
-                now = time.monotonic()
-                if now - self._describe_failure_logged_at >= DESCRIBE_FAILURE_LOG_SECONDS:
-                    # throttled here: rclpy's throttle looks its caller up on every call
-                    self._describe_failure_logged_at = now
+                if self._describe_failures_logged.due():
                     seams.log(self._logger, LoggingSeverity.ERROR,
                               f'backend {vendor!r} failed to describe a buffer for '
                               f'{peer.info.gid_hex}: {type(exc).__name__}: {exc}; sending CPU '

@@ -55,6 +55,7 @@ from rosidl_buffer_py.plain import PlainSubscription
 from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends
 from rosidl_buffer_py.routes import Outcome
+from rosidl_buffer_py.throttle import Throttle
 
 
 #: Messages delivered per channel wake-up before yielding to the executor's other callbacks.
@@ -209,7 +210,7 @@ class Subscription(rclpy.subscription.Subscription):
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
             reliable=qos_profile.reliability != ReliabilityPolicy.BEST_EFFORT)
         self._counts = collections.Counter()
-        self._rejection_logged_at = -REJECTION_LOG_SECONDS
+        self._rejections_logged = Throttle(REJECTION_LOG_SECONDS)
         self._receiver: routes.Receiver[_PublisherPeer, _Taken] = routes.Receiver(self._streams)
         self._view = _ReceiveView(self)
         #: the peers with a channel (and departed ones with samples left), polled in turn
@@ -427,10 +428,8 @@ class Subscription(rclpy.subscription.Subscription):
     def _reject(self, taken: _Taken, why: str) -> None:
         """Data from the network that is not to be delivered: counted and logged (throttled)."""
         self._counts['rejected'] += 1
-        now = time.monotonic()
-        if now - self._rejection_logged_at < REJECTION_LOG_SECONDS:
-            return  # throttled here: rclpy's throttle looks its caller up on every call
-        self._rejection_logged_at = now
+        if not self._rejections_logged.due():
+            return
         seams.log(self._logger, LoggingSeverity.WARN,
                   f'rejected a message on {self._topic_name} from '
                   f'{taken.publisher_gid.hex()}: {why} ({self._counts["rejected"]} '
