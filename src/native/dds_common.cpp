@@ -5,6 +5,7 @@
 
 #include <cstring>
 
+#include "rcl/node.h"
 #include "rcl/publisher.h"
 #include "rcutils/error_handling.h"
 
@@ -266,6 +267,14 @@ rmw_publisher_t * pin_rmw_publisher(PyObject * arg, const char * what, PinnedHan
     return nullptr;
   }
   return fastrtps_handle(pin->get(), rcl_publisher_get_rmw_handle, "publisher");
+}
+
+rmw_node_t * pin_rmw_node(PyObject * arg, PinnedHandle * pin)
+{
+  if (pin->acquire(arg, "node") < 0) {
+    return nullptr;
+  }
+  return fastrtps_handle(pin->get(), rcl_node_get_rmw_handle, "node");
 }
 
 }  // namespace rbpy_dds

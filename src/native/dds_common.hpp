@@ -113,6 +113,10 @@ Rmw * fastrtps_handle(void * rcl_entity, Rmw * (*get)(const Rcl *), const char *
 /// publisher, or nullptr with TypeError/DdsError/UnsupportedRmwError (GIL held).
 rmw_publisher_t * pin_rmw_publisher(PyObject * arg, const char * what, PinnedHandle * pin);
 
+/// Pin an rclpy node (or its handle) into `pin`; its rmw node, or nullptr with
+/// TypeError/DdsError/UnsupportedRmwError (GIL held).
+rmw_node_t * pin_rmw_node(PyObject * arg, PinnedHandle * pin);
+
 /// The C side of a generated ROS message class, as rclpy's own publish and take use it: the
 /// type support and the functions rosidl_generator_py attaches to the class (_CREATE_ROS_MESSAGE,
 /// _DESTROY_ROS_MESSAGE, _CONVERT_FROM_PY, _CONVERT_TO_PY). Valid while the class lives.

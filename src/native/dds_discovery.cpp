@@ -443,10 +443,7 @@ void release_pins(std::vector<PinnedHandle *> & pins)
 /// with an exception.
 dds::DomainParticipant * participant_of(PyObject * node_arg, PinnedHandle * pin)
 {
-  if (pin->acquire(node_arg, "node") < 0) {
-    return nullptr;
-  }
-  rmw_node_t * node = fastrtps_handle(pin->get(), rcl_node_get_rmw_handle, "node");
+  rmw_node_t * node = pin_rmw_node(node_arg, pin);
   if (node == nullptr) {
     return nullptr;
   }
@@ -633,10 +630,7 @@ PyObject * silence_discovery(PyObject *, PyObject * node_arg)
 PyObject * silence_discovery_if_last_node(PyObject *, PyObject * node_arg)
 {
   PinnedHandle pin;
-  if (pin.acquire(node_arg, "node") < 0) {
-    return nullptr;
-  }
-  rmw_node_t * node = fastrtps_handle(pin.get(), rcl_node_get_rmw_handle, "node");
+  rmw_node_t * node = pin_rmw_node(node_arg, &pin);
   if (node == nullptr) {
     return nullptr;
   }

@@ -202,10 +202,7 @@ PyObject * hold_enabling(PyObject *, PyObject * args)
     return nullptr;
   }
   PinnedHandle node;
-  if (node.acquire(node_arg, "node") < 0) {
-    return nullptr;
-  }
-  rmw_node_t * rmw_node = fastrtps_handle(node.get(), rcl_node_get_rmw_handle, "node");
+  rmw_node_t * rmw_node = pin_rmw_node(node_arg, &node);
   if (rmw_node == nullptr) {
     return nullptr;
   }
