@@ -101,20 +101,26 @@ def test_beside_a_legacy_listener_served_subscriptions_take_no_main_topic_copies
     subscription that comes and goes meanwhile. The plain subscription gets every frame intact,
     as the canonical CDR bytes (but for alignment padding, as from stock rclpy); the demo ones, each served on its channel once it settled,
     take no main-topic copy from then on (the publisher keeps those samples from them), and
-    none loses or repeats a frame while channels come and go."""
+    none loses or repeats a frame while channels come and go.
+
+    Every subscription keeps the last 100 (2 s at 50 Hz): with 10, a subscriber process that a
+    loaded machine stalls for 200 ms loses frames to its history, stock rclpy's the same way
+    (a late joiner stalled for 0.5 s during its bring-up: 15 frames missing mid-stream, legacy
+    and demo alike; none with 100), and the loss would not be the routes'."""
     topic = '/withheld_image'
     count = 400  # 8 s at 50 Hz
+    depth = 100  # at most MAX_PROBE_DEPTH: the late route's bring-up still probes
     with Run() as run:
         run.start('demo', 'image_subscriber', **_sub_params(
-            topic, count, acceptable_buffer_backends='demo'))
+            topic, count, acceptable_buffer_backends='demo', depth=depth))
         run.start('plain', 'image_subscriber', **_sub_params(
-            topic, count, legacy=True, raw=True))
+            topic, count, legacy=True, raw=True, depth=depth))
         run.start('pub', 'image_publisher', **_pub_params(
             topic, count, backend='demo', wait_for_subscribers=2, wait_for_buffer_peers=1,
             linger_sec=2.0))
         time.sleep(3.0)  # the publisher is publishing
         run.start('late', 'image_subscriber', topic=topic, expected_count=0, timeout_sec=2.5,
-                  acceptable_buffer_backends='demo')
+                  acceptable_buffer_backends='demo', depth=depth)
         assert run.wait(['demo', 'plain', 'late', 'pub'], 90), run.diagnostics()
         reports = {label: run.nodes[label].report for label in ('demo', 'plain', 'late', 'pub')}
     for label in ('demo', 'plain'):
