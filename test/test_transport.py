@@ -99,9 +99,10 @@ def test_a_slow_subscriber_gets_every_frame_its_publisher_sent_before_exiting(ki
 def test_beside_a_legacy_listener_served_subscriptions_take_no_main_topic_copies():
     """A demo publisher, a demo subscription and a plain raw one, and a second demo
     subscription that comes and goes meanwhile. The plain subscription gets every frame intact,
-    as the canonical CDR bytes (but for alignment padding, as from stock rclpy); the demo ones, each served on its channel once it settled,
-    take no main-topic copy from then on (the publisher keeps those samples from them), and
-    none loses or repeats a frame while channels come and go.
+    as the canonical CDR bytes (but for alignment padding, as from stock rclpy); the demo ones,
+    each served on its channel once it settled, take no main-topic copy from then on (the
+    publisher keeps those samples from them), and none loses or repeats a frame while channels
+    come and go.
 
     Every subscription keeps the last 100 (2 s at 50 Hz): with 10, a subscriber process that a
     loaded machine stalls for 200 ms loses frames to its history, stock rclpy's the same way
