@@ -212,6 +212,8 @@ class ChannelSubscription:
     gid: bytes
     topic_name: str
     valid: bool
+    #: samples announced to the guard condition and not taken since (1 without one): 0 means
+    #: every sample left will trigger it (again), so the channel need not be taken now
     pending: int
     on_udp: bool
 

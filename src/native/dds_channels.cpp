@@ -856,8 +856,8 @@ PyObject * sub_pending(PyObject * op, void *)
 PyGetSetDef sub_getset[] = {
   {"pending", sub_pending, nullptr,
     "Samples announced to the guard condition and not taken since (1 without a guard "
-    "condition): 0 after a take means that every sample left will trigger the guard "
-    "condition (again), so no empty take is needed to know the channel is drained", nullptr},
+    "condition): 0 means that every sample left will trigger the guard condition (again), "
+    "so the channel need not be taken now", nullptr},
   RBPY_CHANNEL_GETSET(
     ChannelSubscriptionObject, "16-byte GID (as in get_subscriptions_info_by_topic)"),
   {"on_udp", sub_on_udp, nullptr, "True if the DataReader listens on UDP only, not on the "
