@@ -6,9 +6,11 @@
 //   rmw_fastrtps layer (dds_*.cpp) - endpoint GIDs, USER_DATA, discovery tap, channels below rcl,
 //                 take with publisher GID.
 //   dlpack_capsule - raw host or device memory as a DLPack capsule that keeps its owner alive.
+//   recv_records - a SOCK_SEQPACKET socket's queued records, read without raising.
 #include "buffer_base.hpp"
 #include "dds_common.hpp"
 #include "dlpack_export.hpp"
+#include "records.hpp"
 
 namespace
 {
@@ -30,7 +32,7 @@ PyMODINIT_FUNC PyInit__native(void)
     return nullptr;
   }
   if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0 ||
-    add_dlpack_export(module) < 0)
+    add_dlpack_export(module) < 0 || add_records(module) < 0)
   {
     Py_DECREF(module);
     return nullptr;
