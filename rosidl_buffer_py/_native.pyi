@@ -229,11 +229,25 @@ class ChannelSubscription:
 
 # codec --------------------------------------------------------------------------------------
 
-def encode_descriptor(msg: Any, slots: Any, payload_slot: Any, empty: Any, backend: str,
-                      descriptor: bytes, suffix_size: int) -> Optional[bytearray]:
-    """``codec.encode`` of the descriptor form for a compiled plan; None when it cannot."""
+def encode_descriptor(msg: Any, slots: Any, payload_slot: Any, empty: Any, backend: bytes,
+                      descriptor: bytes, suffix_size: int,
+                      program: Optional[tuple] = None) -> Optional[bytearray]:
+    """``codec.encode`` of the descriptor form for a compiled plan; None when it cannot.
+    Written from the slots by ``program`` (``codec.plans.slot_program``) where it can, else
+    from a payload-free clone by the type support: the same bytes."""
 
 
 def decode_descriptor(raw: _Bytes, msg_class: type, prefix_ops: Any, suffix_size: int,
-                      max_descriptor: int) -> Optional[Tuple[Any, str, bytes]]:
-    """``codec.decode`` of descriptor-encoded CDR; None for anything else."""
+                      max_descriptor: int,
+                      program: Optional[tuple] = None) -> Optional[Tuple[Any, str, bytes]]:
+    """``codec.decode`` of descriptor-encoded CDR; None for anything else. The message is
+    built from its slots by ``program`` where it can, else by the type support and the
+    generated convert_to_py: the same message."""
+
+
+# sockets ------------------------------------------------------------------------------------
+
+def recv_records(fd: int, size: int) -> Tuple[bytes, bool]:
+    """``(records, hung_up)``: the records of exactly ``size`` bytes queued on a SOCK_SEQPACKET
+    socket, joined (others skipped), read without blocking and without raising when none is
+    left; ``hung_up`` when the peer closed or the socket failed."""

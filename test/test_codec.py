@@ -17,7 +17,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import MultiArrayDimension, String, UInt8MultiArray
 
 from rosidl_buffer_py import Buffer, MAX_DESCRIPTOR_SIZE, enable_buffer_fields
-from rosidl_buffer_py import codec
+from rosidl_buffer_py import _native, codec
 from rosidl_buffer_py.codec import plans, walker, wire
 from rosidl_buffer_py.codec import (
     CodecError, DESCRIPTOR_MARKER, Decoded, UnsupportedMessageTypeError, decode, encode,
@@ -841,3 +841,229 @@ def test_fast_path_gives_the_python_path_bytes_and_messages(monkeypatch):
             assert [outcome(bytes(v)) for v in variants] == fast_outcomes
         assert fast_decoded == slow_decoded
         assert type(getattr(fast_decoded.msg, plan.field)) is array.array
+
+
+# --- slot programs: the decoded message built from its slots in C ------------------------------
+
+def _slot_values(msg, seen=()):
+    """Every slot of ``msg`` (nested messages too) with its value's type: what equality of two
+    messages does not check."""
+    out = {}
+    for slot in type(msg).__slots__:
+        value = getattr(msg, slot)
+        if hasattr(type(value), 'SLOT_TYPES'):
+            out[slot] = _slot_values(value)
+        else:
+            out[slot] = (type(value), value.tobytes() if isinstance(value, array.array) else value)
+    return out
+
+
+def _decoded_both_ways(raw, msg_type):
+    """The descriptor message decoded by its slot program and by the type support."""
+    plan = plans.short_plan(msg_type)
+    assert plan.program is not None
+    by_program = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
+                                           MAX_DESCRIPTOR_SIZE, plan.program)
+    by_support = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
+                                           MAX_DESCRIPTOR_SIZE)
+    return by_program, by_support
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_slot_program_builds_the_message_the_type_support_builds(seed):
+    import random
+    from visualization_msgs.msg import MeshFile
+    rng = random.Random(seed)
+    texts = ['', 'camera', 'kamera_ü_日本', 'x' * rng.randrange(0, 300), '\U0001F600 frame']
+    image = Image(height=rng.randrange(2 ** 32), width=rng.randrange(2 ** 32),
+                  encoding=rng.choice(texts), is_bigendian=rng.randrange(256),
+                  step=rng.randrange(2 ** 32))
+    image.header.stamp.sec = rng.randrange(-2 ** 31, 2 ** 31)
+    image.header.stamp.nanosec = rng.randrange(2 ** 32)
+    image.header.frame_id = rng.choice(texts)
+    compressed = CompressedImage(format=rng.choice(texts))
+    compressed.header = image.header
+    mesh = MeshFile(filename=rng.choice(texts))
+    for msg in (image, compressed, mesh):
+        descriptor = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
+        raw = codec.encode(msg, ('demo', descriptor))
+        by_program, by_support = _decoded_both_ways(raw, type(msg))
+        assert by_program[1:] == by_support[1:] == ('demo', descriptor)
+        assert by_program[0] == by_support[0]
+        assert _slot_values(by_program[0]) == _slot_values(by_support[0])
+        assert type(by_program[0].data) is array.array and len(by_program[0].data) == 0
+
+
+def test_slot_program_leaves_what_it_does_not_build_exactly_to_the_type_support():
+    """A string that is not strict UTF-8 (convert_to_py replaces the bad bytes): the message
+    comes from the generated code, the same as without a program."""
+    image = Image(encoding='mono8')
+    image.header.frame_id = 'camera'
+    raw = bytearray(codec.encode(image, ('demo', b'd')))
+    at = bytes(raw).index(b'camera')
+    raw[at:at + 2] = b'\xff\xfe'
+    by_program, by_support = _decoded_both_ways(bytes(raw), Image)
+    assert by_program[0].header.frame_id == by_support[0].header.frame_id == '\ufffd\ufffdmera'
+    assert _slot_values(by_program[0]) == _slot_values(by_support[0])
+
+
+def test_slot_program_kinds_are_the_numbers_the_fast_path_reads():
+    assert (plans.P_BOOL, plans.P_INT8, plans.P_UINT8, plans.P_INT16, plans.P_UINT16,
+            plans.P_INT32, plans.P_UINT32, plans.P_INT64, plans.P_UINT64, plans.P_FLOAT32,
+            plans.P_FLOAT64, plans.P_STRING, plans.P_MESSAGE, plans.P_PAYLOAD) == \
+        tuple(range(14))  # enum SlotKind's values
+
+
+def test_slot_program_is_none_for_kinds_it_does_not_build():
+    assert plans.compiled(UInt8MultiArray).plan is None or \
+        plans.compiled(UInt8MultiArray).plan.program is None  # a sequence of messages
+    assert plans.slot_program(PointCloud2) is None
+    from test_msgs.msg import BasicTypes, WStrings
+    assert plans.slot_program(BasicTypes) is None  # byte and char
+    assert plans.slot_program(WStrings) is None
+
+
+class _AllKinds:
+    """Slots of every kind a program builds, laid out as rosidl generates them."""
+
+    __slots__ = ('_flag', '_i8', '_u8', '_i16', '_u16', '_i32', '_u32', '_i64', '_u64', '_f32',
+                 '_f64', '_text', '_short', '_data', '_check_fields')
+
+
+_ALL_KINDS = [  # (slot, rosidl type, struct format, value)
+    ('_flag', definition.BasicType('boolean'), '?', True),
+    ('_i8', definition.BasicType('int8'), 'b', -128),
+    ('_u8', definition.BasicType('uint8'), 'B', 255),
+    ('_i16', definition.BasicType('int16'), 'h', -32768),
+    ('_u16', definition.BasicType('uint16'), 'H', 65535),
+    ('_i32', definition.BasicType('int32'), 'i', -2 ** 31),
+    ('_u32', definition.BasicType('uint32'), 'I', 2 ** 32 - 1),
+    ('_i64', definition.BasicType('int64'), 'q', -2 ** 63),
+    ('_u64', definition.BasicType('uint64'), 'Q', 2 ** 64 - 1),
+    ('_f32', definition.BasicType('float'), 'f', 1.5),
+    ('_f64', definition.BasicType('double'), 'd', -2.25e300),
+    ('_text', definition.UnboundedString(), None, 'grüße'),
+    ('_short', definition.BoundedString(3), None, 'abc'),
+]
+
+
+def _all_kinds_cdr(little: bool, values) -> bytes:
+    order = '<' if little else '>'
+    body = bytearray()
+
+    def put(fmt, value):
+        size = struct.calcsize(fmt)
+        body.extend(bytes(-len(body) % size))
+        body.extend(struct.pack(order + fmt, value))
+
+    for (_, _, fmt, _), value in zip(_ALL_KINDS, values):
+        if fmt is None:
+            encoded = value.encode() + b'\0'
+            put('I', len(encoded))
+            body.extend(encoded)
+        else:
+            put('B' if fmt == '?' and type(value) is int else fmt, value)  # a raw bool byte
+    put('I', 0xFFFFFFFF)
+    put('I', 5)
+    body.extend(b'demo\0')
+    put('I', 3)
+    body.extend(b'abc')
+    return bytes([0, 1 if little else 0, 0, 0]) + bytes(body)
+
+
+def _all_kinds_program():
+    kinds = [plans.P_BOOL, plans.P_INT8, plans.P_UINT8, plans.P_INT16, plans.P_UINT16,
+             plans.P_INT32, plans.P_UINT32, plans.P_INT64, plans.P_UINT64, plans.P_FLOAT32,
+             plans.P_FLOAT64, plans.P_STRING, plans.P_STRING]
+    args = [None] * 11 + [-1, 3]
+    return (_AllKinds, True, tuple((slot, kind, arg) for (slot, _, _, _), kind, arg
+                                   in zip(_ALL_KINDS, kinds, args)) +
+            (('_data', plans.P_PAYLOAD, list),))
+
+
+def _all_kinds_decode(raw):
+    builder = walker.Builder()
+    for slot, slot_type, _, _ in _ALL_KINDS:
+        walker.add_type(builder, slot_type, slot, (_AllKinds,))
+    # a class without type support: what the program does not build comes back as None
+    return _native.decode_descriptor(raw, _AllKinds, builder.freeze(), 0, MAX_DESCRIPTOR_SIZE,
+                                     _all_kinds_program())
+
+
+@pytest.mark.parametrize('little', [True, False])
+def test_slot_program_builds_every_kind_in_either_byte_order(little):
+    values = [value for _, _, _, value in _ALL_KINDS]
+    msg, backend, descriptor = _all_kinds_decode(_all_kinds_cdr(little, values))
+    assert type(msg) is _AllKinds and (backend, descriptor) == ('demo', b'abc')
+    for (slot, _, _, value) in _ALL_KINDS:
+        assert getattr(msg, slot) == value and type(getattr(msg, slot)) is type(value), slot
+    assert msg._data == [] and msg._check_fields is True
+
+
+@pytest.mark.parametrize('slot, bad', [('_flag', 2), ('_short', 'abcd'), ('_text', 'a\0b')])
+def test_slot_program_hands_values_it_does_not_build_to_the_type_support(slot, bad):
+    """A bool byte other than 0 or 1, a string over its bound or with an inner NUL: the program
+    gives up and the type support decides (this class has none: the codec's path, None)."""
+    values = [bad if s == slot else value for s, _, _, value in _ALL_KINDS]
+    assert _all_kinds_decode(_all_kinds_cdr(True, values)) is None
+
+
+def _encoded_both_ways(msg, descriptor):
+    plan = plans.short_plan(type(msg))
+    args = (msg, plan.slots, plan.slot, b'', b'demo', descriptor, plan.suffix_size)
+    return (_native.encode_descriptor(*args, plan.program), _native.encode_descriptor(*args))
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_slot_program_writes_the_bytes_the_type_support_writes(seed):
+    import random
+    from visualization_msgs.msg import MeshFile
+    rng = random.Random(seed)
+    texts = ['', 'camera', 'kamera_ü_日本', 'x' * rng.randrange(0, 300), '\U0001F600 frame']
+    image = Image(height=rng.randrange(2 ** 32), width=rng.randrange(2 ** 32),
+                  encoding=rng.choice(texts), is_bigendian=rng.randrange(256),
+                  step=rng.randrange(2 ** 32), data=bytes(rng.randrange(0, 50)))
+    image.header.stamp.sec = rng.randrange(-2 ** 31, 2 ** 31)
+    image.header.stamp.nanosec = rng.randrange(2 ** 32)
+    image.header.frame_id = rng.choice(texts)
+    compressed = CompressedImage(format=rng.choice(texts))
+    compressed.header = image.header
+    mesh = MeshFile(filename=rng.choice(texts))
+    for msg in (image, compressed, mesh):
+        descriptor = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
+        by_program, by_support = _encoded_both_ways(msg, descriptor)
+        assert type(by_program) is bytearray and by_program == by_support
+        assert codec.decode(by_program, type(msg)).msg == \
+            codec.decode(by_support, type(msg)).msg
+
+
+@pytest.mark.parametrize('field, value', [
+    ('height', 2 ** 32 + 5),     # out of range: the generated code truncates it
+    ('height', True),            # not exactly an int
+    ('encoding', 'a\0b'),        # an inner NUL: the generated code cuts the string there
+    ('encoding', '\udc80'),      # not encodable as UTF-8
+])
+def test_slot_program_leaves_values_it_does_not_write_exactly_to_the_type_support(field, value):
+    image = Image(encoding='mono8')
+    image._check_fields = False  # values the setters would refuse
+    setattr(image, field, value)
+    plan = plans.short_plan(Image)
+    args = (image, plan.slots, plan.slot, b'', b'demo', b'd', plan.suffix_size)
+    assert _native.encode_descriptor(*args, plan.program) == \
+        _native.encode_descriptor(*args)  # both the type support's answer (bytes or None)
+
+
+def test_slot_program_writes_every_kind():
+    msg = _AllKinds()
+    for slot, _, _, value in _ALL_KINDS:
+        setattr(msg, slot, value)
+    msg._data = b''
+    program = _all_kinds_program()
+    out = _native.encode_descriptor(msg, _AllKinds.__slots__, '_data', b'', b'demo', b'abc', 0,
+                                    program)
+    expected = _all_kinds_cdr(struct.pack('=H', 1) == b'\x01\x00',
+                              [value for _, _, _, value in _ALL_KINDS])
+    assert out == expected
+    msg._short = 'abcd'  # over its bound: the type support's path (this class has none)
+    assert _native.encode_descriptor(msg, _AllKinds.__slots__, '_data', b'', b'demo', b'abc', 0,
+                                     program) is None

@@ -115,7 +115,7 @@ def decode(raw: Any, msg_type: Type,
     # Descriptor messages are decoded in C; CPU bytes and anything malformed come back as None
     # and take the path below (which names what is wrong).
     fast = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
-                                     MAX_DESCRIPTOR_SIZE)
+                                     MAX_DESCRIPTOR_SIZE, plan.program)
     if fast is not None and (known_backends is None or fast[1] in known_backends):
         msg, backend_type, descriptor = fast
         return Decoded(msg, backend_type, descriptor,

@@ -5,6 +5,9 @@ fields, its short-path :class:`Plan` when it has that shape), compiled on first 
 :func:`payload_field`, :func:`buffer_paths`, :func:`field_paths` and :func:`buffers_of` answer
 from it.
 """
+import array
+import functools
+import importlib
 import threading
 from dataclasses import dataclass
 from typing import Any, Dict, Iterator, List, Optional, Tuple, Type
@@ -38,6 +41,8 @@ class Plan:
     prefix_ops: Ops                 # the fields before the payload
     suffix_size: int                # the fields after it: alignment 1, fixed size
     path: FieldPath                 # (field,)
+    #: how C builds the decoded message from its slots (:func:`slot_program`), or None
+    program: Optional[tuple] = None
 
 
 @dataclass(frozen=True)
@@ -137,7 +142,62 @@ def _short_plan_of(msg_type: Type, fields, index: int) -> Optional[Plan]:
         add_type(prefix, slot_type, name, (msg_type,))
     field = fields[index][0]
     return Plan(msg_type, field, '_' + field, tuple(msg_type.__slots__), prefix.freeze(),
-                sum(op[2] for op in suffix_ops), FieldPath((field,)))
+                sum(op[2] for op in suffix_ops), FieldPath((field,)),
+                slot_program(msg_type, '_' + field))
+
+
+# --- slot programs ---------------------------------------------------------------------------
+
+# How src/native/codec_fast.cpp builds a decoded message without the generated code's
+# convert_to_py: that runs the class's __init__ (which builds every nested default) and then one
+# Python property setter per field, about 100 µs for an Image in a process woken for one frame;
+# setting the slots from C gives the same object for a fraction. A program is
+# ``(class, check_fields, ((slot, kind, arg), ...))``; the kinds, in the order codec_fast.cpp
+# reads them (test_codec.py pins them):
+(P_BOOL, P_INT8, P_UINT8, P_INT16, P_UINT16, P_INT32, P_UINT32, P_INT64, P_UINT64, P_FLOAT32,
+ P_FLOAT64, P_STRING, P_MESSAGE, P_PAYLOAD) = range(14)
+_BASIC_KINDS = {
+    'boolean': P_BOOL, 'int8': P_INT8, 'uint8': P_UINT8, 'int16': P_INT16, 'uint16': P_UINT16,
+    'int32': P_INT32, 'uint32': P_UINT32, 'int64': P_INT64, 'uint64': P_UINT64,
+    'float': P_FLOAT32, 'double': P_FLOAT64}
+
+
+def slot_program(msg_type: Type, payload_slot: Optional[str] = None,
+                 stack: Tuple[Type, ...] = ()) -> Optional[tuple]:
+    """The program by which C builds a ``msg_type`` from its CDR as ``deserialize_message``
+    would (the same field values, of the same types; ``payload_slot`` an empty
+    ``array.array('B')``, as convert_to_py leaves it before filling it), or None when a field
+    has a kind it does not build (sequences and arrays other than the payload, wide strings,
+    ``byte``, ``char``) or the class is not laid out as rosidl generates it: the message then
+    comes from the generated code."""
+    if msg_type in stack:
+        return None
+    fields = message_fields(msg_type)
+    slots = ['_' + name for name, _ in fields]
+    module = importlib.import_module(msg_type.__module__)
+    check = getattr(module, 'ros_python_check_fields', None)
+    if list(getattr(msg_type, '__slots__', ())) != slots + ['_check_fields'] or \
+            not isinstance(check, str) or not fields:
+        return None
+    entries = []
+    for slot, (_, slot_type) in zip(slots, fields):
+        if slot == payload_slot:
+            entries.append((slot, P_PAYLOAD, functools.partial(array.array, 'B')))
+        elif isinstance(slot_type, definition.BasicType) and slot_type.typename in _BASIC_KINDS:
+            entries.append((slot, _BASIC_KINDS[slot_type.typename], None))
+        elif isinstance(slot_type, definition.UnboundedString):
+            entries.append((slot, P_STRING, -1))
+        elif isinstance(slot_type, definition.BoundedString):
+            entries.append((slot, P_STRING, int(slot_type.maximum_size)))
+        elif isinstance(slot_type, definition.NamespacedType):
+            nested = slot_program(nested_class(slot_type), None, stack + (msg_type,))
+            if nested is None:
+                return None
+            entries.append((slot, P_MESSAGE, nested))
+        else:
+            return None
+    # what the generated __init__ sets (its module's ROS_PYTHON_CHECK_FIELDS, read at import)
+    return (msg_type, check == '1', tuple(entries))
 
 
 _codecs: Dict[Type, TypeCodec] = {}

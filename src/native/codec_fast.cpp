@@ -1,8 +1,8 @@
 // The descriptor form of rosidl_buffer_py.codec in C: the hot path of every descriptor message.
 //
-//   encode_descriptor(msg, slots, payload_slot, empty, backend, descriptor, suffix_size)
-//       -> bytearray | None
-//   decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor)
+//   encode_descriptor(msg, slots, payload_slot, empty, backend, descriptor, suffix_size,
+//       program=None) -> bytearray | None
+//   decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor, program=None)
 //       -> (msg, backend_type, descriptor) | None
 //
 // Both do what the Python codec does (same bytes out, same message out) without running Python
@@ -11,6 +11,16 @@
 // handles the well-formed case only and returns None for anything else (not a descriptor,
 // malformed input, a value it cannot convert): the Python codec then runs and raises its
 // CodecError naming the problem, so error reporting has one implementation.
+//
+// The decoded message is built from its slots where the type allows (a slot program, see
+// build()): the generated convert_to_py runs the class's __init__ and one Python setter per
+// field, which a woken process pays at about 100 µs for an Image; the slots set from C give the
+// same object. Anything the program does not build exactly as the generated code would goes
+// to the type support and convert_to_py, as deserialize_message does. The same program writes
+// the descriptor message from the slots (write_fields), where convert_from_py would call one
+// Python getter per field; values of another type or range than the field's go to the type
+// support.
+#include <cstdint>
 #include <cstring>
 #include <exception>
 #include <vector>
@@ -27,6 +37,7 @@ namespace
 
 constexpr size_t kHeader = 4;
 constexpr uint32_t kMarker = 0xFFFFFFFFu;
+constexpr bool kLittleHost = __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__;
 // The op kinds of rosidl_buffer_py/codec/walker.py (FIXED, STRING, PSEQ, SEQ, ARRAY). Each op is
 // a typing.NamedTuple (a tuple subclass, so PyTuple_Check holds), read here by position: the
 // kind first, then FixedOp(kind, align, size, inner_pads, label), StringOp(kind, bound, label),
@@ -61,6 +72,17 @@ struct Reader
 bool item(PyObject * op, Py_ssize_t index, Py_ssize_t * value)
 {
   PyObject * o = PyTuple_GET_ITEM(op, index);
+  if (o == Py_None) {
+    *value = -1;
+    return true;
+  }
+  *value = PyLong_AsSsize_t(o);
+  return !(*value == -1 && PyErr_Occurred());
+}
+
+/// An int or None (-1) object as a Py_ssize_t.
+bool item_value(PyObject * o, Py_ssize_t * value)
+{
   if (o == Py_None) {
     *value = -1;
     return true;
@@ -144,6 +166,285 @@ bool walk(PyObject * ops, const Reader & r, size_t * pos, int depth)
   return true;
 }
 
+// The kinds of a slot program (rosidl_buffer_py/codec/plans.py, slot_program; test_codec.py
+// pins the numbers). A program is (class, check_fields, ((slot, kind, arg), ...)).
+enum SlotKind : long
+{
+  kBool = 0, kInt8, kUint8, kInt16, kUint16, kInt32, kUint32, kInt64, kUint64, kFloat32,
+  kFloat64, kStringSlot, kMessage, kPayload
+};
+
+/// The `size`-byte little- or big-endian value at the `size`-aligned position at or after
+/// `*pos` (XCDR1 aligns every primitive to its size); false when it does not fit.
+bool primitive(const Reader & r, size_t * pos, size_t size, uint64_t * value)
+{
+  const size_t start = (*pos + size - 1) & ~(size - 1);
+  if (start > r.end || r.end - start < size) {
+    return false;
+  }
+  uint64_t v = 0;
+  for (size_t k = 0; k < size; ++k) {
+    v |= uint64_t(r.body[start + k]) << (8 * (r.little ? k : size - 1 - k));
+  }
+  *value = v;
+  *pos = start + size;
+  return true;
+}
+
+/// One field's value as convert_to_py makes it, or nullptr (an exception may be set): a value
+/// the generated code would treat otherwise (a bool byte other than 0 or 1, a string that is
+/// not NUL-terminated UTF-8 without inner NULs or is over its bound, a payload not empty)
+/// leaves the message to the generated code.
+PyObject * build(PyObject * program, const Reader & r, size_t * pos, int depth);
+
+PyObject * field_value(long kind, PyObject * arg, const Reader & r, size_t * pos, int depth)
+{
+  static const size_t sizes[] = {1, 1, 1, 2, 2, 4, 4, 8, 8, 4, 8};
+  uint64_t v = 0;
+  if (kind >= kBool && kind <= kFloat64) {
+    if (!primitive(r, pos, sizes[kind], &v)) {
+      return nullptr;
+    }
+  }
+  switch (kind) {
+    case kBool:
+      return v > 1 ? nullptr : PyBool_FromLong(static_cast<long>(v));
+    case kInt8: return PyLong_FromLong(static_cast<int8_t>(v));
+    case kUint8: return PyLong_FromUnsignedLong(static_cast<uint8_t>(v));
+    case kInt16: return PyLong_FromLong(static_cast<int16_t>(v));
+    case kUint16: return PyLong_FromUnsignedLong(static_cast<uint16_t>(v));
+    case kInt32: return PyLong_FromLong(static_cast<int32_t>(v));
+    case kUint32: return PyLong_FromUnsignedLong(static_cast<uint32_t>(v));
+    case kInt64: return PyLong_FromLongLong(static_cast<int64_t>(v));
+    case kUint64: return PyLong_FromUnsignedLongLong(v);
+    case kFloat32: {
+        const uint32_t bits = static_cast<uint32_t>(v);
+        float f;
+        std::memcpy(&f, &bits, sizeof f);
+        return PyFloat_FromDouble(f);
+      }
+    case kFloat64: {
+        double d;
+        std::memcpy(&d, &v, sizeof d);
+        return PyFloat_FromDouble(d);
+      }
+    case kStringSlot: {
+        uint32_t length;
+        Py_ssize_t bound;
+        if (!r.u32(pos, &length) || length < 1 || length > r.end - *pos ||
+          r.body[*pos + length - 1] != 0 ||
+          std::memchr(r.body + *pos, 0, length - 1) != nullptr ||
+          !item_value(arg, &bound) || (bound >= 0 && length - 1 > static_cast<size_t>(bound)))
+        {
+          return nullptr;
+        }
+        PyObject * text = PyUnicode_DecodeUTF8(
+          reinterpret_cast<const char *>(r.body + *pos), length - 1, "strict");
+        *pos += length;
+        return text;
+      }
+    case kMessage:
+      return build(arg, r, pos, depth + 1);
+    case kPayload: {
+        uint32_t length;
+        if (!r.u32(pos, &length) || length != 0) {
+          return nullptr;
+        }
+        return PyObject_CallNoArgs(arg);
+      }
+    default:
+      return nullptr;
+  }
+}
+
+PyObject * build(PyObject * program, const Reader & r, size_t * pos, int depth)
+{
+  if (depth > 64 || !PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 3 ||
+    !PyType_Check(PyTuple_GET_ITEM(program, 0)) || !PyTuple_Check(PyTuple_GET_ITEM(program, 2)))
+  {
+    return nullptr;
+  }
+  auto * type = reinterpret_cast<PyTypeObject *>(PyTuple_GET_ITEM(program, 0));
+  PyObject * fields = PyTuple_GET_ITEM(program, 2);
+  PyObject * no_args = PyTuple_New(0);
+  PyObject * msg = no_args ? type->tp_new(type, no_args, nullptr) : nullptr;
+  Py_XDECREF(no_args);
+  if (msg == nullptr) {
+    return nullptr;
+  }
+  static PyObject * check_slot = PyUnicode_InternFromString("_check_fields");
+  if (check_slot == nullptr ||
+    PyObject_SetAttr(msg, check_slot, PyTuple_GET_ITEM(program, 1)) < 0)
+  {
+    Py_DECREF(msg);
+    return nullptr;
+  }
+  for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(fields); ++i) {
+    PyObject * field = PyTuple_GET_ITEM(fields, i);
+    Py_ssize_t kind;
+    if (!PyTuple_Check(field) || PyTuple_GET_SIZE(field) != 3 || !item(field, 1, &kind)) {
+      Py_DECREF(msg);
+      return nullptr;
+    }
+    PyObject * value = field_value(kind, PyTuple_GET_ITEM(field, 2), r, pos, depth);
+    if (value == nullptr || PyObject_SetAttr(msg, PyTuple_GET_ITEM(field, 0), value) < 0) {
+      Py_XDECREF(value);
+      Py_DECREF(msg);
+      return nullptr;
+    }
+    Py_DECREF(value);
+  }
+  return msg;
+}
+
+/// CDR (XCDR1, this machine's byte order) written from a message's slots.
+struct Writer
+{
+  std::vector<char> out;
+
+  void align(size_t n) {out.resize(out.size() + ((n - (out.size() - kHeader) % n) % n), '\0');}
+  void put(uint64_t value, size_t size)
+  {
+    align(size);
+    char b[8];
+    for (size_t k = 0; k < size; ++k) {
+      b[kLittleHost ? k : size - 1 - k] = static_cast<char>((value >> (8 * k)) & 0xFF);
+    }
+    out.insert(out.end(), b, b + size);
+  }
+  void bytes(const char * data, size_t size) {out.insert(out.end(), data, data + size);}
+};
+
+/// An exact int in [low, high] as its two's complement bits; false for anything else.
+bool int_bits(PyObject * value, long long low, unsigned long long high, uint64_t * bits)
+{
+  if (!PyLong_CheckExact(value)) {
+    return false;
+  }
+  int overflow = 0;
+  const long long v = PyLong_AsLongLongAndOverflow(value, &overflow);
+  if (overflow == 0 && v == -1 && PyErr_Occurred()) {
+    return false;
+  }
+  if (overflow < 0) {
+    return false;
+  }
+  if (overflow > 0) {  // above LLONG_MAX: only a uint64 takes it
+    const unsigned long long u = PyLong_AsUnsignedLongLong(value);
+    if (u == static_cast<unsigned long long>(-1) && PyErr_Occurred()) {
+      return false;
+    }
+    if (u > high) {
+      return false;
+    }
+    *bits = u;
+    return true;
+  }
+  if (v < low || (v > 0 && static_cast<unsigned long long>(v) > high)) {
+    return false;
+  }
+  *bits = static_cast<uint64_t>(v);
+  return true;
+}
+
+struct DescriptorPart
+{
+  const char * backend;
+  Py_ssize_t backend_length;
+  const char * descriptor;
+  Py_ssize_t descriptor_length;
+};
+
+/// `msg`'s fields written as the type support serializes what convert_from_py makes of them,
+/// its payload as the descriptor; false (no exception) for anything the program does not write
+/// exactly so: a value not of the field's exact Python type, out of its range, a string with a
+/// NUL or over its bound. encode_descriptor then takes the type support's path.
+bool write_fields(PyObject * msg, PyObject * program, Writer * w, const DescriptorPart * part,
+  int depth)
+{
+  if (depth > 64 || !PyTuple_Check(program) || PyTuple_GET_SIZE(program) != 3 ||
+    reinterpret_cast<PyObject *>(Py_TYPE(msg)) != PyTuple_GET_ITEM(program, 0) ||
+    !PyTuple_Check(PyTuple_GET_ITEM(program, 2)))
+  {
+    return false;
+  }
+  static const size_t sizes[] = {1, 1, 1, 2, 2, 4, 4, 8, 8, 4, 8};
+  static const long long lows[] = {0, INT8_MIN, 0, INT16_MIN, 0, INT32_MIN, 0, INT64_MIN, 0};
+  static const unsigned long long highs[] = {
+    1, INT8_MAX, UINT8_MAX, INT16_MAX, UINT16_MAX, INT32_MAX, UINT32_MAX, INT64_MAX, UINT64_MAX};
+  PyObject * fields = PyTuple_GET_ITEM(program, 2);
+  for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(fields); ++i) {
+    PyObject * field = PyTuple_GET_ITEM(fields, i);
+    Py_ssize_t kind;
+    if (!PyTuple_Check(field) || PyTuple_GET_SIZE(field) != 3 || !item(field, 1, &kind)) {
+      return false;
+    }
+    if (kind == kPayload) {
+      if (part == nullptr) {
+        return false;
+      }
+      w->put(kMarker, 4);
+      w->put(static_cast<uint32_t>(part->backend_length + 1), 4);
+      w->bytes(part->backend, part->backend_length);
+      w->out.push_back('\0');
+      w->put(static_cast<uint32_t>(part->descriptor_length), 4);
+      w->bytes(part->descriptor, part->descriptor_length);
+      part = nullptr;  // one payload
+      continue;
+    }
+    PyObject * value = PyObject_GetAttr(msg, PyTuple_GET_ITEM(field, 0));
+    if (value == nullptr) {
+      return false;
+    }
+    bool ok = true;
+    uint64_t bits = 0;
+    if (kind == kBool) {
+      ok = PyBool_Check(value);
+      if (ok) {
+        w->put(value == Py_True ? 1 : 0, 1);
+      }
+    } else if (kind >= kInt8 && kind <= kUint64) {
+      ok = int_bits(value, lows[kind], highs[kind], &bits);
+      if (ok) {
+        w->put(bits, sizes[kind]);
+      }
+    } else if (kind == kFloat32 || kind == kFloat64) {
+      ok = PyFloat_CheckExact(value);
+      if (ok && kind == kFloat32) {
+        const float f = static_cast<float>(PyFloat_AS_DOUBLE(value));
+        uint32_t b32;
+        std::memcpy(&b32, &f, sizeof b32);
+        w->put(b32, 4);
+      } else if (ok) {
+        const double d = PyFloat_AS_DOUBLE(value);
+        std::memcpy(&bits, &d, sizeof bits);
+        w->put(bits, 8);
+      }
+    } else if (kind == kStringSlot) {
+      Py_ssize_t length = 0;
+      Py_ssize_t bound;
+      const char * text = PyUnicode_CheckExact(value) ?
+        PyUnicode_AsUTF8AndSize(value, &length) : nullptr;
+      ok = text != nullptr && std::memchr(text, 0, static_cast<size_t>(length)) == nullptr &&
+        item_value(PyTuple_GET_ITEM(field, 2), &bound) && (bound < 0 || length <= bound);
+      if (ok) {
+        w->put(static_cast<uint32_t>(length + 1), 4);
+        w->bytes(text, static_cast<size_t>(length));
+        w->out.push_back('\0');
+      }
+    } else if (kind == kMessage) {
+      ok = write_fields(value, PyTuple_GET_ITEM(field, 2), w, nullptr, depth + 1);
+    } else {
+      ok = false;
+    }
+    Py_DECREF(value);
+    if (!ok) {
+      return false;
+    }
+  }
+  return part == nullptr || depth > 0;
+}
+
 /// None, after clearing any pending exception: the Python codec takes over.
 PyObject * fall_back()
 {
@@ -168,6 +469,38 @@ private:
   bool held_ = false;
 };
 
+/// `small` (a payload-free message's CDR) built by `program`; nullptr (no exception) when the
+/// program does not consume it exactly or leaves a value to the generated code.
+PyObject * built(PyObject * program, const std::vector<uint8_t> & small)
+{
+  Reader r{small.data() + kHeader, small.size() - kHeader, small[1] == 1};
+  size_t pos = 0;
+  PyObject * msg = build(program, r, &pos, 0);
+  if (msg != nullptr && pos != r.end) {
+    Py_CLEAR(msg);
+  }
+  PyErr_Clear();
+  return msg;
+}
+
+/// `small` deserialized by the type support and converted by the generated convert_to_py, as
+/// deserialize_message does; nullptr when it cannot.
+PyObject * converted(PyObject * msg_class, const std::vector<uint8_t> & small)
+{
+  MessageSupport support;
+  if (support.load(msg_class) < 0) {
+    return nullptr;
+  }
+  rmw_serialized_message_t serialized = rmw_get_zero_initialized_serialized_message();
+  serialized.buffer = const_cast<uint8_t *>(small.data());
+  serialized.buffer_length = serialized.buffer_capacity = small.size();
+  OwnedRosMessage ros_message(&support);
+  if (!try_deserialize(support, serialized, &ros_message)) {
+    return nullptr;
+  }
+  return support.to_py(ros_message.get());
+}
+
 PyObject * decode_descriptor(PyObject *, PyObject * args)
 {
   PyObject * raw;
@@ -175,9 +508,10 @@ PyObject * decode_descriptor(PyObject *, PyObject * args)
   PyObject * ops;
   Py_ssize_t suffix_size;
   Py_ssize_t max_descriptor;
+  PyObject * program = Py_None;
   if (!PyArg_ParseTuple(
-      args, "OOO!nn:decode_descriptor", &raw, &msg_class, &PyTuple_Type, &ops, &suffix_size,
-      &max_descriptor))
+      args, "OOO!nn|O:decode_descriptor", &raw, &msg_class, &PyTuple_Type, &ops, &suffix_size,
+      &max_descriptor, &program))
   {
     return nullptr;
   }
@@ -217,25 +551,17 @@ PyObject * decode_descriptor(PyObject *, PyObject * args)
   if (static_cast<size_t>(suffix_size) > r.end - data_end) {
     return fall_back();
   }
-  MessageSupport support;
-  if (support.load(msg_class) < 0) {
-    return fall_back();
-  }
   // The message without its payload: the head, a zero length, the fields after the payload.
   std::vector<uint8_t> small(head_end + 4 + suffix_size);
   std::memcpy(small.data(), data, head_end);
   std::memset(small.data() + head_end, 0, 4);
   std::memcpy(small.data() + head_end + 4, r.body + data_end, suffix_size);
-  rmw_serialized_message_t serialized = rmw_get_zero_initialized_serialized_message();
-  serialized.buffer = small.data();
-  serialized.buffer_length = serialized.buffer_capacity = small.size();
-  OwnedRosMessage ros_message(&support);
-  if (!try_deserialize(support, serialized, &ros_message)) {
-    return fall_back();
-  }
-  PyObject * msg = support.to_py(ros_message.get());
-  if (msg == nullptr) {
-    return fall_back();
+  PyObject * msg = program == Py_None ? nullptr : built(program, small);
+  if (msg == nullptr) {  // no program, or a value it leaves to the generated code
+    msg = converted(msg_class, small);
+    if (msg == nullptr) {
+      return fall_back();
+    }
   }
   PyObject * backend = PyUnicode_DecodeUTF8(name, name_length, "strict");
   PyObject * desc = backend ? PyBytes_FromStringAndSize(
@@ -284,14 +610,26 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   const char * descriptor;
   Py_ssize_t descriptor_length;
   Py_ssize_t suffix_size;
+  PyObject * program = Py_None;
   if (!PyArg_ParseTuple(
-      args, "OO!UOy#y#n:encode_descriptor", &msg, &PyTuple_Type, &slots, &payload_slot, &empty,
-      &backend, &backend_length, &descriptor, &descriptor_length, &suffix_size))
+      args, "OO!UOy#y#n|O:encode_descriptor", &msg, &PyTuple_Type, &slots, &payload_slot,
+      &empty, &backend, &backend_length, &descriptor, &descriptor_length, &suffix_size,
+      &program))
   {
     return nullptr;
   }
   if (suffix_size < 0) {
     return fall_back();
+  }
+  if (program != Py_None) {  // the slots written directly, where the program can
+    Writer w;
+    w.out.reserve(256 + backend_length + descriptor_length);
+    w.bytes(kLittleHost ? "\0\1\0\0" : "\0\0\0\0", kHeader);
+    const DescriptorPart part{backend, backend_length, descriptor, descriptor_length};
+    if (write_fields(msg, program, &w, &part, 0)) {
+      return PyByteArray_FromStringAndSize(w.out.data(), static_cast<Py_ssize_t>(w.out.size()));
+    }
+    PyErr_Clear();
   }
   MessageSupport support;
   if (support.load(reinterpret_cast<PyObject *>(Py_TYPE(msg))) < 0) {
@@ -361,15 +699,19 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
 
 PyMethodDef codec_functions[] = {
   RBPY_FUNCTION(encode_descriptor, METH_VARARGS,
-    "encode_descriptor(msg, slots, payload_slot, empty, backend, descriptor, suffix_size) -> "
-    "bytearray | None\n\ncodec.encode(msg, (backend, descriptor)) of a plan (slots, payload "
-    "slot, suffix size) in C; `empty` is the empty payload the serialized clone holds. None "
-    "when it cannot (the Python codec then raises the CodecError)."),
+    "encode_descriptor(msg, slots, payload_slot, empty, backend, descriptor, suffix_size, "
+    "program=None) -> bytearray | None\n\ncodec.encode(msg, (backend, descriptor)) of a plan "
+    "(slots, payload slot, suffix size) in C: written from the slots by `program` (a slot "
+    "program of codec/plans.py) where it can, otherwise a payload-free clone (holding `empty`) "
+    "serialized by the type support. None when it cannot (the Python codec then raises the "
+    "CodecError)."),
   RBPY_FUNCTION(decode_descriptor, METH_VARARGS,
-    "decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor) -> "
-    "(msg, backend_type, descriptor) | None\n\ncodec.decode() of descriptor-encoded CDR in C "
-    "(the message's payload field left empty). None for CPU bytes and anything malformed: the "
-    "Python codec then decodes or rejects it."),
+    "decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor, program=None) "
+    "-> (msg, backend_type, descriptor) | None\n\ncodec.decode() of descriptor-encoded CDR in "
+    "C (the message's payload field left empty). The message is built by `program` (a slot "
+    "program of codec/plans.py) where it can, otherwise by the type support, as "
+    "deserialize_message. None for CPU bytes and anything malformed: the Python codec then "
+    "decodes or rejects it."),
   RBPY_METHODS_END,
 };
 
