@@ -869,22 +869,28 @@ def _decoded_both_ways(raw, msg_type):
     return by_program, by_support
 
 
-@pytest.mark.parametrize('seed', range(20))
-def test_slot_program_builds_the_message_the_type_support_builds(seed):
+def _random_messages(seed):
+    """An Image, a CompressedImage and a MeshFile (the types with slot programs) with random
+    field values, and a random generator for more."""
     import random
     from visualization_msgs.msg import MeshFile
     rng = random.Random(seed)
     texts = ['', 'camera', 'kamera_ü_日本', 'x' * rng.randrange(0, 300), '\U0001F600 frame']
     image = Image(height=rng.randrange(2 ** 32), width=rng.randrange(2 ** 32),
                   encoding=rng.choice(texts), is_bigendian=rng.randrange(256),
-                  step=rng.randrange(2 ** 32))
+                  step=rng.randrange(2 ** 32), data=bytes(rng.randrange(0, 50)))
     image.header.stamp.sec = rng.randrange(-2 ** 31, 2 ** 31)
     image.header.stamp.nanosec = rng.randrange(2 ** 32)
     image.header.frame_id = rng.choice(texts)
     compressed = CompressedImage(format=rng.choice(texts))
     compressed.header = image.header
-    mesh = MeshFile(filename=rng.choice(texts))
-    for msg in (image, compressed, mesh):
+    return (image, compressed, MeshFile(filename=rng.choice(texts))), rng
+
+
+@pytest.mark.parametrize('seed', range(20))
+def test_slot_program_builds_the_message_the_type_support_builds(seed):
+    messages, rng = _random_messages(seed)
+    for msg in messages:
         descriptor = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
         raw = codec.encode(msg, ('demo', descriptor))
         by_program, by_support = _decoded_both_ways(raw, type(msg))
@@ -1016,20 +1022,8 @@ def _encoded_both_ways(msg, descriptor):
 
 @pytest.mark.parametrize('seed', range(20))
 def test_slot_program_writes_the_bytes_the_type_support_writes(seed):
-    import random
-    from visualization_msgs.msg import MeshFile
-    rng = random.Random(seed)
-    texts = ['', 'camera', 'kamera_ü_日本', 'x' * rng.randrange(0, 300), '\U0001F600 frame']
-    image = Image(height=rng.randrange(2 ** 32), width=rng.randrange(2 ** 32),
-                  encoding=rng.choice(texts), is_bigendian=rng.randrange(256),
-                  step=rng.randrange(2 ** 32), data=bytes(rng.randrange(0, 50)))
-    image.header.stamp.sec = rng.randrange(-2 ** 31, 2 ** 31)
-    image.header.stamp.nanosec = rng.randrange(2 ** 32)
-    image.header.frame_id = rng.choice(texts)
-    compressed = CompressedImage(format=rng.choice(texts))
-    compressed.header = image.header
-    mesh = MeshFile(filename=rng.choice(texts))
-    for msg in (image, compressed, mesh):
+    messages, rng = _random_messages(seed)
+    for msg in messages:
         descriptor = bytes(rng.randrange(256) for _ in range(rng.randrange(0, 80)))
         by_program, by_support = _encoded_both_ways(msg, descriptor)
         assert type(by_program) is bytearray and by_program == by_support
