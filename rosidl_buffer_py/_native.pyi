@@ -89,12 +89,13 @@ def take_serialized_with_gid(subscription: _Entity) -> Optional[Tuple[bytes, byt
     DataWriter that wrote it and an rclpy-like message info dict; None when none is there."""
 
 
-def take_message_with_gid(subscription: _Entity, msg_class: type,
-                          max_size: int = -1) -> Optional[Tuple[Any, bytes, _Info]]:
-    """Take one message, deserialized in C as rclpy's take does. The first item is a
-    ``msg_class`` instance, or the CDR ``bytes`` when they do not deserialize with the type's own
-    type support (a descriptor payload, malformed data: for ``codec.decode``) or are longer
-    than ``max_size`` (when >= 0)."""
+def take_message_with_gid(subscription: _Entity, msg_class: type, max_size: int = -1,
+                          program: Optional[tuple] = None) -> Optional[Tuple[Any, bytes, _Info]]:
+    """Take one message, deserialized in C as rclpy's take does (built by the slot ``program``
+    where it can: the same message). The first item is a ``msg_class`` instance, or the CDR
+    ``bytes`` when they do not deserialize with the type's own type support (a descriptor
+    payload, malformed data: for ``codec.decode``) or are longer than ``max_size`` (when
+    >= 0)."""
 
 
 def peek_untaken(subscription: _Entity) -> Optional[Tuple[bytes, int]]:
@@ -243,6 +244,11 @@ def decode_descriptor(raw: _Bytes, msg_class: type, prefix_ops: Any, suffix_size
     """``codec.decode`` of descriptor-encoded CDR; None for anything else. The message is
     built from its slots by ``program`` where it can, else by the type support and the
     generated convert_to_py: the same message."""
+
+
+def deserialize(raw: _Bytes, program: tuple) -> Any:
+    """CDR built into a message by a slot program (``codec.plans.slot_program``): the message
+    ``deserialize_message`` gives, or None where the program cannot build it exactly so."""
 
 
 # sockets ------------------------------------------------------------------------------------

@@ -37,7 +37,6 @@ from rclpy.exceptions import InvalidTopicNameException
 from rclpy.logging import LoggingSeverity
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.type_support import check_is_valid_msg_type
-from rclpy.serialization import deserialize_message
 
 from rosidl_buffer_py import _dds, codec, control, discovery, routes
 from rosidl_buffer_py import rclpy_seams_7_1 as seams
@@ -177,7 +176,8 @@ class _ReceiveView:
         if publisher is not None and publisher in sub._suspects:
             taken = take_serialized_with_gid(sub.handle)
         else:
-            taken = take_message_with_gid(sub.handle, sub.msg_type, C_DESERIALIZE_MAX_BYTES)
+            taken = take_message_with_gid(sub.handle, sub.msg_type, C_DESERIALIZE_MAX_BYTES,
+                                          sub._program)
             if taken is not None and type(taken[0]) is not sub.msg_type and \
                     len(taken[0]) <= C_DESERIALIZE_MAX_BYTES:
                 sub._suspects.add(taken[1])  # C deserialization failed (and said so)
@@ -205,6 +205,8 @@ class Subscription(rclpy.subscription.Subscription):
                  acceptable_buffer_backends: Optional[str]) -> None:
         enable_buffer_fields(msg_type)
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
+        #: builds the CPU messages taken in C from their slots (codec.deserialize_program)
+        self._program = codec.deserialize_program(msg_type)
         self._node = node
         #: one stream per publisher: the route protocol's subscription side
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
@@ -447,7 +449,7 @@ class Subscription(rclpy.subscription.Subscription):
             if (peer is not None and not peer.descriptors_possible and
                     len(raw) <= C_DESERIALIZE_MAX_BYTES):
                 # a peer that cannot send us descriptors: deserialized in C, as rclpy's take
-                msg = deserialize_message(raw, self.msg_type)
+                msg = codec.deserialize(raw, self.msg_type)
                 peer.received_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
                 return msg

@@ -71,10 +71,10 @@ constants of the format, the errors and the result types), :mod:`.walker` (the p
 the walk that checks and copies CDR bytes), :mod:`.plans` (what is compiled once per type, and
 :func:`payload_field`, :func:`buffer_paths`, :func:`field_paths`, :func:`buffers_of`),
 :mod:`.encoder` (:func:`encode`, :func:`encode_parts`) and :mod:`.decoder` (:func:`decode`,
-:func:`split_payload`).
+:func:`split_payload`, :func:`deserialize`).
 """
 from rosidl_buffer_py.codec import wire
-from rosidl_buffer_py.codec.decoder import decode, split_payload
+from rosidl_buffer_py.codec.decoder import decode, deserialize, deserialize_program, split_payload
 from rosidl_buffer_py.codec.encoder import encode, encode_parts
 from rosidl_buffer_py.codec.plans import buffer_paths, buffers_of, field_paths, payload_field
 from rosidl_buffer_py.codec.wire import (
@@ -95,6 +95,8 @@ __all__ = [
     'buffer_paths',
     'buffers_of',
     'decode',
+    'deserialize',
+    'deserialize_program',
     'encode',
     'encode_parts',
     'field_paths',

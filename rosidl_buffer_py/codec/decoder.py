@@ -1,6 +1,6 @@
 """Decode: wire bytes to a message, and the descriptors of the fields that came as descriptors.
 
-:func:`decode` and :func:`split_payload`; the short path's descriptor form runs in C
+:func:`decode`, :func:`split_payload` and :func:`deserialize`; the short path's descriptor form runs in C
 (``_native.decode_descriptor``), everything else walks the type's ops (:mod:`.walker`), which
 checks every length before anything is read.
 """
@@ -27,6 +27,28 @@ def _deserialize(raw: bytes, msg_type: Type) -> Any:
     except Exception as exc:
         raise CodecError(f'cannot deserialize {msg_type.__name__}: {type(exc).__name__}: '
                          f'{exc}') from exc
+
+
+def deserialize_program(msg_type: Type) -> Optional[tuple]:
+    """The slot program that builds ``msg_type`` from its CDR
+    (:func:`~rosidl_buffer_py.codec.plans.slot_program`), or None."""
+    try:
+        return compiled(msg_type).program
+    except CodecError:  # a type the codec does not handle: rclpy's deserialization
+        return None
+
+
+def deserialize(raw: Any, msg_type: Type) -> Any:
+    """``deserialize_message(raw, msg_type)``: the same message, built in C from its slots where
+    the type has a slot program (:func:`deserialize_program`), without the generated code's
+    ``__init__`` and one Python setter per field; rclpy's own deserialization for the other
+    types and for anything the program does not build exactly."""
+    program = deserialize_program(msg_type)
+    if program is not None:
+        msg = _native.deserialize(raw, program)
+        if msg is not None:
+            return msg
+    return deserialize_message(raw, msg_type)
 
 
 def _input_view(raw: Any) -> memoryview:

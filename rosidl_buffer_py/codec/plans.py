@@ -57,6 +57,8 @@ class TypeCodec:
     plan: Optional[Plan]            # the short path, when the type has its shape
     plain: bool                     # fixed size: rmw_fastrtps pads it to a multiple of 4
     slack: bool                     # rmw_fastrtps may size it larger than its data (_estimate)
+    #: how C builds the whole message from its CDR (:func:`slot_program`), or None
+    program: Optional[tuple] = None
 
 
 def _tree(msg_type: Type, stack: Tuple[Type, ...]) -> Tree:
@@ -115,8 +117,9 @@ def _compile(msg_type: Type) -> TypeCodec:
     if len(templates) == 1 and payload is not None:
         plan = _short_plan_of(msg_type, fields, top[-1])
     slack = _has_slack(ops)
+    program = plan.program if plan is not None else slot_program(msg_type)
     return TypeCodec(msg_type, ops, tree, templates, payload, None if slack else plan,
-                     _fixed_size(ops), slack)
+                     _fixed_size(ops), slack, program)
 
 
 def _has_slack(ops: Ops) -> bool:
@@ -165,8 +168,8 @@ _BASIC_KINDS = {
 def slot_program(msg_type: Type, payload_slot: Optional[str] = None,
                  stack: Tuple[Type, ...] = ()) -> Optional[tuple]:
     """The program by which C builds a ``msg_type`` from its CDR as ``deserialize_message``
-    would (the same field values, of the same types; ``payload_slot`` an empty
-    ``array.array('B')``, as convert_to_py leaves it before filling it), or None when a field
+    would (the same field values, of the same types; ``payload_slot``, a top-level ``uint8[]``,
+    an ``array.array('B')``), and writes its CDR from the slots, or None when a field
     has a kind it does not build (sequences and arrays other than the payload, wide strings,
     ``byte``, ``char``) or the class is not laid out as rosidl generates it: the message then
     comes from the generated code."""

@@ -4,6 +4,7 @@
 //       program=None) -> bytearray | None
 //   decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor, program=None)
 //       -> (msg, backend_type, descriptor) | None
+//   deserialize(raw, program) -> msg | None   (and build_from_cdr, for the takes in C)
 //
 // Both do what the Python codec does (same bytes out, same message out) without running Python
 // code per message: a descriptor message is small, so its cost was interpreter work, which a
@@ -247,10 +248,22 @@ PyObject * field_value(long kind, PyObject * arg, const Reader & r, size_t * pos
       return build(arg, r, pos, depth + 1);
     case kPayload: {
         uint32_t length;
-        if (!r.u32(pos, &length) || length != 0) {
+        if (!r.u32(pos, &length) || length > r.end - *pos) {
           return nullptr;
         }
-        return PyObject_CallNoArgs(arg);
+        PyObject * payload = PyObject_CallNoArgs(arg);
+        if (payload != nullptr && length > 0) {  // one copy, where convert_to_py makes two
+          PyObject * view = PyMemoryView_FromMemory(
+            const_cast<char *>(reinterpret_cast<const char *>(r.body + *pos)), length, PyBUF_READ);
+          PyObject * done = view ? PyObject_CallMethod(payload, "frombytes", "O", view) : nullptr;
+          Py_XDECREF(view);
+          if (done == nullptr) {
+            Py_CLEAR(payload);
+          }
+          Py_XDECREF(done);
+        }
+        *pos += length;
+        return payload;
       }
     default:
       return nullptr;
@@ -695,7 +708,40 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   return PyByteArray_FromStringAndSize(out.data(), static_cast<Py_ssize_t>(out.size()));
 }
 
+/// deserialize(raw, program) -> message | None: CDR built by a slot program.
+PyObject * deserialize(PyObject *, PyObject * args)
+{
+  PyObject * raw;
+  PyObject * program;
+  if (!PyArg_ParseTuple(args, "OO:deserialize", &raw, &program)) {
+    return nullptr;
+  }
+  BufferView input;
+  if (!input.get(raw)) {
+    return fall_back();
+  }
+  PyObject * msg = build_from_cdr(program, input.data(), input.size());
+  return msg ? msg : fall_back();
+}
+
 }  // namespace
+
+PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length)
+{
+  if (program == nullptr || program == Py_None || length < kHeader || data[0] != 0 ||
+    data[1] > 1)
+  {
+    return nullptr;
+  }
+  // Bytes after the last field are ignored, as the type support's deserialization ignores them.
+  Reader r{data + kHeader, length - kHeader, data[1] == 1};
+  size_t pos = 0;
+  PyObject * msg = build(program, r, &pos, 0);
+  if (msg == nullptr) {
+    PyErr_Clear();
+  }
+  return msg;
+}
 
 PyMethodDef codec_functions[] = {
   RBPY_FUNCTION(encode_descriptor, METH_VARARGS,
@@ -712,6 +758,10 @@ PyMethodDef codec_functions[] = {
     "program of codec/plans.py) where it can, otherwise by the type support, as "
     "deserialize_message. None for CPU bytes and anything malformed: the Python codec then "
     "decodes or rejects it."),
+  RBPY_FUNCTION(deserialize, METH_VARARGS,
+    "deserialize(raw, program) -> message | None\n\nCDR (with its encapsulation header) "
+    "built into a message by a slot program of codec/plans.py, the message deserialize_message "
+    "gives; None when the program cannot build it exactly so (deserialize_message then does)."),
   RBPY_METHODS_END,
 };
 

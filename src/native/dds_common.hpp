@@ -193,6 +193,11 @@ bool try_deserialize(
   const MessageSupport & support, const rmw_serialized_message_t & serialized,
   OwnedRosMessage * ros_message);
 
+/// The message a slot program (rosidl_buffer_py/codec/plans.py) builds from CDR with its
+/// encapsulation header, the one deserialize_message gives; nullptr, no exception set, when the
+/// program is None or cannot build it exactly so (codec_fast.cpp). GIL held.
+PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length);
+
 /// DdsError("<what>: <rmw error>") to raise once the GIL is back (GIL not needed).
 inline void set_rmw_error(PendingError * error, const std::string & what)
 {

@@ -5,7 +5,8 @@
 //   set_user_data(endpoint, kind, data) -> None
 //   hold_enabling(node, kind, hold) -> None
 //   take_serialized_with_gid(subscription) -> (bytes, publisher_gid, info) | None
-//   take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, gid, info) | None
+//   take_message_with_gid(subscription, msg_class, max_size=-1, program=None)
+//       -> (message | bytes, gid, info) | None
 //   publish_serialized(publisher, data, source_timestamp) -> None
 //   matched_subscription_gids(publisher) -> list[bytes]
 //   exclude_from_next_write(publisher, reader_gids) -> bool
@@ -215,8 +216,12 @@ PyObject * hold_enabling(PyObject *, PyObject * args)
 }
 
 /// take_serialized_with_gid and take_message_with_gid: one serialized take from an rcl
-/// subscription; with `support`, deserialized into a Python message when it can be.
-PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_ssize_t max_size)
+/// subscription; with `support`, deserialized into a Python message when it can be: built by
+/// `program` (a slot program, see codec_fast.cpp) where it builds it exactly, else by the type
+/// support and convert_to_py.
+PyObject * take_with_gid(
+  PyObject * sub_arg, const MessageSupport * support, Py_ssize_t max_size,
+  PyObject * program = nullptr)
 {
   PinnedHandle sub;
   if (sub.acquire(sub_arg, "subscription") < 0) {
@@ -227,6 +232,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   rcl_ret_t ret;
   bool deserialized = false;
+  const bool by_program = program != nullptr && program != Py_None;
   std::string error;
   {
     GilRelease nogil;
@@ -238,7 +244,7 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
     }
     if (ret != RCL_RET_OK && ret != RCL_RET_SUBSCRIPTION_TAKE_FAILED) {
       error = take_rmw_error();
-    } else if (ret == RCL_RET_OK && support != nullptr && fits(msg, max_size)) {
+    } else if (ret == RCL_RET_OK && support != nullptr && fits(msg, max_size) && !by_program) {
       deserialized = try_deserialize(*support, msg, &ros_message);
     }
   }
@@ -248,8 +254,16 @@ PyObject * take_with_gid(PyObject * sub_arg, const MessageSupport * support, Py_
   } else if (ret != RCL_RET_OK) {
     raise_rmw_error("rcl_take_serialized_message failed", error);
   } else {
+    // the slot program where it builds the message exactly (no Python setter per field),
+    // else the type support, as rclpy's take
+    PyObject * built = by_program && support != nullptr && fits(msg, max_size) ?
+      build_from_cdr(program, msg.buffer, msg.buffer_length) : nullptr;
+    if (built == nullptr && by_program && support != nullptr && fits(msg, max_size)) {
+      deserialized = without_gil([&] {return try_deserialize(*support, msg, &ros_message);});
+    }
     result = taken_tuple(
-      deserialized ? support->to_py(ros_message.get()) : serialized_bytes(msg), info);
+      built ? built : deserialized ? support->to_py(ros_message.get()) : serialized_bytes(msg),
+      info);
   }
   if (msg.buffer != nullptr) {
     GilRelease nogil;
@@ -274,14 +288,17 @@ PyObject * take_message_with_gid(PyObject *, PyObject * args)
   PyObject * sub_arg;
   PyObject * msg_class;
   Py_ssize_t max_size = -1;
-  if (!PyArg_ParseTuple(args, "OO|n:take_message_with_gid", &sub_arg, &msg_class, &max_size)) {
+  PyObject * program = Py_None;
+  if (!PyArg_ParseTuple(
+      args, "OO|nO:take_message_with_gid", &sub_arg, &msg_class, &max_size, &program))
+  {
     return nullptr;
   }
   MessageSupport support;
   if (support.load(msg_class) < 0) {
     return nullptr;
   }
-  return take_with_gid(sub_arg, &support, max_size);
+  return take_with_gid(sub_arg, &support, max_size, program);
 }
 
 /// The (writer GID, source timestamp in ns) of a sample's SampleInfo, as a Python tuple.
@@ -631,11 +648,12 @@ PyMethodDef endpoint_functions[] = {
     "creates with the node's participant are created disabled, so that their USER_DATA is set\n"
     "before discovery announces them; letting go (hold False) enables every one of them."),
   RBPY_FUNCTION(take_message_with_gid, METH_VARARGS,
-    "take_message_with_gid(subscription, msg_class, max_size=-1) -> (message | bytes, "
-    "publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is deserialized "
-    "into a msg_class instance as rclpy's take does; CDR that does not deserialize (a "
-    "descriptor payload, malformed data), or is longer than max_size bytes when max_size >= 0, "
-    "comes back as bytes."),
+    "take_message_with_gid(subscription, msg_class, max_size=-1, program=None) -> (message | "
+    "bytes, publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is "
+    "deserialized into a msg_class instance as rclpy's take does (built by `program`, a slot "
+    "program of codec/plans.py, where it can: the same message); CDR that does not deserialize "
+    "(a descriptor payload, malformed data), or is longer than max_size bytes when max_size >= "
+    "0, comes back as bytes."),
   RBPY_FUNCTION(peek_untaken, METH_O,
     "peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
     "The next unread sample's publisher GID and source timestamp (ns), from its SampleInfo:\n"
