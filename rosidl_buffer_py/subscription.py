@@ -62,6 +62,8 @@ MAX_BATCH = 64
 #: CPU messages up to this many CDR bytes are deserialized in C (rclpy's own conversion: no
 #: Python-level work); longer ones are decoded by the codec, which splices the payload with one
 #: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
+#: Types with a slot program (codec.deserialize_program) are built in C at any length, their
+#: payload copied once.
 C_DESERIALIZE_MAX_BYTES = 64 * 1024
 #: At most one "rejected a message" line per this many seconds (all are counted).
 REJECTION_LOG_SECONDS = 5.0

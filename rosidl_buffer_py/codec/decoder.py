@@ -142,6 +142,12 @@ def decode(raw: Any, msg_type: Type,
         msg, backend_type, descriptor = fast
         return Decoded(msg, backend_type, descriptor,
                        {plan.path: FieldDescriptor(backend_type, descriptor)})
+    if fast is None and plan.program is not None:
+        # CPU bytes built in C, the payload copied once (None for a descriptor and for
+        # malformed input: the path below names what is wrong)
+        msg = _native.deserialize(raw, plan.program)
+        if msg is not None:
+            return Decoded(msg)
     decoded, payload = _decode_short(raw, plan, known_backends)
     if payload.nbytes:
         getattr(decoded.msg, plan.slot).frombytes(payload)

@@ -256,7 +256,9 @@ PyObject * take_with_gid(
   } else {
     // the slot program where it builds the message exactly (no Python setter per field),
     // else the type support, as rclpy's take
-    PyObject * built = by_program && support != nullptr && fits(msg, max_size) ?
+    // (at any length: the program copies a payload once, where the type support's
+    // conversion copies it twice and max_size hands long samples to the codec)
+    PyObject * built = by_program && support != nullptr ?
       build_from_cdr(program, msg.buffer, msg.buffer_length) : nullptr;
     if (built == nullptr && by_program && support != nullptr && fits(msg, max_size)) {
       deserialized = without_gil([&] {return try_deserialize(*support, msg, &ros_message);});
@@ -651,9 +653,10 @@ PyMethodDef endpoint_functions[] = {
     "take_message_with_gid(subscription, msg_class, max_size=-1, program=None) -> (message | "
     "bytes, publisher_gid, info) | None\n\nAs take_serialized_with_gid, but the CDR is "
     "deserialized into a msg_class instance as rclpy's take does (built by `program`, a slot "
-    "program of codec/plans.py, where it can: the same message); CDR that does not deserialize "
-    "(a descriptor payload, malformed data), or is longer than max_size bytes when max_size >= "
-    "0, comes back as bytes."),
+    "program of codec/plans.py, at any length where it can: the same message); CDR that does "
+    "not deserialize (a descriptor payload, malformed data), or that the type support would "
+    "have to deserialize and is longer than max_size bytes when max_size >= 0, comes back as "
+    "bytes."),
   RBPY_FUNCTION(peek_untaken, METH_O,
     "peek_untaken(subscription) -> (publisher_gid, source_timestamp) | None\n\n"
     "The next unread sample's publisher GID and source timestamp (ns), from its SampleInfo:\n"
