@@ -188,8 +188,15 @@ class ImagePublisher(Node):
         if p['report_period_sec'] > 0:
             self.log_summary()
         linger_until = time.monotonic() + p['linger_sec']
-        while self.publisher.get_subscription_count() > 0 and time.monotonic() < linger_until:
+        while self.subscribers_left() and time.monotonic() < linger_until:
             rclpy.spin_once(self, timeout_sec=0.05)
+
+    def subscribers_left(self) -> bool:
+        """Whether some subscription is still matched, or still a buffer peer of ours: DDS
+        unmatches a dead process's reader when its lease ends, and the publisher drops its
+        channel when discovery says so, on a later callback (either may come first)."""
+        peers = getattr(self.publisher, 'buffer_peers', None)
+        return self.publisher.get_subscription_count() > 0 or bool(peers and peers())
 
     def spin_until(self, deadline: float) -> None:
         """Serve the node's callbacks until ``time.monotonic()`` reaches ``deadline``.
