@@ -1107,7 +1107,8 @@ def _random_fill(msg, program, rng):
             value = getattr(msg, slot)
             _random_fill(value, arg, rng)
         else:  # the payload
-            value = array.array('B', bytes(rng.randrange(256) for _ in range(rng.randrange(0, 40))))
+            value = array.array('B', bytes(rng.randrange(256)
+                                           for _ in range(rng.randrange(0, 40))))
         setattr(msg, slot, value)
 
 

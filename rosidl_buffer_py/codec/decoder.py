@@ -1,8 +1,9 @@
 """Decode: wire bytes to a message, and the descriptors of the fields that came as descriptors.
 
-:func:`decode`, :func:`split_payload` and :func:`deserialize`; the short path's descriptor form runs in C
-(``_native.decode_descriptor``), everything else walks the type's ops (:mod:`.walker`), which
-checks every length before anything is read.
+:func:`decode`, :func:`split_payload` and :func:`deserialize`; the short path's descriptor
+form runs in C (``_native.decode_descriptor``), and so does every message a slot program builds
+(``_native.deserialize``); everything else walks the type's ops (:mod:`.walker`), which checks
+every length before anything is read.
 """
 import array
 from typing import Any, Container, Dict, Optional, Tuple, Type
