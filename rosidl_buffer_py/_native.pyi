@@ -114,11 +114,12 @@ def publish_serialized(publisher: _Entity, data: _Bytes, source_timestamp: int) 
     since the epoch (0 <= t < 2**31 s); takes report exactly it."""
 
 
-def write_message(message: Any, source_timestamp: int,
-                  targets: Sequence[Any]) -> None:
+def write_message(message: Any, source_timestamp: int, targets: Sequence[Any],
+                  program: Optional[tuple] = None) -> None:
     """Write a ROS message to :class:`ChannelPublisher` objects and/or rclpy publishers (or
-    their handles) of its type: converted to C once, as rclpy's ``publish`` does, serialized by
-    rmw into each target's DDS payload with ``source_timestamp``."""
+    their handles) of its type with ``source_timestamp``, converted once: its CDR written from
+    its slots by the slot ``program`` where it can (``codec.encode``'s bytes), else to C as
+    rclpy's ``publish`` does, serialized by rmw into each target's DDS payload."""
 
 
 def matched_subscription_gids(publisher: _Entity) -> List[bytes]:
@@ -244,6 +245,11 @@ def decode_descriptor(raw: _Bytes, msg_class: type, prefix_ops: Any, suffix_size
     """``codec.decode`` of descriptor-encoded CDR; None for anything else. The message is
     built from its slots by ``program`` where it can, else by the type support and the
     generated convert_to_py: the same message."""
+
+
+def serialize(msg: Any, program: tuple) -> Optional[bytearray]:
+    """The CDR of ``msg`` written from its slots by a slot program: ``codec.encode(msg)``'s
+    bytes, or None where the program cannot write them exactly as the type support would."""
 
 
 def deserialize(raw: _Bytes, program: tuple) -> Any:

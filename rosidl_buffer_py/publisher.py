@@ -178,6 +178,8 @@ class Publisher(rclpy.publisher.Publisher):
         #: read directly on the hot path
         self._single = (self._paths[0][0] if len(self._paths) == 1 and len(self._paths[0]) == 1
                         else None)
+        #: writes CPU messages' CDR from their slots in C (codec.program_of), or None
+        self._program = codec.program_of(msg_type)
         # the DataWriter was created disabled (create_publisher): its first announcement
         # carries the advertisement, and it is enabled as soon as that is set (what runs
         # meanwhile in other threads, a channel's creation say, waits for nothing of ours)
@@ -344,13 +346,14 @@ class Publisher(rclpy.publisher.Publisher):
             peers.append(peer)
         main, withheld = dispatch.main, dispatch.withheld
         if encoder.cpu_message:
-            # CPU payload: one conversion to C, rmw serializes into each target, as rclpy's
-            # publish does (no Python-level CDR work)
+            # CPU payload: one conversion for every target, no Python-level CDR work: its CDR
+            # written from the slots where the type has a slot program, else the C struct
+            # rmw serializes into each target, as rclpy's publish does
             targets = [peer.channel for peer in peers] + ([self] if main else [])
             if main:
                 self._exclude_from_main(withheld)
             if targets:
-                write_message(encoder.msg, timestamp, targets)
+                write_message(encoder.msg, timestamp, targets, self._program)
             for peer in peers:
                 peer.sent_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
@@ -384,7 +387,7 @@ class Publisher(rclpy.publisher.Publisher):
         if encoder.host_buffer:
             # a Buffer in host memory: converted to C through its buffer protocol and
             # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
-            write_message(encoder.msg, timestamp, cpu_targets)
+            write_message(encoder.msg, timestamp, cpu_targets, self._program)
             return
         data = encoder.cpu_bytes()
         for target in cpu_targets:

@@ -62,7 +62,7 @@ MAX_BATCH = 64
 #: CPU messages up to this many CDR bytes are deserialized in C (rclpy's own conversion: no
 #: Python-level work); longer ones are decoded by the codec, which splices the payload with one
 #: copy where rosidl's generated conversion makes two (through an intermediate bytes object).
-#: Types with a slot program (codec.deserialize_program) are built in C at any length, their
+#: Types with a slot program (codec.program_of) are built in C at any length, their
 #: payload copied once.
 C_DESERIALIZE_MAX_BYTES = 64 * 1024
 #: At most one "rejected a message" line per this many seconds (all are counted).
@@ -207,8 +207,8 @@ class Subscription(rclpy.subscription.Subscription):
                  acceptable_buffer_backends: Optional[str]) -> None:
         enable_buffer_fields(msg_type)
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
-        #: builds the CPU messages taken in C from their slots (codec.deserialize_program)
-        self._program = codec.deserialize_program(msg_type)
+        #: builds the CPU messages taken in C from their slots (codec.program_of)
+        self._program = codec.program_of(msg_type)
         self._node = node
         #: one stream per publisher: the route protocol's subscription side
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(

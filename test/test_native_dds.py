@@ -22,7 +22,7 @@ from sensor_msgs.msg import Image
 
 from harness.in_process import spin_until
 from harness.native_dds_peer import RACED
-from rosidl_buffer_py import _dds, _native
+from rosidl_buffer_py import _dds, _native, codec
 
 PEER = os.path.join(os.path.dirname(__file__), 'harness', 'native_dds_peer.py')
 
@@ -569,8 +569,12 @@ def test_channel_publish_source_timestamp(ctx):
 # ---------------------------------------------------------------- messages converted in C
 
 
-def test_write_message_and_take_message(ctx):
-    """One C conversion, written to a channel and an rclpy publisher; taken back as messages."""
+@pytest.mark.parametrize('by_program', [False, True], ids=['c_struct', 'slot_program'])
+def test_write_message_and_take_message(ctx, by_program):
+    """One conversion (the C struct rmw serializes, or the CDR written from the slots by the
+    type's slot program), written to a channel and an rclpy publisher; taken back as
+    messages."""
+    program = codec.program_of(Image) if by_program else None
     topic = '/' + _unique('wmsg')
     chan_topic = _channel_topic(_unique('wmsg'))
     messages = [_image(300, seed=1), _image(7, seed=2), _image(1 << 20, seed=3)]
@@ -586,7 +590,7 @@ def test_write_message_and_take_message(ctx):
         assert _wait(lambda: main.get_subscription_count() == 2 and chan.matched_count() == 1,
                      timeout=15)
         for msg, stamp in zip(messages, STAMPS):
-            _native.write_message(msg, stamp, [chan, main])
+            _native.write_message(msg, stamp, [chan, main], program)
         result = peer.expect('RESULT ')
         assert peer.proc.wait(timeout=15) == 0
     finally:
@@ -596,6 +600,9 @@ def test_write_message_and_take_message(ctx):
     assert [r['source_timestamp'] for r in got] == STAMPS[:len(messages)]
     assert [deserialize_message(bytes.fromhex(r['hex']), Image) for r in got[:2]] == \
         messages[:2]
+    if by_program:  # canonical bytes: serialize_message's, with zero padding
+        assert [bytes.fromhex(r['hex']) for r in got[:2]] == \
+            [_padded(bytes(codec.encode(m))) for m in messages[:2]]
     for msg, stamp in zip(messages, STAMPS):
         taken = _wait(lambda: chan_sub.take_message(Image))
         assert type(taken[0]) is Image and taken[0] == msg
@@ -655,6 +662,8 @@ def test_write_message_errors(ctx):
         _native.write_message(String(data='x'), 1, [chan])
     with pytest.raises(TypeError, match='does not publish'):
         _native.write_message(String(data='x'), 1, [pub])
+    with pytest.raises(TypeError, match='does not publish'):  # written from its slots
+        _native.write_message(String(data='x'), 1, [chan], codec.program_of(String))
     with pytest.raises(TypeError, match='Publisher'):
         _native.write_message(msg, 1, [sub])
     with pytest.raises(ValueError, match='source_timestamp'):

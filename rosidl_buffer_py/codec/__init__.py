@@ -74,9 +74,10 @@ the walk that checks and copies CDR bytes), :mod:`.plans` (what is compiled once
 :func:`split_payload`, :func:`deserialize`).
 """
 from rosidl_buffer_py.codec import wire
-from rosidl_buffer_py.codec.decoder import decode, deserialize, deserialize_program, split_payload
+from rosidl_buffer_py.codec.decoder import decode, deserialize, split_payload
 from rosidl_buffer_py.codec.encoder import encode, encode_parts
-from rosidl_buffer_py.codec.plans import buffer_paths, buffers_of, field_paths, payload_field
+from rosidl_buffer_py.codec.plans import (
+    buffer_paths, buffers_of, field_paths, payload_field, program_of)
 from rosidl_buffer_py.codec.wire import (
     BufferAt, CodecError, DESCRIPTOR_MARKER, Decoded, EncodedParts, FieldDescriptor,
     UnsupportedMessageTypeError)
@@ -96,12 +97,12 @@ __all__ = [
     'buffers_of',
     'decode',
     'deserialize',
-    'deserialize_program',
     'encode',
     'encode_parts',
     'field_paths',
     'get_at',
     'payload_field',
+    'program_of',
     'set_at',
     'split_payload',
 ]

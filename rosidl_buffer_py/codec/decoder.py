@@ -12,7 +12,7 @@ from rclpy.serialization import deserialize_message
 
 from rosidl_buffer_py import _native
 from rosidl_buffer_py.backend import MAX_DESCRIPTOR_SIZE
-from rosidl_buffer_py.codec.plans import compiled, payload_field, Plan, TypeCodec
+from rosidl_buffer_py.codec.plans import compiled, payload_field, Plan, program_of, TypeCodec
 from rosidl_buffer_py.codec.walker import Out, read_u32, truncated, walk
 from rosidl_buffer_py.codec.wire import (
     CodecError, Decoded, DESCRIPTOR_MARKER, ENCAPSULATION_CDR_BE, ENCAPSULATION_CDR_LE,
@@ -30,21 +30,13 @@ def _deserialize(raw: bytes, msg_type: Type) -> Any:
                          f'{exc}') from exc
 
 
-def deserialize_program(msg_type: Type) -> Optional[tuple]:
-    """The slot program that builds ``msg_type`` from its CDR
-    (:func:`~rosidl_buffer_py.codec.plans.slot_program`), or None."""
-    try:
-        return compiled(msg_type).program
-    except CodecError:  # a type the codec does not handle: rclpy's deserialization
-        return None
-
-
 def deserialize(raw: Any, msg_type: Type) -> Any:
     """``deserialize_message(raw, msg_type)``: the same message, built in C from its slots where
-    the type has a slot program (:func:`deserialize_program`), without the generated code's
+    the type has a slot program (:func:`~rosidl_buffer_py.codec.plans.program_of`), without the
+    generated code's
     ``__init__`` and one Python setter per field; rclpy's own deserialization for the other
     types and for anything the program does not build exactly."""
-    program = deserialize_program(msg_type)
+    program = program_of(msg_type)
     if program is not None:
         msg = _native.deserialize(raw, program)
         if msg is not None:

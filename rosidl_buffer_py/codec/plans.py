@@ -230,6 +230,16 @@ def compiled(msg_type: Type) -> TypeCodec:
     return found
 
 
+def program_of(msg_type: Type) -> Optional[tuple]:
+    """The slot program of ``msg_type`` (:func:`slot_program`: how C builds it from its CDR and
+    writes its CDR from its slots), or None: for a type without one, or that the codec does not
+    handle."""
+    try:
+        return compiled(msg_type).program
+    except CodecError:
+        return None
+
+
 def short_plan(msg_type: Type) -> Plan:
     """The short path's plan of ``msg_type`` (for types that have it)."""
     plan = compiled(msg_type).plan

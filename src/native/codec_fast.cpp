@@ -5,6 +5,7 @@
 //   decode_descriptor(raw, msg_class, prefix_ops, suffix_size, max_descriptor, program=None)
 //       -> (msg, backend_type, descriptor) | None
 //   deserialize(raw, program) -> msg | None   (and build_from_cdr, for the takes in C)
+//   serialize(msg, program) -> bytearray | None   (and write_from_slots, for write_message)
 //
 // Both do what the Python codec does (same bytes out, same message out) without running Python
 // code per message: a descriptor message is small, so its cost was interpreter work, which a
@@ -310,10 +311,30 @@ PyObject * build(PyObject * program, const Reader & r, size_t * pos, int depth)
   return msg;
 }
 
+class BufferView
+{
+public:
+  ~BufferView() {if (held_) {PyBuffer_Release(&view_);}}
+  bool get(PyObject * obj)
+  {
+    held_ = PyObject_GetBuffer(obj, &view_, PyBUF_SIMPLE) == 0;
+    return held_;
+  }
+  const uint8_t * data() const {return static_cast<const uint8_t *>(view_.buf);}
+  size_t size() const {return static_cast<size_t>(view_.len);}
+
+private:
+  Py_buffer view_;
+  bool held_ = false;
+};
+
 /// CDR (XCDR1, this machine's byte order) written from a message's slots.
 struct Writer
 {
   std::vector<char> out;
+  /// Whether a field of variable size (a string, the payload) was written: a message without
+  /// one is fixed-size, and rmw_fastrtps sizes those to a multiple of 4 (codec: TypeCodec.plain).
+  bool variable = false;
 
   void align(size_t n) {out.resize(out.size() + ((n - (out.size() - kHeader) % n) % n), '\0');}
   void put(uint64_t value, size_t size)
@@ -392,10 +413,27 @@ bool write_fields(PyObject * msg, PyObject * program, Writer * w, const Descript
     if (!PyTuple_Check(field) || PyTuple_GET_SIZE(field) != 3 || !item(field, 1, &kind)) {
       return false;
     }
-    if (kind == kPayload) {
-      if (part == nullptr) {
+    if (kind == kPayload && part == nullptr) {  // the payload's own bytes, as convert_from_py
+      if (depth > 0) {                          // copies any buffer-protocol object
         return false;
       }
+      PyObject * value = PyObject_GetAttr(msg, PyTuple_GET_ITEM(field, 0));
+      BufferView bytes;
+      const bool ok = value != nullptr && PyObject_CheckBuffer(value) && bytes.get(value) &&
+        bytes.size() <= UINT32_MAX;
+      if (ok) {
+        w->put(static_cast<uint32_t>(bytes.size()), 4);
+        w->bytes(reinterpret_cast<const char *>(bytes.data()), bytes.size());
+        w->variable = true;
+      }
+      Py_XDECREF(value);
+      if (!ok) {
+        return false;
+      }
+      continue;
+    }
+    if (kind == kPayload) {
+      w->variable = true;
       w->put(kMarker, 4);
       w->put(static_cast<uint32_t>(part->backend_length + 1), 4);
       w->bytes(part->backend, part->backend_length);
@@ -444,6 +482,7 @@ bool write_fields(PyObject * msg, PyObject * program, Writer * w, const Descript
         w->put(static_cast<uint32_t>(length + 1), 4);
         w->bytes(text, static_cast<size_t>(length));
         w->out.push_back('\0');
+        w->variable = true;
       }
     } else if (kind == kMessage) {
       ok = write_fields(value, PyTuple_GET_ITEM(field, 2), w, nullptr, depth + 1);
@@ -455,7 +494,7 @@ bool write_fields(PyObject * msg, PyObject * program, Writer * w, const Descript
       return false;
     }
   }
-  return part == nullptr || depth > 0;
+  return part == nullptr || depth > 0;  // a descriptor asked for is written
 }
 
 /// None, after clearing any pending exception: the Python codec takes over.
@@ -465,22 +504,6 @@ PyObject * fall_back()
   Py_RETURN_NONE;
 }
 
-class BufferView
-{
-public:
-  ~BufferView() {if (held_) {PyBuffer_Release(&view_);}}
-  bool get(PyObject * obj)
-  {
-    held_ = PyObject_GetBuffer(obj, &view_, PyBUF_SIMPLE) == 0;
-    return held_;
-  }
-  const uint8_t * data() const {return static_cast<const uint8_t *>(view_.buf);}
-  size_t size() const {return static_cast<size_t>(view_.len);}
-
-private:
-  Py_buffer view_;
-  bool held_ = false;
-};
 
 /// `small` (a payload-free message's CDR) built by `program`; nullptr (no exception) when the
 /// program does not consume it exactly or leaves a value to the generated code.
@@ -724,7 +747,40 @@ PyObject * deserialize(PyObject *, PyObject * args)
   return msg ? msg : fall_back();
 }
 
+/// serialize(msg, program) -> bytearray | None: CDR written from the slots.
+PyObject * serialize(PyObject *, PyObject * args)
+{
+  PyObject * msg;
+  PyObject * program;
+  if (!PyArg_ParseTuple(args, "OO:serialize", &msg, &program)) {
+    return nullptr;
+  }
+  std::vector<char> out;
+  if (!write_from_slots(msg, program, &out)) {
+    return fall_back();
+  }
+  return PyByteArray_FromStringAndSize(out.data(), static_cast<Py_ssize_t>(out.size()));
+}
+
 }  // namespace
+
+bool write_from_slots(PyObject * msg, PyObject * program, std::vector<char> * out)
+{
+  if (program == nullptr || program == Py_None) {
+    return false;
+  }
+  Writer w;
+  w.bytes(kLittleHost ? "\0\1\0\0" : "\0\0\0\0", kHeader);
+  if (!write_fields(msg, program, &w, nullptr, 0)) {
+    PyErr_Clear();
+    return false;
+  }
+  if (!w.variable) {
+    w.align(4);
+  }
+  *out = std::move(w.out);
+  return true;
+}
 
 PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length)
 {
@@ -758,6 +814,10 @@ PyMethodDef codec_functions[] = {
     "program of codec/plans.py) where it can, otherwise by the type support, as "
     "deserialize_message. None for CPU bytes and anything malformed: the Python codec then "
     "decodes or rejects it."),
+  RBPY_FUNCTION(serialize, METH_VARARGS,
+    "serialize(msg, program) -> bytearray | None\n\nThe CDR of msg (encapsulation header, zero "
+    "padding) written from its slots by a slot program of codec/plans.py: codec.encode(msg)'s "
+    "bytes; None where the program cannot write them exactly as the type support would."),
   RBPY_FUNCTION(deserialize, METH_VARARGS,
     "deserialize(raw, program) -> message | None\n\nCDR (with its encapsulation header) "
     "built into a message by a slot program of codec/plans.py, the message deserialize_message "

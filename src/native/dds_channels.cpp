@@ -18,8 +18,9 @@
 //     .gid, .topic_name, .valid, .on_udp (listens on UDP only: see "channel transport" below)
 //     .destroy()
 //
-//   write_message(message, source_timestamp, targets)  convert once, write to each target
-//                               (ChannelPublisher or rclpy Publisher) with that timestamp
+//   write_message(message, source_timestamp, targets, program=None)  convert once (from the
+//       slots by a slot program where it can), write to each target
+//       (ChannelPublisher or rclpy Publisher) with that timestamp
 //
 // Both pin the node's rclpy handle (rclpy defers destroy_node() until destroy()) and the
 // subscription pins its guard condition, which it triggers from the DDS thread (rmw's
@@ -897,13 +898,14 @@ int resolve_target(PyObject * target, WriteTarget * out)
 
 PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
 {
-  static const char * kwlist[] = {"message", "source_timestamp", "targets", nullptr};
+  static const char * kwlist[] = {"message", "source_timestamp", "targets", "program", nullptr};
   PyObject * message;
   PyObject * ts_arg;
   PyObject * targets_arg;
+  PyObject * program = Py_None;
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOO:write_message", const_cast<char **>(kwlist), &message, &ts_arg,
-      &targets_arg))
+      args, kwds, "OOO|O:write_message", const_cast<char **>(kwlist), &message, &ts_arg,
+      &targets_arg, &program))
   {
     return nullptr;
   }
@@ -929,12 +931,16 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
     Py_DECREF(targets);
     return nullptr;
   }
+  // One conversion for every target: the CDR written from the slots where the type's slot
+  // program writes it exactly (no Python getter per field), else the C struct rmw serializes.
+  std::vector<char> cdr;
+  const bool by_program = write_from_slots(message, program, &cdr);
   OwnedRosMessage ros_message(&support);
-  if (ros_message.create() == nullptr) {
+  if (!by_program && ros_message.create() == nullptr) {
     Py_DECREF(targets);
     return PyErr_NoMemory();
   }
-  if (!support.from_py(message, ros_message.get())) {  // one conversion for every target
+  if (!by_program && !support.from_py(message, ros_message.get())) {
     Py_DECREF(targets);
     return nullptr;
   }
@@ -957,10 +963,13 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
           break;
         }
       }
-      if (!write_message_w_timestamp(
-          rmw_pub, ros_message.get(), support.callbacks, source_timestamp, &type_mismatch,
-          &error))
-      {
+      const bool written = by_program ?
+        write_cdr_w_timestamp(
+        rmw_pub, cdr.data(), cdr.size(), support.callbacks, source_timestamp, &type_mismatch,
+        &error) :
+        write_message_w_timestamp(
+        rmw_pub, ros_message.get(), support.callbacks, source_timestamp, &type_mismatch, &error);
+      if (!written) {
         failed = i;
       } else if (target.channel == nullptr) {  // the main topic's writer
         gap_to_excluded_readers(rmw_fastrtps_cpp::get_datawriter(rmw_pub));
@@ -989,11 +998,13 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
 
 PyMethodDef channel_functions[] = {
   RBPY_FUNCTION(write_message, METH_VARARGS | METH_KEYWORDS,
-    "write_message(message, source_timestamp, targets) -> None\n\nConvert a ROS message to its "
-    "C struct once (as rclpy's publish does) and write it, with source_timestamp (int, ns since "
-    "the epoch), to every target in order: ChannelPublisher objects and rclpy publishers of the "
-    "message's type. rmw serializes it into each DDS payload; the GIL is released meanwhile. "
-    "Stops at the first failing target."),
+    "write_message(message, source_timestamp, targets, program=None) -> None\n\nConvert a ROS "
+    "message once and write it, with source_timestamp (int, ns since the epoch), to every "
+    "target in order: ChannelPublisher objects and rclpy publishers of the message's type. "
+    "Converted to its CDR from its slots by `program` (a slot program of codec/plans.py) where "
+    "it writes it exactly, else to its C struct (as rclpy's publish does), which rmw serializes "
+    "into each DDS payload; the GIL is released for the writes. Stops at the first failing "
+    "target."),
   RBPY_METHODS_END,
 };
 

@@ -198,6 +198,11 @@ bool try_deserialize(
 /// program is None or cannot build it exactly so (codec_fast.cpp). GIL held.
 PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length);
 
+/// `msg`'s CDR (encapsulation header, zero padding) written from its slots by a slot program,
+/// the bytes the type support writes for what convert_from_py makes of it; false (no exception
+/// set) when the program is None or cannot write it exactly so. GIL held.
+bool write_from_slots(PyObject * msg, PyObject * program, std::vector<char> * out);
+
 /// DdsError("<what>: <rmw error>") to raise once the GIL is back (GIL not needed).
 inline void set_rmw_error(PendingError * error, const std::string & what)
 {

@@ -328,6 +328,23 @@ bool write_message_w_timestamp(
   return true;
 }
 
+bool write_cdr_w_timestamp(
+  rmw_publisher_t * publisher, const void * data, size_t length, const void * callbacks,
+  int64_t source_timestamp_ns, bool * type_mismatch, std::string * error)
+{
+  *type_mismatch = false;
+  rmw_private::PublisherParts info;
+  if (!rmw_private::publisher_parts(publisher, &info, error)) {
+    return false;
+  }
+  if (info.type_support_impl != callbacks) {
+    *type_mismatch = true;
+    *error = "the message's type is not the publisher's";
+    return false;
+  }
+  return write_serialized_w_timestamp(info.writer, data, length, source_timestamp_ns, error);
+}
+
 bool matched_reader_gids(
   rmw_publisher_t * publisher, std::vector<GidArray> * gids, std::string * error)
 {

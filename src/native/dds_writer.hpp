@@ -47,6 +47,14 @@ bool write_message_w_timestamp(
   rmw_publisher_t * publisher, const void * ros_message, const void * callbacks,
   int64_t source_timestamp_ns, bool * type_mismatch, std::string * error);
 
+/// write_serialized_w_timestamp on the DataWriter of an rmw_fastrtps_cpp publisher (identifier
+/// already checked) whose type's rosidl_typesupport_fastrtps_c callbacks are `callbacks`: CDR
+/// the caller serialized for that type. A writer of another type is refused (*type_mismatch
+/// set), as write_message_w_timestamp refuses it. Returns true, or false with *error.
+bool write_cdr_w_timestamp(
+  rmw_publisher_t * publisher, const void * data, size_t length, const void * callbacks,
+  int64_t source_timestamp_ns, bool * type_mismatch, std::string * error);
+
 using GidArray = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
 
 /// Keep the next sample written on the DataWriter of an rmw_fastrtps_cpp publisher (identifier
