@@ -71,17 +71,6 @@ struct Reader
   }
 };
 
-bool item(PyObject * op, Py_ssize_t index, Py_ssize_t * value)
-{
-  PyObject * o = PyTuple_GET_ITEM(op, index);
-  if (o == Py_None) {
-    *value = -1;
-    return true;
-  }
-  *value = PyLong_AsSsize_t(o);
-  return !(*value == -1 && PyErr_Occurred());
-}
-
 /// An int or None (-1) object as a Py_ssize_t.
 bool item_value(PyObject * o, Py_ssize_t * value)
 {
@@ -91,6 +80,11 @@ bool item_value(PyObject * o, Py_ssize_t * value)
   }
   *value = PyLong_AsSsize_t(o);
   return !(*value == -1 && PyErr_Occurred());
+}
+
+bool item(PyObject * op, Py_ssize_t index, Py_ssize_t * value)
+{
+  return item_value(PyTuple_GET_ITEM(op, index), value);
 }
 
 /// codec.walker.walk without pads: every check it makes, false where it would raise.
@@ -195,7 +189,7 @@ bool primitive(const Reader & r, size_t * pos, size_t size, uint64_t * value)
 
 /// One field's value as convert_to_py makes it, or nullptr (an exception may be set): a value
 /// the generated code would treat otherwise (a bool byte other than 0 or 1, a string that is
-/// not NUL-terminated UTF-8 without inner NULs or is over its bound, a payload not empty)
+/// not NUL-terminated UTF-8 without inner NULs or is over its bound) or that runs past the end
 /// leaves the message to the generated code.
 PyObject * build(PyObject * program, const Reader & r, size_t * pos, int depth);
 
@@ -331,7 +325,7 @@ private:
 /// CDR (XCDR1, this machine's byte order) written from a message's slots.
 struct Writer
 {
-  std::vector<char> out;
+  std::vector<char> out{0, kLittleHost ? 1 : 0, 0, 0};  // the encapsulation header
   /// Whether a field of variable size (a string, the payload) was written: a message without
   /// one is fixed-size, and rmw_fastrtps sizes those to a multiple of 4 (codec: TypeCodec.plain).
   bool variable = false;
@@ -389,8 +383,39 @@ struct DescriptorPart
   Py_ssize_t descriptor_length;
 };
 
+/// The payload field as its descriptor: the marker, the backend's name, the descriptor.
+bool write_descriptor(Writer * w, const DescriptorPart & part)
+{
+  w->variable = true;
+  w->put(kMarker, 4);
+  w->put(static_cast<uint32_t>(part.backend_length + 1), 4);
+  w->bytes(part.backend, part.backend_length);
+  w->out.push_back('\0');
+  w->put(static_cast<uint32_t>(part.descriptor_length), 4);
+  w->bytes(part.descriptor, part.descriptor_length);
+  return true;
+}
+
+/// The payload field's own bytes, as convert_from_py copies any buffer-protocol object; false
+/// for anything else (a list of ints: the generated code iterates it).
+bool write_payload(Writer * w, PyObject * msg, PyObject * field)
+{
+  PyObject * value = PyObject_GetAttr(msg, PyTuple_GET_ITEM(field, 0));
+  BufferView bytes;
+  const bool ok = value != nullptr && PyObject_CheckBuffer(value) && bytes.get(value) &&
+    bytes.size() <= UINT32_MAX;
+  if (ok) {
+    w->variable = true;
+    w->put(static_cast<uint32_t>(bytes.size()), 4);
+    w->bytes(reinterpret_cast<const char *>(bytes.data()), bytes.size());
+  }
+  Py_XDECREF(value);
+  return ok;
+}
+
 /// `msg`'s fields written as the type support serializes what convert_from_py makes of them,
-/// its payload as the descriptor; false (no exception) for anything the program does not write
+/// its payload as `part`'s descriptor when given, else as its bytes; false (an exception may be
+/// set) for anything the program does not write
 /// exactly so: a value not of the field's exact Python type, out of its range, a string with a
 /// NUL or over its bound. encode_descriptor then takes the type support's path.
 bool write_fields(PyObject * msg, PyObject * program, Writer * w, const DescriptorPart * part,
@@ -413,33 +438,10 @@ bool write_fields(PyObject * msg, PyObject * program, Writer * w, const Descript
     if (!PyTuple_Check(field) || PyTuple_GET_SIZE(field) != 3 || !item(field, 1, &kind)) {
       return false;
     }
-    if (kind == kPayload && part == nullptr) {  // the payload's own bytes, as convert_from_py
-      if (depth > 0) {                          // copies any buffer-protocol object
+    if (kind == kPayload) {  // top level only: slot_program puts it nowhere else
+      if (depth > 0 || !(part ? write_descriptor(w, *part) : write_payload(w, msg, field))) {
         return false;
       }
-      PyObject * value = PyObject_GetAttr(msg, PyTuple_GET_ITEM(field, 0));
-      BufferView bytes;
-      const bool ok = value != nullptr && PyObject_CheckBuffer(value) && bytes.get(value) &&
-        bytes.size() <= UINT32_MAX;
-      if (ok) {
-        w->put(static_cast<uint32_t>(bytes.size()), 4);
-        w->bytes(reinterpret_cast<const char *>(bytes.data()), bytes.size());
-        w->variable = true;
-      }
-      Py_XDECREF(value);
-      if (!ok) {
-        return false;
-      }
-      continue;
-    }
-    if (kind == kPayload) {
-      w->variable = true;
-      w->put(kMarker, 4);
-      w->put(static_cast<uint32_t>(part->backend_length + 1), 4);
-      w->bytes(part->backend, part->backend_length);
-      w->out.push_back('\0');
-      w->put(static_cast<uint32_t>(part->descriptor_length), 4);
-      w->bytes(part->descriptor, part->descriptor_length);
       part = nullptr;  // one payload
       continue;
     }
@@ -497,6 +499,27 @@ bool write_fields(PyObject * msg, PyObject * program, Writer * w, const Descript
   return part == nullptr || depth > 0;  // a descriptor asked for is written
 }
 
+/// `msg`'s CDR written by `program` into `out`, the payload as `part`'s descriptor when given;
+/// a fixed-size message padded to a multiple of 4, as rmw_fastrtps sizes it (codec:
+/// TypeCodec.plain). False, no exception set, when the program is None or cannot write it.
+bool write_cdr(PyObject * msg, PyObject * program, const DescriptorPart * part,
+  std::vector<char> * out)
+{
+  if (program == nullptr || program == Py_None) {
+    return false;
+  }
+  Writer w;
+  if (!write_fields(msg, program, &w, part, 0)) {
+    PyErr_Clear();
+    return false;
+  }
+  if (!w.variable) {
+    w.align(4);
+  }
+  *out = std::move(w.out);
+  return true;
+}
+
 /// None, after clearing any pending exception: the Python codec takes over.
 PyObject * fall_back()
 {
@@ -505,14 +528,20 @@ PyObject * fall_back()
 }
 
 
-/// `small` (a payload-free message's CDR) built by `program`; nullptr (no exception) when the
-/// program does not consume it exactly or leaves a value to the generated code.
-PyObject * built(PyObject * program, const std::vector<uint8_t> & small)
+/// The message `program` builds from CDR with its encapsulation header; nullptr, no exception
+/// set, when it cannot, or (`whole`) when it leaves bytes unread. Bytes after the last field are
+/// otherwise ignored, as the type support's deserialization ignores them.
+PyObject * build_message(PyObject * program, const uint8_t * data, size_t length, bool whole)
 {
-  Reader r{small.data() + kHeader, small.size() - kHeader, small[1] == 1};
+  if (program == nullptr || program == Py_None || length < kHeader || data[0] != 0 ||
+    data[1] > 1)
+  {
+    return nullptr;
+  }
+  Reader r{data + kHeader, length - kHeader, data[1] == 1};
   size_t pos = 0;
   PyObject * msg = build(program, r, &pos, 0);
-  if (msg != nullptr && pos != r.end) {
+  if (msg != nullptr && whole && pos != r.end) {
     Py_CLEAR(msg);
   }
   PyErr_Clear();
@@ -592,7 +621,7 @@ PyObject * decode_descriptor(PyObject *, PyObject * args)
   std::memcpy(small.data(), data, head_end);
   std::memset(small.data() + head_end, 0, 4);
   std::memcpy(small.data() + head_end + 4, r.body + data_end, suffix_size);
-  PyObject * msg = program == Py_None ? nullptr : built(program, small);
+  PyObject * msg = build_message(program, small.data(), small.size(), true);
   if (msg == nullptr) {  // no program, or a value it leaves to the generated code
     msg = converted(msg_class, small);
     if (msg == nullptr) {
@@ -657,15 +686,12 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   if (suffix_size < 0) {
     return fall_back();
   }
+  const DescriptorPart part{backend, backend_length, descriptor, descriptor_length};
   if (program != Py_None) {  // the slots written directly, where the program can
-    Writer w;
-    w.out.reserve(256 + backend_length + descriptor_length);
-    w.bytes(kLittleHost ? "\0\1\0\0" : "\0\0\0\0", kHeader);
-    const DescriptorPart part{backend, backend_length, descriptor, descriptor_length};
-    if (write_fields(msg, program, &w, &part, 0)) {
-      return PyByteArray_FromStringAndSize(w.out.data(), static_cast<Py_ssize_t>(w.out.size()));
+    std::vector<char> out;
+    if (write_cdr(msg, program, &part, &out)) {
+      return PyByteArray_FromStringAndSize(out.data(), static_cast<Py_ssize_t>(out.size()));
     }
-    PyErr_Clear();
   }
   MessageSupport support;
   if (support.load(reinterpret_cast<PyObject *>(Py_TYPE(msg))) < 0) {
@@ -700,8 +726,9 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   }
   // The empty payload's uint32 length sits right before the alignment-1 suffix.
   const auto * bytes = reinterpret_cast<const uint8_t *>(buffer.data());
+  // (DEFAULT_ENDIAN is this machine's byte order, the Writer's)
   if (length > buffer.size() || length < kHeader + 4 + static_cast<size_t>(suffix_size) ||
-    bytes[0] != 0 || bytes[1] > 1)
+    bytes[0] != 0 || bytes[1] != (kLittleHost ? 1 : 0))
   {
     return fall_back();
   }
@@ -709,26 +736,11 @@ PyObject * encode_descriptor(PyObject *, PyObject * args)
   if ((at - kHeader) % 4 != 0 || std::memcmp(bytes + at, "\0\0\0\0", 4) != 0) {
     return fall_back();
   }
-  const bool little = bytes[1] == 1;
-  auto put_u32 = [little](std::vector<char> & out, uint32_t v) {
-      char b[4];
-      for (int k = 0; k < 4; ++k) {
-        b[little ? k : 3 - k] = static_cast<char>((v >> (8 * k)) & 0xFF);
-      }
-      out.insert(out.end(), b, b + 4);
-    };
-  std::vector<char> out;
-  out.reserve(at + 16 + backend_length + descriptor_length + suffix_size);
-  out.insert(out.end(), buffer.data(), buffer.data() + at);
-  put_u32(out, kMarker);
-  put_u32(out, static_cast<uint32_t>(backend_length + 1));
-  out.insert(out.end(), backend, backend + backend_length);
-  out.push_back('\0');
-  out.resize(out.size() + ((4 - (out.size() - kHeader) % 4) % 4), '\0');
-  put_u32(out, static_cast<uint32_t>(descriptor_length));
-  out.insert(out.end(), descriptor, descriptor + descriptor_length);
-  out.insert(out.end(), buffer.data() + at + 4, buffer.data() + at + 4 + suffix_size);
-  return PyByteArray_FromStringAndSize(out.data(), static_cast<Py_ssize_t>(out.size()));
+  Writer w;
+  w.out.assign(buffer.data(), buffer.data() + at);
+  write_descriptor(&w, part);
+  w.bytes(buffer.data() + at + 4, suffix_size);
+  return PyByteArray_FromStringAndSize(w.out.data(), static_cast<Py_ssize_t>(w.out.size()));
 }
 
 /// deserialize(raw, program) -> message | None: CDR built by a slot program.
@@ -766,37 +778,12 @@ PyObject * serialize(PyObject *, PyObject * args)
 
 bool write_from_slots(PyObject * msg, PyObject * program, std::vector<char> * out)
 {
-  if (program == nullptr || program == Py_None) {
-    return false;
-  }
-  Writer w;
-  w.bytes(kLittleHost ? "\0\1\0\0" : "\0\0\0\0", kHeader);
-  if (!write_fields(msg, program, &w, nullptr, 0)) {
-    PyErr_Clear();
-    return false;
-  }
-  if (!w.variable) {
-    w.align(4);
-  }
-  *out = std::move(w.out);
-  return true;
+  return write_cdr(msg, program, nullptr, out);
 }
 
 PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length)
 {
-  if (program == nullptr || program == Py_None || length < kHeader || data[0] != 0 ||
-    data[1] > 1)
-  {
-    return nullptr;
-  }
-  // Bytes after the last field are ignored, as the type support's deserialization ignores them.
-  Reader r{data + kHeader, length - kHeader, data[1] == 1};
-  size_t pos = 0;
-  PyObject * msg = build(program, r, &pos, 0);
-  if (msg == nullptr) {
-    PyErr_Clear();
-  }
-  return msg;
+  return build_message(program, data, length, false);
 }
 
 PyMethodDef codec_functions[] = {

@@ -232,7 +232,8 @@ PyObject * take_with_gid(
   rmw_message_info_t info = rmw_get_zero_initialized_message_info();
   rcl_ret_t ret;
   bool deserialized = false;
-  const bool by_program = program != nullptr && program != Py_None;
+  // (a program comes with `support`: take_message_with_gid passes both)
+  const bool by_program = support != nullptr && program != nullptr && program != Py_None;
   std::string error;
   {
     GilRelease nogil;
@@ -254,13 +255,11 @@ PyObject * take_with_gid(
   } else if (ret != RCL_RET_OK) {
     raise_rmw_error("rcl_take_serialized_message failed", error);
   } else {
-    // the slot program where it builds the message exactly (no Python setter per field),
-    // else the type support, as rclpy's take
-    // (at any length: the program copies a payload once, where the type support's
-    // conversion copies it twice and max_size hands long samples to the codec)
-    PyObject * built = by_program && support != nullptr ?
-      build_from_cdr(program, msg.buffer, msg.buffer_length) : nullptr;
-    if (built == nullptr && by_program && support != nullptr && fits(msg, max_size)) {
+    // the slot program where it builds the message exactly (no Python setter per field), at
+    // any length (it copies a payload once, the type support's conversion twice); else the
+    // type support within max_size, as above without a program
+    PyObject * built = build_from_cdr(program, msg.buffer, msg.buffer_length);
+    if (built == nullptr && by_program && fits(msg, max_size)) {
       deserialized = without_gil([&] {return try_deserialize(*support, msg, &ros_message);});
     }
     result = taken_tuple(

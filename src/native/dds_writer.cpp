@@ -293,6 +293,29 @@ bool write_serialized_w_timestamp(
   return true;
 }
 
+namespace
+{
+
+/// The parts of an rmw_fastrtps_cpp publisher whose type's rosidl_typesupport_fastrtps_c
+/// callbacks are `callbacks`; false with *error (and *type_mismatch for another type).
+bool typed_publisher_parts(
+  rmw_publisher_t * publisher, const void * callbacks, rmw_private::PublisherParts * info,
+  bool * type_mismatch, std::string * error)
+{
+  *type_mismatch = false;
+  if (!rmw_private::publisher_parts(publisher, info, error)) {
+    return false;
+  }
+  if (info->type_support_impl != callbacks) {
+    *type_mismatch = true;
+    *error = "the message's type is not the publisher's";
+    return false;
+  }
+  return true;
+}
+
+}  // namespace
+
 bool write_message_w_timestamp(
   rmw_publisher_t * publisher, const void * ros_message, const void * callbacks,
   int64_t source_timestamp_ns, bool * type_mismatch, std::string * error)
@@ -303,12 +326,7 @@ bool write_message_w_timestamp(
     return false;
   }
   rmw_private::PublisherParts info;
-  if (!rmw_private::publisher_parts(publisher, &info, error)) {
-    return false;
-  }
-  if (info.type_support_impl != callbacks) {
-    *type_mismatch = true;
-    *error = "the message's type is not the publisher's";
+  if (!typed_publisher_parts(publisher, callbacks, &info, type_mismatch, error)) {
     return false;
   }
   // What rmw_publish (rmw_fastrtps_shared_cpp, Jazzy) hands the writer.
@@ -332,17 +350,9 @@ bool write_cdr_w_timestamp(
   rmw_publisher_t * publisher, const void * data, size_t length, const void * callbacks,
   int64_t source_timestamp_ns, bool * type_mismatch, std::string * error)
 {
-  *type_mismatch = false;
   rmw_private::PublisherParts info;
-  if (!rmw_private::publisher_parts(publisher, &info, error)) {
-    return false;
-  }
-  if (info.type_support_impl != callbacks) {
-    *type_mismatch = true;
-    *error = "the message's type is not the publisher's";
-    return false;
-  }
-  return write_serialized_w_timestamp(info.writer, data, length, source_timestamp_ns, error);
+  return typed_publisher_parts(publisher, callbacks, &info, type_mismatch, error) &&
+         write_serialized_w_timestamp(info.writer, data, length, source_timestamp_ns, error);
 }
 
 bool matched_reader_gids(
