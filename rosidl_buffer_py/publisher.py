@@ -385,8 +385,8 @@ class Publisher(rclpy.publisher.Publisher):
         if not cpu_targets:
             return
         if encoder.host_buffer:
-            # a Buffer in host memory: converted to C through its buffer protocol and
-            # serialized by rmw, as rclpy's publish does with an array (no Python-level CDR)
+            # a Buffer in host memory: read through its buffer protocol by the one conversion
+            # write_message makes, as rclpy's publish reads an array (no Python-level CDR)
             write_message(encoder.msg, timestamp, cpu_targets, self._program)
             return
         data = encoder.cpu_bytes()

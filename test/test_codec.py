@@ -861,9 +861,10 @@ def _slot_values(msg, seen=()):
 def _decoded_both_ways(raw, msg_type):
     """The descriptor message decoded by its slot program and by the type support."""
     plan = plans.short_plan(msg_type)
-    assert plan.program is not None
+    program = plans.compiled(msg_type).program
+    assert program is not None
     by_program = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
-                                           MAX_DESCRIPTOR_SIZE, plan.program)
+                                           MAX_DESCRIPTOR_SIZE, program)
     by_support = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
                                            MAX_DESCRIPTOR_SIZE)
     return by_program, by_support
@@ -921,8 +922,7 @@ def test_slot_program_kinds_are_the_numbers_the_fast_path_reads():
 
 
 def test_slot_program_is_none_for_kinds_it_does_not_build():
-    assert plans.compiled(UInt8MultiArray).plan is None or \
-        plans.compiled(UInt8MultiArray).plan.program is None  # a sequence of messages
+    assert plans.compiled(UInt8MultiArray).program is None  # a sequence of messages
     assert plans.slot_program(PointCloud2) is None
     from test_msgs.msg import BasicTypes, WStrings
     assert plans.slot_program(BasicTypes) is None  # byte and char
@@ -1017,7 +1017,8 @@ def test_slot_program_hands_values_it_does_not_build_to_the_type_support(slot, b
 def _encoded_both_ways(msg, descriptor):
     plan = plans.short_plan(type(msg))
     args = (msg, plan.slots, plan.slot, b'', b'demo', descriptor, plan.suffix_size)
-    return (_native.encode_descriptor(*args, plan.program), _native.encode_descriptor(*args))
+    return (_native.encode_descriptor(*args, plans.compiled(type(msg)).program),
+            _native.encode_descriptor(*args))
 
 
 @pytest.mark.parametrize('seed', range(20))
@@ -1043,7 +1044,7 @@ def test_slot_program_leaves_values_it_does_not_write_exactly_to_the_type_suppor
     setattr(image, field, value)
     plan = plans.short_plan(Image)
     args = (image, plan.slots, plan.slot, b'', b'demo', b'd', plan.suffix_size)
-    assert _native.encode_descriptor(*args, plan.program) == \
+    assert _native.encode_descriptor(*args, plans.compiled(Image).program) == \
         _native.encode_descriptor(*args)  # both the type support's answer (bytes or None)
 
 
@@ -1067,7 +1068,7 @@ def test_slot_program_writes_every_kind():
 
 _PROGRAM_PACKAGES = ('std_msgs', 'geometry_msgs', 'sensor_msgs', 'builtin_interfaces', 'nav_msgs',
                      'visualization_msgs', 'test_msgs', 'diagnostic_msgs', 'rcl_interfaces',
-                     'lifecycle_msgs', 'rosgraph_msgs')
+                     'lifecycle_msgs', 'rosgraph_msgs', 'type_description_interfaces')
 
 
 def _types_with_programs():

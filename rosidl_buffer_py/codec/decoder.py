@@ -33,9 +33,8 @@ def _deserialize(raw: bytes, msg_type: Type) -> Any:
 def deserialize(raw: Any, msg_type: Type) -> Any:
     """``deserialize_message(raw, msg_type)``: the same message, built in C from its slots where
     the type has a slot program (:func:`~rosidl_buffer_py.codec.plans.program_of`), without the
-    generated code's
-    ``__init__`` and one Python setter per field; rclpy's own deserialization for the other
-    types and for anything the program does not build exactly."""
+    generated code's ``__init__`` and one Python setter per field; rclpy's own deserialization
+    for the other types and for anything the program does not build exactly."""
     program = program_of(msg_type)
     if program is not None:
         msg = _native.deserialize(raw, program)
@@ -129,16 +128,17 @@ def decode(raw: Any, msg_type: Type,
         return _decode_walk(raw, type_codec, known_backends)[0]
     # Descriptor messages are decoded in C; CPU bytes and anything malformed come back as None
     # and take the path below (which names what is wrong).
+    program = type_codec.program
     fast = _native.decode_descriptor(raw, msg_type, plan.prefix_ops, plan.suffix_size,
-                                     MAX_DESCRIPTOR_SIZE, plan.program)
+                                     MAX_DESCRIPTOR_SIZE, program)
     if fast is not None and (known_backends is None or fast[1] in known_backends):
         msg, backend_type, descriptor = fast
         return Decoded(msg, backend_type, descriptor,
                        {plan.path: FieldDescriptor(backend_type, descriptor)})
-    if fast is None and plan.program is not None:
+    if fast is None and program is not None:
         # CPU bytes built in C, the payload copied once (None for a descriptor and for
         # malformed input: the path below names what is wrong)
-        msg = _native.deserialize(raw, plan.program)
+        msg = _native.deserialize(raw, program)
         if msg is not None:
             return Decoded(msg)
     decoded, payload = _decode_short(raw, plan, known_backends)

@@ -335,7 +335,7 @@ def encode(msg: Any,
         backend, data = checked[plan.path]
     # the same bytes from C (None when it cannot: the code below then says why)
     out = _native.encode_descriptor(msg, plan.slots, plan.slot, EMPTY_PAYLOAD, backend,
-                                    data, plan.suffix_size, plan.program)
+                                    data, plan.suffix_size, type_codec.program)
     if out is not None:
         return out
     head, suffix, u32 = _encode_head(msg, plan)

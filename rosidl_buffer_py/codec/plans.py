@@ -41,8 +41,6 @@ class Plan:
     prefix_ops: Ops                 # the fields before the payload
     suffix_size: int                # the fields after it: alignment 1, fixed size
     path: FieldPath                 # (field,)
-    #: how C builds the decoded message from its slots (:func:`slot_program`), or None
-    program: Optional[tuple] = None
 
 
 @dataclass(frozen=True)
@@ -57,7 +55,8 @@ class TypeCodec:
     plan: Optional[Plan]            # the short path, when the type has its shape
     plain: bool                     # fixed size: rmw_fastrtps pads it to a multiple of 4
     slack: bool                     # rmw_fastrtps may size it larger than its data (_estimate)
-    #: how C builds the whole message from its CDR (:func:`slot_program`), or None
+    #: how C builds the message from its CDR and writes its CDR (:func:`slot_program`; its
+    #: payload the single top-level uint8[] field), or None
     program: Optional[tuple] = None
 
 
@@ -117,7 +116,7 @@ def _compile(msg_type: Type) -> TypeCodec:
     if len(templates) == 1 and payload is not None:
         plan = _short_plan_of(msg_type, fields, top[-1])
     slack = _has_slack(ops)
-    program = plan.program if plan is not None else slot_program(msg_type)
+    program = slot_program(msg_type, '_' + payload if len(templates) == 1 and top else None)
     return TypeCodec(msg_type, ops, tree, templates, payload, None if slack else plan,
                      _fixed_size(ops), slack, program)
 
@@ -145,8 +144,7 @@ def _short_plan_of(msg_type: Type, fields, index: int) -> Optional[Plan]:
         add_type(prefix, slot_type, name, (msg_type,))
     field = fields[index][0]
     return Plan(msg_type, field, '_' + field, tuple(msg_type.__slots__), prefix.freeze(),
-                sum(op[2] for op in suffix_ops), FieldPath((field,)),
-                slot_program(msg_type, '_' + field))
+                sum(op[2] for op in suffix_ops), FieldPath((field,)))
 
 
 # --- slot programs ---------------------------------------------------------------------------
