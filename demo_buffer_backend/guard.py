@@ -28,7 +28,8 @@ class Guard:
 
     def __exit__(self, *exc) -> None:
         self.lock.release()
-        self.drain()
+        if self.pending:  # (a call saved on every message: nothing is queued, mostly)
+            self.drain()
 
     def defer(self, func: Callable[[Any], None], arg: Any) -> None:
         """Run ``func(arg)`` under the lock, now if it is free, else when its holder lets go."""

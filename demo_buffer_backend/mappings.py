@@ -306,15 +306,13 @@ class Mappings:
                              f'{d.generation} is stale: its publisher is reusing the slot')
         mapping.refs += 1
         try:
-            header = mapping.received.map
-            generation = memory.read_u64(header, memory.OFF_GENERATION)
+            generation, *recorded = memory.RECORD.unpack_from(mapping.received.map,
+                                                              memory.OFF_GENERATION)
             if generation != d.generation:
                 self.counters.stale += 1
                 raise ValueError(f'demo descriptor for segment {d.segment_id} is stale: '
                                  f'generation {d.generation}, the slot is at {generation}')
-            recorded = (memory.read_u64(header, memory.OFF_OFFSET),
-                        memory.read_u64(header, memory.OFF_SIZE))
-            if recorded != (d.offset, d.size):
+            if recorded != [d.offset, d.size]:
                 raise ValueError(f'demo descriptor names bytes [{d.offset}, {d.offset + d.size})'
                                  f' but its publisher recorded [{recorded[0]}, '
                                  f'{sum(recorded)}) for generation {generation}')
@@ -328,7 +326,8 @@ class Mappings:
 
     def _acknowledge(self, mapping: Mapping, d: codec.Descriptor) -> None:
         if mapping.conn is not None:
-            if not handover.send_ack(mapping.conn, d.segment_id, d.generation):
+            if not handover.send_reply(mapping.conn, ReplyKind.TAKEN, d.segment_id,
+                                       d.generation):
                 self.counters.acks_unsent += 1
         elif d.pid == self.slots.pid and d.nonce == self.slots.nonce:
             self.slots.acknowledge(d.segment_id, d.generation, self.token)

@@ -34,6 +34,9 @@ _U64 = struct.Struct('<Q')
 OFF_GENERATION = 16
 OFF_OFFSET = 24
 OFF_SIZE = 32
+#: generation, offset, size (from ``OFF_GENERATION``): what a frame's descriptor must match,
+#: read in one unpack (a subscriber reads them on every take)
+RECORD = struct.Struct('<QQQ')
 
 _F_SEAL_FUTURE_WRITE = getattr(fcntl, 'F_SEAL_FUTURE_WRITE', 0x0010)
 #: Seals every segment carries: no shrinking, no growing, no write but the creator's mapping,
@@ -43,6 +46,9 @@ SEALS = fcntl.F_SEAL_SHRINK | fcntl.F_SEAL_GROW | _F_SEAL_FUTURE_WRITE | fcntl.F
 HOLD_BYTE = 0
 _FLOCK = struct.Struct('hhqqi4x')  # struct flock (l_pid must be 0 for OFD locks)
 _F_OFD_SETLK = getattr(fcntl, 'F_OFD_SETLK', 37)
+#: The three requests on the hold byte, packed once (every message locks and unlocks it)
+_WRLCK, _RDLCK, _UNLCK = (_FLOCK.pack(kind, os.SEEK_SET, HOLD_BYTE, 1, 0)
+                          for kind in (fcntl.F_WRLCK, fcntl.F_RDLCK, fcntl.F_UNLCK))
 
 
 def _close(data, mapped: mmap.mmap, fd: int) -> None:
@@ -65,9 +71,8 @@ def round_capacity(nbytes: int) -> int:
 def try_lock(fd: int, *, exclusive: bool) -> bool:
     """Lock ``HOLD_BYTE`` on ``fd``'s open file description without waiting; False when another
     description holds a conflicting lock."""
-    kind = fcntl.F_WRLCK if exclusive else fcntl.F_RDLCK
     try:
-        fcntl.fcntl(fd, _F_OFD_SETLK, _FLOCK.pack(kind, os.SEEK_SET, HOLD_BYTE, 1, 0))
+        fcntl.fcntl(fd, _F_OFD_SETLK, _WRLCK if exclusive else _RDLCK)
     except OSError as exc:
         if exc.errno in (errno.EAGAIN, errno.EACCES):
             return False
@@ -76,7 +81,7 @@ def try_lock(fd: int, *, exclusive: bool) -> bool:
 
 
 def unlock(fd: int) -> None:
-    fcntl.fcntl(fd, _F_OFD_SETLK, _FLOCK.pack(fcntl.F_UNLCK, os.SEEK_SET, HOLD_BYTE, 1, 0))
+    fcntl.fcntl(fd, _F_OFD_SETLK, _UNLCK)
 
 
 def read_u64(header: mmap.mmap, offset: int) -> int:

@@ -109,14 +109,14 @@ class Pool:
                 return None
             token = ledger.token
             ledger.seq += 1
+            link = None if token == self.token else self.links.get(token)
+            if link is not None:  # its acks first: what it took is no longer in flight
+                self.links.drain(link)
             ledger.settle(self.counters)
-            link = None
             if token != self.token:
-                link = self.links.get(token)
                 if link is None:
                     self.counters.descriptors_declined += 1
                     return None
-                self.links.drain(link)
                 if token in self.links.gone:  # before anything else: a dead peer gets nothing
                     raise gone_error(token)
             if ledger.full():  # all it can still take is in flight: a copy, not more memory

@@ -78,15 +78,18 @@ class _RouteView:
     """What DDS says of one publisher's routes (:class:`rosidl_buffer_py.routes.RouteView`),
     read from its main DataWriter and its peers' channels."""
 
-    __slots__ = ('_writer', '_peers')
+    __slots__ = ('_writer', '_peers', '_main_count')
 
     def __init__(self, writer: 'Publisher', peers: PeerTable) -> None:
         self._writer = writer
         self._peers = peers
+        #: the main DataWriter's matched count, one C call (the view is read under the
+        #: publisher's lock, which its destroy() takes first)
+        self._main_count = seams.subscription_counter(writer)
 
     def signature(self) -> tuple:
         """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
-        return (self._writer.get_subscription_count(),
+        return (self._main_count(),
                 tuple(-1 if peer.channel is None else peer.channel.matched_count()
                       for peer in self._peers))
 
@@ -150,8 +153,13 @@ class _Encoder:
             cache = self._described = {}
         data = cache.get(described)
         if data is None:
-            data = cache[described] = codec.encode(
-                self.msg, {path: (backend, descriptor) for path, backend, descriptor in described})
+            if self._single is not None:  # the one payload: its pair, no path to check
+                (_, backend, descriptor), = described
+                data = codec.encode(self.msg, (backend, descriptor))
+            else:
+                data = codec.encode(self.msg, {path: (backend, descriptor)
+                                               for path, backend, descriptor in described})
+            cache[described] = data
         return data
 
 

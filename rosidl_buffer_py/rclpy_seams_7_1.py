@@ -153,3 +153,15 @@ def before_node_handle_destroyed(node, callback: Callable[[], None]) -> None:
             destroy()
 
     guard.destroy = destroy_after_callback
+
+
+def subscription_counter(publisher) -> Callable[[], int]:
+    """``publisher.get_subscription_count`` as one C call, for a caller that keeps the
+    publisher from being destroyed while it calls (our publisher calls it under the lock its
+    ``destroy()`` takes before rclpy's).
+
+    rclpy 7.1's ``Publisher.get_subscription_count`` pins the handle around the C call (two
+    Python frames and the pin per call); this is the C handle's ``get_subscription_count``
+    itself, which the route table reads on every publish.
+    """
+    return publisher.handle.get_subscription_count

@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 import textwrap
+import time
 
 from rclpy.node import Node
 
@@ -59,6 +60,30 @@ def test_a_delegating_reader_takes_what_its_take_gives():
         reader.take = lambda: ('message', {'source_timestamp': 1})
         assert reader.take_message(String, False) == ('message', {'source_timestamp': 1})
         reader.destroy_when_not_in_use()
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
+
+
+def test_the_subscription_counter_counts_as_rclpy_does():
+    import rclpy
+    from std_msgs.msg import String
+    rclpy.init()
+    try:
+        node = rclpy.create_node('seams_counter')
+        pub = node.create_publisher(String, '/seams_counter', 1)
+        count = seams.subscription_counter(pub)
+        assert count() == pub.get_subscription_count() == 0
+        subs = [node.create_subscription(String, '/seams_counter', lambda m: None, 1)
+                for _ in range(2)]
+        deadline = time.monotonic() + 10.0
+        while pub.get_subscription_count() < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert count() == pub.get_subscription_count() == 2
+        node.destroy_subscription(subs[0])
+        while pub.get_subscription_count() > 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert count() == pub.get_subscription_count() == 1
         node.destroy_node()
     finally:
         rclpy.shutdown()
