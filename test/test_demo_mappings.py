@@ -275,6 +275,24 @@ def test_replies_returns_the_records_in_order_and_skips_ones_of_another_size():
         theirs.close()
 
 
+def test_replies_reads_a_burst_of_records_in_one_call():
+    link, theirs = _link_pair()
+    try:
+        for n in range(40):
+            assert handover.send_ack(theirs, n, n + 1)
+        replies, hung_up = link.replies()
+        assert not hung_up
+        assert replies == [handover.Reply(n, handover.ReplyKind.TAKEN, n + 1) for n in range(40)]
+        for n in range(16):
+            assert handover.send_ack(theirs, n, 0)
+        assert len(link.replies()[0]) == 16
+        assert link.replies() == ([], False)
+        theirs.close()
+        assert link.replies() == ([], True)
+    finally:
+        link.sock.close()
+
+
 def test_replies_of_a_peer_that_closed_come_with_the_hang_up():
     link, theirs = _link_pair()
     try:
