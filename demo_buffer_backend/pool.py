@@ -46,6 +46,14 @@ from demo_buffer_backend.slots import Pin, Slot, Slots
 RENEW_POLL_SECONDS = (0.0005, 0.01)
 
 
+def _accepted(link: handover.Link, slot: Slot) -> bool:
+    """Whether ``link``'s process mapped ``slot``'s segment: the link's steady state, where a
+    describe need not read its replies first (its acks wait for the next allocate() or renew(),
+    which drain every link, or for the endpoint's share to fill)."""
+    verdict = link.verdicts.get(slot.id)
+    return verdict is not None and verdict.kind == ReplyKind.ACCEPTED
+
+
 class Pool:
     """Everything the demo backend holds in one process, behind these calls:
 
@@ -109,17 +117,27 @@ class Pool:
                 return None
             token = ledger.token
             ledger.seq += 1
-            link = None if token == self.token else self.links.get(token)
-            if link is not None:  # its acks first: what it took is no longer in flight
-                self.links.drain(link)
+            link = None
+            if token != self.token:
+                link = self.links.get(token)
+                if link is not None and not _accepted(link, slot):
+                    # a link or a segment being set up: its process's latest word first
+                    self.links.drain(link)
             ledger.settle(self.counters)
+            full = ledger.full()
+            if full and link is not None:
+                # its acks since the last drain (allocate() and renew() drain every link) may
+                # free its share: read them before a copy goes instead
+                self.links.drain(link)
+                ledger.settle(self.counters)
+                full = ledger.full()
             if token != self.token:
                 if link is None:
                     self.counters.descriptors_declined += 1
                     return None
                 if token in self.links.gone:  # before anything else: a dead peer gets nothing
                     raise gone_error(token)
-            if ledger.full():  # all it can still take is in flight: a copy, not more memory
+            if full:  # all it can still take is in flight: a copy, not more memory
                 self.counters.cpu_past_share += 1
                 self.counters.descriptors_declined += 1
                 return None
