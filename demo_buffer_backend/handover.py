@@ -37,6 +37,9 @@ HANDOVER_MAGIC = b'RBPYHND1'
 RETIRE_MAGIC = b'RBPYRET1'
 #: segment id, kind (:class:`ReplyKind`), value (a generation or a :class:`Refusal`).
 REPLY = struct.Struct('<IIQ')
+#: Flags of every send: never block, never SIGPIPE (an int: socket's flags are an IntFlag, whose
+#: ``|`` runs Python-level enum code on every call)
+_SEND_FLAGS = int(socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
 _FD_SPACE = socket.CMSG_SPACE(4 * 4)  # room for a few descriptors: extra ones are counted
 #: Records taken from one connection per drain: a genuine publisher sends one per new segment,
 #: so a flood waits for later drains and costs only its own connection's turn.
@@ -229,7 +232,7 @@ def send_reply(conn: socket.socket, kind: ReplyKind, segment_id: int = 0, value:
     """Answer the publisher at the other end of ``conn`` (never blocks; False when it could
     not: its queue is full or it hung up)."""
     try:
-        conn.send(REPLY.pack(segment_id, kind, value), socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
+        conn.send(REPLY.pack(segment_id, kind, value), _SEND_FLAGS)
         return True
     except OSError:
         return False
@@ -276,7 +279,7 @@ class Link:
         ``BlockingIOError`` when its queue is full (try again with a later frame)."""
         record = HANDOVER.pack(HANDOVER_MAGIC, nonce, segment_id, 0, capacity)
         try:
-            socket.send_fds(self.sock, [record], fds, socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
+            socket.send_fds(self.sock, [record], fds, _SEND_FLAGS)
         except OSError as exc:
             if exc.errno in _GONE:
                 raise ProcessGone(f'demo subscriber {self.token} hung up: {exc}') from None
@@ -290,7 +293,7 @@ class Link:
             self.verdicts.pop(segment_id, None)
             try:
                 self.sock.send(HANDOVER.pack(RETIRE_MAGIC, nonce, segment_id, 0, 0),
-                               socket.MSG_DONTWAIT | socket.MSG_NOSIGNAL)
+                               _SEND_FLAGS)
             except OSError:
                 pass  # gone or full: it drops the segment when we hang up
 

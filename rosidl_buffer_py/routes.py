@@ -782,7 +782,9 @@ class Receiver(Generic[C, T]):
         if kind is Incoming.CONTROL:
             return Step(Outcome.CONTROL, sample, channel)
         verdict = stream.channel(view.timestamp(sample), sample, now)
-        return Step(_OUTCOME_OF[verdict], sample, channel)
+        # (identity first: an Enum's hash is Python code, and most messages are delivered)
+        return Step(Outcome.DELIVER if verdict is Verdict.DELIVER else _OUTCOME_OF[verdict],
+                    sample, channel)
 
     def _from_main(self, view: 'ReceiveView[C, T]') -> Optional[Step[C, T]]:
         publisher = None
