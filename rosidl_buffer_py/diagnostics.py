@@ -67,6 +67,9 @@ class PublisherStatistics(_Record):
     advertised_backends: Dict[str, str]
     sent_on_main_topic: int
     main_topic_withheld: int        #: main-topic samples kept from channel-served subscriptions
+    #: main-topic samples that went to a subscription its channel carried too (a route not
+    #: confirmed yet, see docs/design.md): the subscription drops them as duplicates
+    main_topic_doubled: int
     cpu_copies_to_buffer_capable_peers: int
     peers_added: int
     peers_removed: int

@@ -66,8 +66,8 @@ class PlainPublisher(rclpy.publisher.Publisher):
     def statistics(self) -> PublisherStatistics:
         return PublisherStatistics(
             gid=None, buffer_aware=False, advertised_backends={}, sent_on_main_topic=self._sent,
-            main_topic_withheld=0, cpu_copies_to_buffer_capable_peers=0, peers_added=0,
-            peers_removed=0, peers=[])
+            main_topic_withheld=0, main_topic_doubled=0, cpu_copies_to_buffer_capable_peers=0,
+            peers_added=0, peers_removed=0, peers=[])
 
 
 class PlainSubscription(rclpy.subscription.Subscription):

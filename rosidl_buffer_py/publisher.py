@@ -208,6 +208,8 @@ class Publisher(rclpy.publisher.Publisher):
         self._sent_main = 0
         #: main-topic samples kept from subscriptions served on channels (per subscription)
         self._withheld = 0
+        #: main-topic samples sent to subscriptions their channels carried too (per subscription)
+        self._doubled = 0
         self._describe_failures_logged = Throttle(DESCRIBE_FAILURE_LOG_SECONDS)
         #: CPU copies written on channels to peers that share a backend with the message's
         #: Buffers (the backend declined: pool exhausted, or the peer cannot be reached)
@@ -353,6 +355,8 @@ class Publisher(rclpy.publisher.Publisher):
                 peer.channel.publish(control.encode(fence), timestamp)
             peers.append(peer)
         main, withheld = dispatch.main, dispatch.withheld
+        if main and peers:  # the serving routes not confirmed yet get the main-topic copy too
+            self._doubled += sum(1 for key, _ in dispatch.channel if key not in withheld)
         if encoder.cpu_message:
             # CPU payload: one conversion for every target, no Python-level CDR work: its CDR
             # written from the slots where the type has a slot program, else the C struct
@@ -471,7 +475,7 @@ class Publisher(rclpy.publisher.Publisher):
         with self._lock:
             return PublisherStatistics(
                 **self._core.identity(), sent_on_main_topic=self._sent_main,
-                main_topic_withheld=self._withheld,
+                main_topic_withheld=self._withheld, main_topic_doubled=self._doubled,
                 cpu_copies_to_buffer_capable_peers=self._cpu_to_capable,
                 peers_added=self._peers_added, peers_removed=self._peers_removed,
                 peers=self.buffer_peers())
