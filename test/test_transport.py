@@ -89,7 +89,9 @@ def test_a_slow_subscriber_gets_every_frame_its_publisher_sent_before_exiting(ki
             **({'backend': 'demo', 'wait_for_buffer_peers': 1} if ours else {})))
         assert run.wait(['pub', 'sub'], 60), run.diagnostics()
         report = run.nodes['sub'].report
-    assert report['distinct'] == report['received'] == count, (report, run.diagnostics())
+    # (a text: pytest shows it whole, where it cuts a tuple's repr at 240 characters)
+    assert report['distinct'] == report['received'] == count, \
+        f'{report}\n{run.diagnostics()}'
     assert report['checksum_failures'] == report['gaps'] == 0, report
     if ours:
         assert report['statistics']['rejected'] == 0, report['statistics']  # none went stale
