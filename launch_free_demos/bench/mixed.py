@@ -121,7 +121,8 @@ def run_graph(graph: str, width: int, height: int, frames: int, rate: float,
     for label in started:  # where the frames went (stderr: the table stays on stdout)
         stats = (reports.get(label) or {}).get('statistics') or {}
         counters = [f'{k}={stats[k]}' for k in ('from_main_topic', 'from_channels',
-                    'duplicates_dropped', 'sent_on_main_topic', 'main_topic_withheld')
+                    'duplicates_dropped', 'sent_on_main_topic', 'main_topic_withheld',
+                    'main_topic_doubled')
                     if k in stats]
         if counters:
             print(f'bench_mixed: {graph}, {frames} frames, {label}: ' + ', '.join(counters),
