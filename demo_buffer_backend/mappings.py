@@ -306,8 +306,7 @@ class Mappings:
                              f'{d.generation} is stale: its publisher is reusing the slot')
         mapping.refs += 1
         try:
-            generation, *recorded = memory.RECORD.unpack_from(mapping.received.map,
-                                                              memory.OFF_GENERATION)
+            _, _, generation, *recorded = memory.HEADER.unpack_from(mapping.received.map)
             if generation != d.generation:
                 self.counters.stale += 1
                 raise ValueError(f'demo descriptor for segment {d.segment_id} is stale: '

@@ -30,13 +30,6 @@ PAGE_SIZE = mmap.PAGESIZE
 MAGIC = b'RBPYMFD1'
 #: magic, capacity, generation, offset, size
 HEADER = struct.Struct('<8sQQQQ')
-_U64 = struct.Struct('<Q')
-OFF_GENERATION = 16
-OFF_OFFSET = 24
-OFF_SIZE = 32
-#: generation, offset, size (from ``OFF_GENERATION``): what a frame's descriptor must match,
-#: read in one unpack (a subscriber reads them on every take)
-RECORD = struct.Struct('<QQQ')
 
 _F_SEAL_FUTURE_WRITE = getattr(fcntl, 'F_SEAL_FUTURE_WRITE', 0x0010)
 #: Seals every segment carries: no shrinking, no growing, no write but the creator's mapping,
@@ -82,10 +75,6 @@ def try_lock(fd: int, *, exclusive: bool) -> bool:
 
 def unlock(fd: int) -> None:
     fcntl.fcntl(fd, _F_OFD_SETLK, _UNLCK)
-
-
-def read_u64(header: mmap.mmap, offset: int) -> int:
-    return _U64.unpack_from(header, offset)[0]
 
 
 class Segment:

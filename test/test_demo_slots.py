@@ -37,8 +37,9 @@ def test_a_freed_slot_is_reused_with_the_next_generation(slots):
     assert slot.pins == 0
     again = slots.allocate(200, gone=set())[1]
     assert again.slot is slot and again.generation == 2
-    assert memory.read_u64(slot.segment.map, memory.OFF_GENERATION) == 2
-    assert memory.read_u64(slot.segment.map, memory.OFF_SIZE) == 200
+    _, _, generation, _, size = memory.HEADER.unpack_from(slot.segment.map)
+    assert generation == 2
+    assert size == 200
 
 
 def test_descriptors_pin_a_generation_until_taken_given_up_or_gone(slots):
