@@ -98,7 +98,7 @@ def set_at(msg: Any, path: Iterable[Union[str, int]], value: Any) -> None:
     path = tuple(path)
     if not path:
         raise LookupError('an empty field path names no field')
-    parent = get_at(msg, path[:-1])
+    parent = get_at(msg, path[:-1]) if len(path) > 1 else msg  # (a top-level field: no walk)
     last = path[-1]
     if isinstance(last, int):
         try:

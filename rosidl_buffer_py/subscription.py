@@ -466,12 +466,8 @@ class Subscription(rclpy.subscription.Subscription):
                     f'descriptors from publisher {taken.publisher_gid.hex()}, which is not a '
                     'discovered buffer-aware publisher')
             for path, (backend, descriptor) in decoded.descriptors.items():
-                buffer = self._core.backends[backend].from_descriptor_with_endpoint(
-                    descriptor, peer.info)
-                if len(path) == 1:  # a top-level field of the type (the codec's path)
-                    setattr(decoded.msg, path[0], buffer)
-                else:
-                    codec.set_at(decoded.msg, path, buffer)
+                codec.set_at(decoded.msg, path, self._core.backends[backend]
+                             .from_descriptor_with_endpoint(descriptor, peer.info))
             peer.received_descriptor += 1
             peer.backend_in_use = backend
             return decoded.msg
