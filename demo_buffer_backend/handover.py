@@ -297,6 +297,11 @@ class Link:
             except OSError:
                 pass  # gone or full: it drops the segment when we hang up
 
+    def accepted(self, segment_id: int) -> bool:
+        """Whether the subscriber process said it mapped the segment."""
+        verdict = self.verdicts.get(segment_id)
+        return verdict is not None and verdict.kind == ReplyKind.ACCEPTED
+
     def replies(self) -> Tuple[List[Reply], bool]:
         """``(replies received since the last call, hung up)``: what the subscriber said before
         it hung up is returned too (a refusal comes just before its subscriber closes). Read in

@@ -46,14 +46,6 @@ from demo_buffer_backend.slots import Pin, Slot, Slots
 RENEW_POLL_SECONDS = (0.0005, 0.01)
 
 
-def _accepted(link: handover.Link, slot: Slot) -> bool:
-    """Whether ``link``'s process mapped ``slot``'s segment: the link's steady state, where a
-    describe need not read its replies first (its acks wait for the next allocate() or renew(),
-    which drain every link, or for the endpoint's share to fill)."""
-    verdict = link.verdicts.get(slot.id)
-    return verdict is not None and verdict.kind == ReplyKind.ACCEPTED
-
-
 class Pool:
     """Everything the demo backend holds in one process, behind these calls:
 
@@ -120,8 +112,10 @@ class Pool:
             link = None
             if token != self.token:
                 link = self.links.get(token)
-                if link is not None and not _accepted(link, slot):
-                    # a link or a segment being set up: its process's latest word first
+                if link is not None and not link.accepted(slot.id):
+                    # a link or a segment being set up: its process's latest word first (in
+                    # the steady state its acks wait for the next allocate() or renew(), which
+                    # drain every link, or for the endpoint's share to fill)
                     self.links.drain(link)
             ledger.settle(self.counters)
             full = ledger.full()

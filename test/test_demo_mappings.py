@@ -293,6 +293,18 @@ def test_replies_reads_a_burst_of_records_in_one_call():
         link.sock.close()
 
 
+def test_a_link_says_accepted_only_for_a_segment_its_subscriber_mapped():
+    link, theirs = _link_pair()
+    try:
+        link.verdicts = {3: handover.Reply(3, handover.ReplyKind.ACCEPTED, 0),
+                         4: handover.Reply(4, handover.ReplyKind.REFUSED, 1)}
+        assert link.accepted(3)
+        assert not link.accepted(4) and not link.accepted(5)
+    finally:
+        link.sock.close()
+        theirs.close()
+
+
 def test_replies_of_a_peer_that_closed_come_with_the_hang_up():
     link, theirs = _link_pair()
     try:
