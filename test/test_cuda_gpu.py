@@ -188,3 +188,99 @@ def test_from_dlpack_copies_a_torch_tensor_and_torch_reads_it_back():
     with pytest.raises(TypeError, match='GPU memory'):
         import numpy
         numpy.asarray(buf)
+
+
+def _endpoint(gid: bytes):
+    from rosidl_buffer_py import EndpointInfo, EndpointKind
+    return EndpointInfo(gid, '/cuda_gpu_test', EndpointKind.SUBSCRIPTION)
+
+
+def test_renew_waits_for_the_subscribers_reads_then_gives_a_new_frame_in_the_same_memory():
+    """A camera that keeps its device buffers: renew() returns once the descriptor was taken and
+    the view dropped; the slot keeps its address (a CUDA graph may keep writing there), and the
+    old descriptor is refused as stale."""
+    import gc
+
+    import torch
+
+    from cuda_buffer_backend import CudaBuffer
+    from cuda_buffer_backend.backend import CudaBackend
+    be = CudaBackend()
+    ep = _endpoint(b'\x22' * 16)  # this process's own endpoint: descriptors and views are real
+    assert be.on_discovering_endpoint(ep, [], {'cuda': be.get_backend_metadata(), 'cpu': ''}) \
+        == (True, [])
+    buf = CudaBuffer.allocate(1 << 16)
+    address, generation = buf.address, buf.generation
+    torch.from_dlpack(buf).fill_(1)
+    first = be.create_descriptor_with_endpoint(buf, ep)
+    assert first is not None
+    assert not buf.renew(timeout=0.05)  # sent, not taken yet
+    got = be.from_descriptor_with_endpoint(first, ep)
+    assert not buf.renew(timeout=0.05)  # taken, a view of it held
+    assert int(torch.from_dlpack(got)[0]) == 1
+    del got
+    gc.collect()
+    assert buf.renew(timeout=5.0)
+    assert (buf.address, buf.generation) == (address, generation + 1)
+    with pytest.raises(ValueError, match='stale'):
+        be.from_descriptor_with_endpoint(first, ep)
+    torch.from_dlpack(buf).fill_(2)  # the new frame, in the same memory
+    again = be.from_descriptor_with_endpoint(be.create_descriptor_with_endpoint(buf, ep), ep)
+    view = torch.from_dlpack(again)  # the subscriber's mapping of the same device memory
+    assert int(view.min()) == int(view.max()) == 2
+    assert not again.renew()  # a received buffer is not the subscriber's to renew
+
+
+def test_an_in_process_cuda_subscription_gets_the_publishers_frames_zero_copy(context):
+    """Publisher and subscriptions in one process: the cuda one gets every frame in the
+    publisher's pooled device memory (mapped a second time, read-only), a plain rclpy one beside
+    it the same bytes."""
+    import rclpy
+    import torch
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    import rosidl_buffer_py
+    from cuda_buffer_backend import CudaBuffer
+    from harness.in_process import spin_until
+    from rosidl_buffer_py.image import allocate_image_msg
+
+    qos = QoSProfile(depth=30, reliability=ReliabilityPolicy.RELIABLE)
+    node = rclpy.create_node('cuda_inproc', context=context)
+    gpu, plain = [], []
+
+    def on_gpu(msg):
+        view = torch.from_dlpack(msg.data)
+        gpu.append((type(msg.data).__name__, view.data_ptr(), int(view.min()), int(view.max())))
+
+    def on_plain(msg):
+        plain.append(bytes(msg.data))
+
+    rosidl_buffer_py.create_subscription(node, Image, '/cuda_inproc', on_gpu, qos,
+                                         acceptable_buffer_backends='cuda')
+    node.create_subscription(Image, '/cuda_inproc', on_plain, qos)
+    pub = rosidl_buffer_py.create_publisher(node, Image, '/cuda_inproc', qos)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers())
+                      and pub.get_subscription_count() == 2)
+    for i in range(20):
+        msg = allocate_image_msg(24, 32, 'rgb8', backend='cuda')
+        torch.from_dlpack(msg.data).fill_(i + 1)
+        pub.publish(msg)
+        executor.spin_once(timeout_sec=0.01)
+    assert spin_until(executor, lambda: len(gpu) >= 20 and len(plain) >= 20), (
+        len(gpu), len(plain), pub.statistics())
+    assert [g[0] for g in gpu] == ['CudaBuffer'] * 20
+    assert [g[2:] for g in gpu] == [(i + 1, i + 1) for i in range(20)]
+    # a mapping per pooled slot, not a copy per frame
+    assert len({g[1] for g in gpu}) <= pub_slots(), gpu
+    assert plain == [bytes([i + 1]) * (24 * 32 * 3) for i in range(20)]
+    executor.shutdown()
+    node.destroy_node()
+
+
+def pub_slots() -> int:
+    from cuda_buffer_backend import lifecycle
+    return lifecycle.get_pool(0).stats()['slots']
