@@ -12,12 +12,17 @@ Publisher modes (``--mode``):
   written through ``torch.from_dlpack``), published by a buffer-aware publisher;
 - ``stock``: frames filled on the GPU, copied to the host into the message (device-to-host), and
   published by a plain rclpy publisher;
-- ``demo``: the same device-to-host copy, into a ``demo`` shared-memory buffer.
+- ``demo``: the same device-to-host copy, into a ``demo`` shared-memory buffer;
+- ``small``: no GPU: a 1 KiB mono8 frame (``--width`` x ``--height``) filled on the host and
+  published by a plain rclpy publisher, what a small message costs in ROS itself.
 
 Subscriber modes: ``cuda`` (accepts the cuda backend: zero-copy), ``cpu`` (a buffer-aware
 subscription that accepts CPU bytes only), ``legacy`` (a plain rclpy subscription), ``stock`` and
-``demo`` (CPU bytes or a demo buffer, copied host-to-device). ``--consumer torch|cupy`` picks the
-GPU library; ``--own-stream`` reads on a stream of its own.
+``demo`` (CPU bytes or a demo buffer, copied host-to-device), ``small`` (a plain rclpy subscription
+checking on the host). ``--consumer torch|cupy`` picks the GPU library; ``--own-stream`` reads on
+a stream of its own. A GPU subscriber makes its CUDA context and the check's kernels ready before
+it says it is ready, as a perception node has its model loaded before frames come: the first
+frame's latency is not torch's start-up.
 """
 import argparse
 import collections
@@ -79,6 +84,15 @@ class _Gpu:
             return (int(lo), int(hi)) == (expected, expected)
         return (int(array.min()), int(array.max())) == (expected, expected)
 
+    def warm_up(self) -> None:
+        """Make the CUDA context and the check's kernels ready (a first use costs ~0.2 s)."""
+        with self.context():
+            if self.name == 'torch':
+                self.check(self.torch.ones(16, dtype=self.torch.uint8, device='cuda'), 1)
+            else:
+                self.check(self.cupy.ones(16, dtype=self.cupy.uint8), 1)
+        self.synchronize()
+
     def synchronize(self) -> None:
         if self.name == 'torch':
             (self.stream or self.torch.cuda.current_stream()).synchronize()
@@ -104,7 +118,6 @@ class _Null:
 def publish(args) -> Dict[str, Any]:
     import numpy
     import rclpy
-    import torch
     from sensor_msgs.msg import Image
 
     import rosidl_buffer_py
@@ -112,7 +125,7 @@ def publish(args) -> Dict[str, Any]:
 
     rclpy.init()
     node = rclpy.create_node(f'cuda_pub_{os.getpid()}')
-    if args.mode == 'stock':
+    if args.mode in ('stock', 'small'):
         pub = node.create_publisher(Image, args.topic, args.depth)
     else:
         pub = rosidl_buffer_py.create_publisher(node, Image, args.topic, args.depth)
@@ -122,40 +135,23 @@ def publish(args) -> Dict[str, Any]:
     if args.wait_buffer_peers and args.mode != 'stock':
         pub.wait_for_buffer_peers(args.wait_buffer_peers,
                                   timeout_sec=max(0.1, deadline - time.monotonic()))
-    stream = torch.cuda.Stream()
-    source = torch.empty(args.height * args.width * 3, dtype=torch.uint8, device='cuda')
-    nbytes = source.numel()
+    on_gpu = args.mode != 'small'
+    stream = source = None
+    if on_gpu:
+        import torch
+        stream = torch.cuda.Stream()
+        source = torch.empty(args.height * args.width * 3, dtype=torch.uint8, device='cuda')
     cpu0 = _cpu_seconds()
     period = 1.0 / args.rate
     next_at = time.monotonic()
     addresses = set()
     for i in range(args.frames):
         next_at += period
-        msg = None
-        with torch.cuda.stream(stream):
-            if args.mode == 'cuda':
-                msg = allocate_image_msg(args.height, args.width, 'rgb8', backend='cuda')
-                target = torch.from_dlpack(msg.data)  # the consumer's stream: ours
-                addresses.add(msg.data.address)
-            else:
-                if args.mode == 'stock':
-                    msg = allocate_image_msg(args.height, args.width, 'rgb8')
-                    host = torch.from_numpy(numpy.frombuffer(msg.data, numpy.uint8))
-                else:
-                    msg = allocate_image_msg(args.height, args.width, 'rgb8', backend='demo')
-                    host = torch.from_numpy(numpy.asarray(msg.data))
-                target = source
-            if args.slow:  # a frame written chunk by chunk by slow kernels: never seen torn
-                chunks = 16
-                step = -(-nbytes // chunks)
-                for c in range(chunks):
-                    torch.cuda._sleep(args.slow)
-                    target[c * step:(c + 1) * step].fill_(value(i))
-            else:
-                target.fill_(value(i))
-            if args.mode != 'cuda':
-                host.copy_(target)  # device-to-host, synchronous: the bytes are on the host
-            del target
+        if on_gpu:
+            msg = _gpu_frame(args, i, stream, source, addresses)
+        else:
+            msg = allocate_image_msg(args.height, args.width, 'mono8')
+            numpy.frombuffer(msg.data, numpy.uint8)[:] = value(i)
         msg.header.frame_id = str(i)
         _set_stamp(msg, time.time_ns())
         pub.publish(msg)
@@ -179,6 +175,39 @@ def publish(args) -> Dict[str, Any]:
     return report
 
 
+def _gpu_frame(args, i: int, stream, source, addresses: set):
+    """Frame ``i`` written on the GPU on ``stream``: in place in a CudaBuffer (``cuda``), or into
+    ``source`` then copied to the host message (``stock``, ``demo``)."""
+    import numpy
+    import torch
+
+    from rosidl_buffer_py.image import allocate_image_msg
+    with torch.cuda.stream(stream):
+        if args.mode == 'cuda':
+            msg = allocate_image_msg(args.height, args.width, 'rgb8', backend='cuda')
+            target = torch.from_dlpack(msg.data)  # the consumer's stream: ours
+            addresses.add(msg.data.address)
+        else:
+            if args.mode == 'stock':
+                msg = allocate_image_msg(args.height, args.width, 'rgb8')
+                host = torch.from_numpy(numpy.frombuffer(msg.data, numpy.uint8))
+            else:
+                msg = allocate_image_msg(args.height, args.width, 'rgb8', backend='demo')
+                host = torch.from_numpy(numpy.asarray(msg.data))
+            target = source
+        if args.slow:  # a frame written chunk by chunk by slow kernels: never seen torn
+            chunks = 16
+            step = -(-target.numel() // chunks)
+            for c in range(chunks):
+                torch.cuda._sleep(args.slow)
+                target[c * step:(c + 1) * step].fill_(value(i))
+        else:
+            target.fill_(value(i))
+        if args.mode != 'cuda':
+            host.copy_(target)  # device-to-host, synchronous: the bytes are on the host
+    return msg
+
+
 def subscribe(args) -> Dict[str, Any]:
     import hashlib
 
@@ -191,6 +220,8 @@ def subscribe(args) -> Dict[str, Any]:
 
     gpu = _Gpu(args.consumer, args.own_stream) if args.mode in ('cuda', 'stock', 'demo') \
         else None
+    if gpu is not None:
+        gpu.warm_up()
     rclpy.init()
     node = rclpy.create_node(f'cuda_sub_{os.getpid()}')
     got: Dict[str, Any] = {'role': 'sub', 'mode': args.mode, 'frames': 0, 'failures': [],
@@ -239,7 +270,7 @@ def subscribe(args) -> Dict[str, Any]:
 
     if args.mode == 'legacy':
         node.create_subscription(Image, args.topic, on_image, args.depth, raw=True)
-    elif args.mode == 'stock':
+    elif args.mode in ('stock', 'small'):
         node.create_subscription(Image, args.topic, on_image, args.depth)
     else:
         accept = {'cuda': 'cuda', 'cpu': 'cpu', 'demo': 'demo'}[args.mode]
@@ -304,7 +335,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('role', choices=('pub', 'sub'))
     parser.add_argument('--mode', default='cuda',
-                        choices=('cuda', 'stock', 'demo', 'cpu', 'legacy'))
+                        choices=('cuda', 'stock', 'demo', 'small', 'cpu', 'legacy'))
     parser.add_argument('--topic', default='/cuda/image')
     parser.add_argument('--frames', type=int, default=60)
     parser.add_argument('--rate', type=float, default=30.0)

@@ -46,7 +46,7 @@ COVERAGE = {
     'cd rosidl_buffer_py && python3 -m pip install --no-index --no-deps --no-build-isolation -e .':
         'test_install.py',
     './dev bench cuda': 'test_cuda_backend.py',  # where there is no GPU; test_cuda_gpu.py else
-    './dev bench cuda [--sizes 4k,1080p] [--paths stock,demo,floor,cuda] [--frames N] '
+    './dev bench cuda [--sizes 4k,1080p] [--paths stock,demo,floor,cuda,small] [--frames N] '
     '[--rate HZ]': 'test_cuda_backend.py',
     'python3 -m pytest -n 8 test/': 'ci',  # ./dev test's pytest, on the target's python3
     # README's quick start: the pair of programs, run here as printed
