@@ -244,6 +244,12 @@ def drain_discovery_events(node: Any) -> List[EndpointEvent]:
     return [EndpointEvent(*e) for e in _native.drain_discovery_events(node)]
 
 
+def discovery_epoch() -> memoryview:
+    """The process's count of discovery callbacks passed to rmw, as a one-item ``'Q'`` view
+    (``view[0]``: no call into DDS): a matched count changes only shortly after it moves."""
+    return _native.discovery_epoch().cast('Q')
+
+
 def list_known_endpoints(node: Any) -> List[EndpointEvent]:
     """Alive endpoints seen since the tap was installed, with their latest USER_DATA."""
     return [EndpointEvent(*e) for e in _native.list_known_endpoints(node)]

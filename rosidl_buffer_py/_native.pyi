@@ -175,6 +175,11 @@ def remove_discovery_wakeup(guard_condition: _Entity) -> bool:
     """Stop triggering it and unpin it (a barrier)."""
 
 
+def discovery_epoch() -> memoryview:
+    """8 read-only bytes: the count of discovery callbacks this process's taps passed to rmw
+    (``.cast('Q')[0]``); a matched count changes only shortly after one."""
+
+
 def discovery_stats(node: _Entity) -> Dict[str, int]:
     """installed, queued, known, wakeups, dropped, recorded."""
 

@@ -90,6 +90,8 @@ class PeerTable(Generic[R]):
         self._backends = backends
         self._logger = logger
         self._records: Dict[bytes, R] = {}
+        #: moves whenever a record comes or goes (what a publisher's route signature reads)
+        self.version = 0
         self._discovery = discovery.for_node(node)
         self._discovery_guard = None
         self.reannouncer = Reannouncer(node, callback_group, self, announce,
@@ -189,6 +191,7 @@ class PeerTable(Generic[R]):
                 known = self._owner.add_peer(info, dict(peer.backends))
                 known.created_at = time.monotonic()
                 self._records[peer.gid] = known
+                self.version += 1
                 # a new buffer-aware peer whose QoS matches ours may have discovered us before
                 # its tap existed: the re-announcer announces once if its channel stays
                 # unmatched (soon, but not now: see NEW_PEER_REANNOUNCE_SECONDS)
@@ -208,6 +211,7 @@ class PeerTable(Generic[R]):
             return
         self._owner.forget_peer(record)
         del self._records[gid]
+        self.version += 1
         if record.channel is not None:
             record.channel.destroy()
         for backend in self._backends.values():

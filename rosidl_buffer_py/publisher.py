@@ -59,6 +59,9 @@ _NO_WAIT = Duration(seconds=0)
 #: publish() of a node that is not spun polls discovery at most this often (spinning nodes are
 #: woken by discovery and skip the poll).
 DISCOVERY_POLL_SECONDS = 0.02
+#: After the discovery epoch or the peer table moves, the route signature is read from DDS on
+#: every message for this long (Fast DDS pairs endpoints right after discovery callbacks).
+EPOCH_GRACE_SECONDS = 1.0
 #: At most one "failed to describe" line per this many seconds.
 DESCRIBE_FAILURE_LOG_SECONDS = 5.0
 
@@ -78,7 +81,8 @@ class _RouteView:
     """What DDS says of one publisher's routes (:class:`rosidl_buffer_py.routes.RouteView`),
     read from its main DataWriter and its peers' channels."""
 
-    __slots__ = ('_writer', '_peers', '_main_count')
+    __slots__ = ('_writer', '_peers', '_main_count', '_epoch', '_seen', '_signature',
+                 '_read_at', '_trust_from')
 
     def __init__(self, writer: 'Publisher', peers: PeerTable) -> None:
         self._writer = writer
@@ -86,12 +90,33 @@ class _RouteView:
         #: the main DataWriter's matched count, one C call (the view is read under the
         #: publisher's lock, which its destroy() takes first)
         self._main_count = seams.subscription_counter(writer)
+        self._epoch = _dds.discovery_epoch()
+        #: (discovery epoch, peer table version) when the signature was last read from DDS
+        self._seen = None
+        self._signature = None
+        self._read_at = self._trust_from = 0.0
 
     def signature(self) -> tuple:
-        """Matched counts of the main topic and of every channel (cheap: no GID lists)."""
-        return (self._main_count(),
-                tuple(-1 if peer.channel is None else peer.channel.matched_count()
-                      for peer in self._peers))
+        """Matched counts of the main topic and of every channel.
+
+        Read from DDS (one C call each, running DDS's code) only when they may have changed:
+        a matched count changes only shortly after a discovery callback, which moves the
+        process's discovery epoch (a read of memory), or when the peer table changes. After
+        either moves they are read on every call for ``EPOCH_GRACE_SECONDS`` (Fast DDS pairs
+        an endpoint right after the callback), and at least every ``routes.RECHECK_SECONDS``
+        whatever happens."""
+        now = time.monotonic()
+        seen = (self._epoch[0], self._peers.version)
+        if seen != self._seen:
+            self._seen = seen
+            self._trust_from = now + EPOCH_GRACE_SECONDS
+        elif now >= self._trust_from and now - self._read_at < routes.RECHECK_SECONDS:
+            return self._signature
+        self._read_at = now
+        self._signature = (self._main_count(),
+                           tuple(-1 if peer.channel is None else peer.channel.matched_count()
+                                 for peer in self._peers))
+        return self._signature
 
     def matched_subscriptions(self) -> List[bytes]:
         return matched_subscription_gids(self._writer)

@@ -122,6 +122,27 @@ def test_gid_matches_graph(ctx):
     node.destroy_node()
 
 
+def test_the_discovery_epoch_moves_with_each_callback_before_the_matched_count_is_read(ctx):
+    """A publisher trusts its route signature while the epoch stands still: every way a
+    matched count changes (a local reader created, then destroyed) moves it first."""
+    epoch = _dds.discovery_epoch()
+    assert epoch.readonly and epoch.format == 'Q' and len(epoch) == 1
+    node = _node(ctx, 'epoch_node')
+    _native.install_discovery(node)
+    topic = '/' + _unique('epoch')
+    pub = node.create_publisher(Image, topic, 10)
+    assert _wait(lambda: epoch[0] > 0)
+    before = epoch[0]
+    sub = node.create_subscription(Image, topic, lambda msg: None, 10)
+    assert _wait(lambda: pub.get_subscription_count() == 1)
+    assert epoch[0] > before  # the reader's callback came before its match was seen
+    before = epoch[0]
+    node.destroy_subscription(sub)
+    assert _wait(lambda: pub.get_subscription_count() == 0)
+    assert epoch[0] > before
+    node.destroy_node()
+
+
 def test_user_data_round_trip_and_local_discovery(ctx):
     """Local endpoints DO reach the participant listener (local=True), QoS changes too."""
     node = _node(ctx, 'ud_node')

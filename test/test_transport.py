@@ -279,6 +279,54 @@ def test_publishing_from_the_first_matched_instant_switches_each_route_once(cont
     node.destroy_node()
 
 
+def test_a_plain_subscriber_joining_a_settled_topic_gets_every_message_once_matched(context):
+    """The publisher reads its matched counts from DDS only after discovery moved (the
+    process's discovery epoch), or every RECHECK_SECONDS: a plain subscription of another
+    participant that joins long after the routes settled gets every message published once
+    the main DataWriter matched it, as a stock subscription does."""
+    from rosidl_buffer_py.publisher import EPOCH_GRACE_SECONDS
+    topic = '/epoch_image'
+    other = rclpy.Context()
+    rclpy.init(context=other)
+    try:
+        node = rclpy.create_node('epoch_pub', context=context)
+        served, legacy_got = [], []
+        rosidl_buffer_py.create_subscription(
+            node, Image, topic, lambda m: served.append(check_frame(m).counter), RELIABLE)
+        pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
+        counter, quiet_until = 0, time.monotonic() + EPOCH_GRACE_SECONDS + 1.0
+        while time.monotonic() < quiet_until:  # past the grace: the signature is trusted
+            pub.publish(frame(counter, 'cpu'))
+            counter += 1
+            executor.spin_once(timeout_sec=0.02)
+        assert pub.statistics()['sent_on_main_topic'] == 0  # the channel serves the only one
+        legacy_node = rclpy.create_node('epoch_legacy', context=other)
+        legacy_node.create_subscription(
+            Image, topic, lambda m: legacy_got.append(check_frame(m).counter), RELIABLE)
+        other_executor = SingleThreadedExecutor(context=other)
+        other_executor.add_node(legacy_node)
+        owed, deadline = [], time.monotonic() + 20.0
+        while len(owed) < 30 and time.monotonic() < deadline:
+            if pub.get_subscription_count() == 2:
+                owed.append(counter)  # matched before this publish: stock would deliver it
+            pub.publish(frame(counter, 'cpu'))
+            counter += 1
+            executor.spin_once(timeout_sec=0.002)
+            other_executor.spin_once(timeout_sec=0.002)
+        assert len(owed) == 30, (owed, pub.statistics())
+        assert spin_until(other_executor, lambda: set(owed) <= set(legacy_got)), (
+            sorted(set(owed) - set(legacy_got)), pub.statistics())
+        executor.shutdown()
+        other_executor.shutdown()
+        legacy_node.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=other)
+
+
 def test_cpu_routes_follow_legacy_subscribers_coming_and_going(context):
     """publish() writes to the routes its last call found and re-checks them after the write:
     a legacy subscriber that matched meanwhile still gets every later message, exactly once."""

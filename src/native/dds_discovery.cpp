@@ -59,6 +59,16 @@ using Gid = std::array<uint8_t, RMW_GID_STORAGE_SIZE>;
 
 constexpr size_t kMaxQueuedEvents = 100000;
 
+/// Discovery callbacks (participants, readers, writers, local ones included) that the taps of
+/// this process passed on to rmw: a publisher reads it (through discovery_epoch()) to know
+/// when a matched count may have changed, instead of asking DDS on every message. Static, so
+/// a view of it stays valid for the life of the process.
+alignas(8) std::atomic<uint64_t> g_discovery_epoch{0};
+static_assert(std::atomic<uint64_t>::is_always_lock_free, "the epoch is read as plain memory");
+static_assert(sizeof(std::atomic<uint64_t>) == sizeof(uint64_t), "the epoch is 8 bytes");
+
+void bump_epoch() {g_discovery_epoch.fetch_add(1, std::memory_order_release);}
+
 Gid to_gid(const rtps::GUID_t & guid)
 {
   Gid gid{};
@@ -111,6 +121,7 @@ public:
     if (original_) {
       original_->on_participant_discovery(p, std::move(info), should_be_ignored);
     }
+    bump_epoch();
     if (status == rtps::ParticipantDiscoveryInfo::REMOVED_PARTICIPANT ||
       status == rtps::ParticipantDiscoveryInfo::DROPPED_PARTICIPANT ||
       status == rtps::ParticipantDiscoveryInfo::IGNORED_PARTICIPANT)
@@ -312,6 +323,7 @@ private:
     if (original_) {
       forward();
     }
+    bump_epoch();  // before the pairing that follows this callback: readers allow for that
     record(std::move(ev));
   }
 
@@ -707,6 +719,12 @@ PyObject * remove_discovery_wakeup(PyObject *, PyObject * gc_arg)
   return PyBool_FromLong(removed);
 }
 
+PyObject * discovery_epoch(PyObject *, PyObject *)
+{
+  return PyMemoryView_FromMemory(
+    reinterpret_cast<char *>(&g_discovery_epoch), sizeof(uint64_t), PyBUF_READ);
+}
+
 PyObject * discovery_stats(PyObject *, PyObject * node_arg)
 {
   DiscoveryTap * tap = tap_of(node_arg, false);
@@ -769,6 +787,12 @@ PyMethodDef discovery_functions[] = {
     "waiting for running callbacks in bounded steps; no tap is installed on it again. For a\n"
     "context that shut down or a process that exits: rmw's own unbounded wait when it\n"
     "destroys the participant then has no callback to wait for. True if this call did it."),
+  RBPY_FUNCTION(discovery_epoch, METH_NOARGS,
+    "discovery_epoch() -> memoryview\n\n"
+    "8 read-only bytes, the process's count of discovery callbacks its taps passed to rmw\n"
+    "(participants, readers, writers, local ones too), counted after rmw had each: read it\n"
+    "with .cast('Q')[0] (an aligned 8-byte load). A matched count changes only after such a\n"
+    "callback, shortly after it (Fast DDS pairs the endpoint once the listener returns)."),
   RBPY_FUNCTION(discovery_stats, METH_O,
     "discovery_stats(node) -> dict (installed, queued, known, wakeups, dropped, recorded)"),
   RBPY_METHODS_END,
