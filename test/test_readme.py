@@ -46,6 +46,7 @@ COVERAGE = {
     'cd rosidl_buffer_py && python3 -m pip install --no-index --no-deps --no-build-isolation -e .':
         'test_install.py',
     './dev bench cuda': 'test_cuda_backend.py',  # where there is no GPU; test_cuda_gpu.py else
+    'BUDGET=420 OUT=/tmp/gpu_check bash tools/gpu_check.sh': 'test_wheelhouse.py',  # on a GPU
     './dev bench cuda [--sizes 4k,1080p] [--paths stock,demo,floor,cuda,small] [--frames N] '
     '[--rate HZ]': 'test_cuda_backend.py',
     'python3 -m pytest -n 8 test/': 'ci',  # ./dev test's pytest, on the target's python3

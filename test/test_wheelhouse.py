@@ -39,3 +39,22 @@ def test_wheelhouse_installs_offline(tmp_path):
     assert installed.returncode == 0, installed.stderr[-3000:]
     assert (target / 'rclpy').is_dir() and (target / 'sensor_msgs').is_dir()
     assert sysconfig.get_platform().startswith('linux')
+
+
+def test_the_gpu_check_script_parses_and_runs_only_what_exists():
+    """tools/gpu_check.sh runs on a GPU machine, never here: it cannot drift unseen. It parses,
+    and every test file, test and module it runs exists."""
+    import importlib.util
+    import re
+    script = ROOT / 'tools' / 'gpu_check.sh'
+    parsed = subprocess.run(['bash', '-n', str(script)], capture_output=True, text=True)
+    assert parsed.returncode == 0, parsed.stderr
+    text = script.read_text()
+    files = re.findall(r'(test/\w+\.py)', text)
+    assert 'test/test_cuda_gpu.py' in files
+    assert not [f for f in files if not (ROOT / f).exists()]
+    for file, name in re.findall(r'(test/\w+\.py)::(\w+)', text):
+        assert f'def {name}(' in (ROOT / file).read_text(), (file, name)
+    modules = re.findall(r'-m (launch_free_demos\.[\w.]+)', text)
+    assert 'launch_free_demos.bench.cuda' in modules
+    assert not [m for m in modules if importlib.util.find_spec(m) is None]
