@@ -238,11 +238,6 @@ def send_reply(conn: socket.socket, kind: ReplyKind, segment_id: int = 0, value:
         return False
 
 
-def send_ack(conn: socket.socket, segment_id: int, generation: int) -> bool:
-    """Tell the publisher one descriptor was taken (never blocks; False when it could not)."""
-    return send_reply(conn, ReplyKind.TAKEN, segment_id, generation)
-
-
 class Link:
     """The publisher side: a connection to one subscriber process."""
 

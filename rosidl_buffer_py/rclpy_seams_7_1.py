@@ -162,6 +162,6 @@ def subscription_counter(publisher) -> Callable[[], int]:
 
     rclpy 7.1's ``Publisher.get_subscription_count`` pins the handle around the C call (two
     Python frames and the pin per call); this is the C handle's ``get_subscription_count``
-    itself, which the route table reads on every publish.
+    itself, which the route view reads whenever discovery may have changed the count.
     """
     return publisher.handle.get_subscription_count

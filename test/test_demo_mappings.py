@@ -261,7 +261,7 @@ def test_replies_returns_the_records_in_order_and_skips_ones_of_another_size():
     link, theirs = _link_pair()
     try:
         assert link.replies() == ([], False)  # nothing queued: no exception, not hung up
-        assert handover.send_ack(theirs, 3, 7)
+        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 3, 7)
         theirs.send(b'x' * (handover.REPLY.size + 1))  # not a reply: skipped
         theirs.send(b'x' * (handover.REPLY.size - 1))
         assert handover.send_reply(theirs, handover.ReplyKind.REFUSED, 4, 2)
@@ -279,12 +279,12 @@ def test_replies_reads_a_burst_of_records_in_one_call():
     link, theirs = _link_pair()
     try:
         for n in range(40):
-            assert handover.send_ack(theirs, n, n + 1)
+            assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, n + 1)
         replies, hung_up = link.replies()
         assert not hung_up
         assert replies == [handover.Reply(n, handover.ReplyKind.TAKEN, n + 1) for n in range(40)]
         for n in range(16):
-            assert handover.send_ack(theirs, n, 0)
+            assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, 0)
         assert len(link.replies()[0]) == 16
         assert link.replies() == ([], False)
         theirs.close()
@@ -308,7 +308,7 @@ def test_a_link_says_accepted_only_for_a_segment_its_subscriber_mapped():
 def test_replies_of_a_peer_that_closed_come_with_the_hang_up():
     link, theirs = _link_pair()
     try:
-        assert handover.send_ack(theirs, 1, 2)
+        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 1, 2)
         theirs.close()
         assert link.replies() == ([handover.Reply(1, handover.ReplyKind.TAKEN, 2)], True)
         assert link.replies() == ([], True)
