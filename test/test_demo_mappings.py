@@ -248,88 +248,76 @@ def test_the_inbox_thread_accepts_without_a_take_and_bounds_each_process(pools, 
         link.close()
 
 
-def _link_pair():
-    """A Link's publisher end over a SOCK_SEQPACKET pair, and the subscriber's end."""
+@pytest.fixture
+def link_pair():
+    """A Link's publisher end over a SOCK_SEQPACKET pair, and the subscriber's end; both
+    closed at the end (closing twice is harmless: tests close them to hang up)."""
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     ours.setblocking(False)
     link = handover.Link.__new__(handover.Link)
     link.sock = ours
-    return link, theirs
+    yield link, theirs
+    ours.close()
+    theirs.close()
 
 
-def test_replies_returns_the_records_in_order_and_skips_ones_of_another_size():
-    link, theirs = _link_pair()
-    try:
-        assert link.replies() == ([], False)  # nothing queued: no exception, not hung up
-        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 3, 7)
-        theirs.send(b'x' * (handover.REPLY.size + 1))  # not a reply: skipped
-        theirs.send(b'x' * (handover.REPLY.size - 1))
-        assert handover.send_reply(theirs, handover.ReplyKind.REFUSED, 4, 2)
-        replies, hung_up = link.replies()
-        assert not hung_up
-        assert replies == [handover.Reply(3, handover.ReplyKind.TAKEN, 7),
-                           handover.Reply(4, handover.ReplyKind.REFUSED, 2)]
-        assert link.replies() == ([], False)
-    finally:
-        link.sock.close()
-        theirs.close()
+def test_replies_returns_the_records_in_order_and_skips_ones_of_another_size(link_pair):
+    link, theirs = link_pair
+    assert link.replies() == ([], False)  # nothing queued: no exception, not hung up
+    assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 3, 7)
+    theirs.send(b'x' * (handover.REPLY.size + 1))  # not a reply: skipped
+    theirs.send(b'x' * (handover.REPLY.size - 1))
+    assert handover.send_reply(theirs, handover.ReplyKind.REFUSED, 4, 2)
+    replies, hung_up = link.replies()
+    assert not hung_up
+    assert replies == [handover.Reply(3, handover.ReplyKind.TAKEN, 7),
+                       handover.Reply(4, handover.ReplyKind.REFUSED, 2)]
+    assert link.replies() == ([], False)
 
 
-def test_replies_reads_a_burst_of_records_in_one_call():
-    link, theirs = _link_pair()
-    try:
-        for n in range(40):
-            assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, n + 1)
-        replies, hung_up = link.replies()
-        assert not hung_up
-        assert replies == [handover.Reply(n, handover.ReplyKind.TAKEN, n + 1) for n in range(40)]
-        for n in range(16):
-            assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, 0)
-        assert len(link.replies()[0]) == 16
-        assert link.replies() == ([], False)
-        theirs.close()
-        assert link.replies() == ([], True)
-    finally:
-        link.sock.close()
+def test_replies_reads_a_burst_of_records_in_one_call(link_pair):
+    link, theirs = link_pair
+    for n in range(40):
+        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, n + 1)
+    replies, hung_up = link.replies()
+    assert not hung_up
+    assert replies == [handover.Reply(n, handover.ReplyKind.TAKEN, n + 1) for n in range(40)]
+    for n in range(16):
+        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, n, 0)
+    assert len(link.replies()[0]) == 16
+    assert link.replies() == ([], False)
+    theirs.close()
+    assert link.replies() == ([], True)
 
 
-def test_a_link_says_accepted_only_for_a_segment_its_subscriber_mapped():
-    link, theirs = _link_pair()
-    try:
-        link.verdicts = {3: handover.Reply(3, handover.ReplyKind.ACCEPTED, 0),
-                         4: handover.Reply(4, handover.ReplyKind.REFUSED, 1)}
-        assert link.accepted(3)
-        assert not link.accepted(4) and not link.accepted(5)
-    finally:
-        link.sock.close()
-        theirs.close()
+def test_a_link_says_accepted_only_for_a_segment_its_subscriber_mapped(link_pair):
+    link, _ = link_pair
+    link.verdicts = {3: handover.Reply(3, handover.ReplyKind.ACCEPTED, 0),
+                     4: handover.Reply(4, handover.ReplyKind.REFUSED, 1)}
+    assert link.accepted(3)
+    assert not link.accepted(4) and not link.accepted(5)
 
 
-def test_replies_of_a_peer_that_closed_come_with_the_hang_up():
-    link, theirs = _link_pair()
-    try:
-        assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 1, 2)
-        theirs.close()
-        assert link.replies() == ([handover.Reply(1, handover.ReplyKind.TAKEN, 2)], True)
-        assert link.replies() == ([], True)
-    finally:
-        link.sock.close()
+def test_replies_of_a_peer_that_closed_come_with_the_hang_up(link_pair):
+    link, theirs = link_pair
+    assert handover.send_reply(theirs, handover.ReplyKind.TAKEN, 1, 2)
+    theirs.close()
+    assert link.replies() == ([handover.Reply(1, handover.ReplyKind.TAKEN, 2)], True)
+    assert link.replies() == ([], True)
 
 
-def test_replies_read_past_the_reset_of_a_peer_that_closed_with_records_of_ours_unread():
-    link, theirs = _link_pair()
-    try:
-        link.sock.send(b'unread by the peer')
-        assert handover.send_reply(theirs, handover.ReplyKind.UNWANTED, 0, 1)
-        theirs.close()  # with our record unread: the kernel reports ECONNRESET first
-        replies, hung_up = link.replies()
-        assert hung_up and replies == [handover.Reply(0, handover.ReplyKind.UNWANTED, 1)]
-    finally:
-        link.sock.close()
+def test_replies_read_past_the_reset_of_a_peer_that_closed_with_records_of_ours_unread(
+        link_pair):
+    link, theirs = link_pair
+    link.sock.send(b'unread by the peer')
+    assert handover.send_reply(theirs, handover.ReplyKind.UNWANTED, 0, 1)
+    theirs.close()  # with our record unread: the kernel reports ECONNRESET first
+    replies, hung_up = link.replies()
+    assert hung_up and replies == [handover.Reply(0, handover.ReplyKind.UNWANTED, 1)]
 
 
-def test_replies_on_a_closed_link_say_hung_up():
-    link, theirs = _link_pair()
+def test_replies_on_a_closed_link_say_hung_up(link_pair):
+    link, theirs = link_pair
     link.sock.close()
     theirs.close()
     assert link.replies() == ([], True)
