@@ -115,11 +115,17 @@ def publish_serialized(publisher: _Entity, data: _Bytes, source_timestamp: int) 
 
 
 def write_message(message: Any, source_timestamp: int, targets: Sequence[Any],
-                  program: Optional[tuple] = None) -> None:
+                  program: Optional[tuple] = None,
+                  descriptor: Optional[Tuple[str, bytes]] = None) -> bool:
     """Write a ROS message to :class:`ChannelPublisher` objects and/or rclpy publishers (or
     their handles) of its type with ``source_timestamp``, converted once: its CDR written from
     its slots by the slot ``program`` where it can (``codec.encode``'s bytes), else to C as
-    rclpy's ``publish`` does, serialized by rmw into each target's DDS payload."""
+    rclpy's ``publish`` does, serialized by rmw into each target's DDS payload. True.
+
+    With ``descriptor`` (``(backend_type, descriptor bytes)``), its descriptor form
+    (``codec.encode(message, descriptor)``'s bytes, ``program`` being
+    ``codec.descriptor_program`` of its type) goes to ChannelPublisher targets only; written
+    from the slots or not at all: False, nothing written, when the program cannot."""
 
 
 def matched_subscription_gids(publisher: _Entity) -> List[bytes]:
@@ -230,6 +236,12 @@ class ChannelSubscription:
     def take(self) -> Optional[Tuple[bytes, bytes, _Info]]: ...
     def take_message(self, msg_class: type,
                      max_size: int = -1) -> Optional[Tuple[Any, bytes, _Info]]: ...
+    def take_described(self, msg_class: type, prefix_ops: tuple, suffix_size: int,
+                       max_descriptor: int, program: Optional[tuple] = None
+                       ) -> Optional[Tuple[bytes, bytes, _Info,
+                                           Optional[Tuple[Any, str, bytes]]]]:
+        """take(), and the descriptor message in the bytes decoded as ``decode_descriptor``
+        decodes it (``codec.DescriptorReading.args``), or None for anything else."""
     def matched_count(self) -> int: ...
     def destroy(self) -> None: ...
 

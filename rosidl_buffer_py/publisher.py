@@ -142,15 +142,17 @@ class _Encoder:
     and the descriptor form once per distinct set of descriptors.
     """
 
-    __slots__ = ('msg', 'buffers', 'cpu_message', '_single', '_cpu', '_described')
+    __slots__ = ('msg', 'buffers', 'cpu_message', '_single', '_program', '_cpu', '_described')
 
     def __init__(self, msg, serialized, buffers: List[codec.BufferAt],
-                 single: Optional[str]) -> None:
+                 single: Optional[str], program: Optional[tuple]) -> None:
         self.msg = msg
         #: the Buffers not in CPU memory: what descriptors can describe
         self.buffers = [at for at in buffers if not at.buffer.is_cpu]
         self.cpu_message = serialized is None and not buffers
         self._single = single if len(buffers) == 1 else None
+        #: the type's codec.descriptor_program (the one payload's descriptor form from C)
+        self._program = program
         self._cpu = serialized
         self._described = None
 
@@ -168,6 +170,19 @@ class _Encoder:
         if self._cpu is None:
             self._cpu = codec.encode(self.msg)
         return self._cpu
+
+    def write_described(self, described: Tuple[Tuple[codec.FieldPath, str, bytes], ...],
+                        channel, timestamp: int) -> None:
+        """Write the descriptor form with these ``(path, backend, descriptor)`` on ``channel``:
+        the one payload's form written from the message's slots straight into the DataWriter
+        (one native call: no encoded bytes object, no Python-level codec work), else
+        :meth:`with_descriptors` published."""
+        if self._single is not None and self._program is not None:
+            (_, backend, descriptor), = described
+            if write_message(self.msg, timestamp, (channel,), self._program,
+                             (backend, descriptor)):
+                return
+        channel.publish(self.with_descriptors(described), timestamp)
 
     def with_descriptors(self, described: Tuple[Tuple[codec.FieldPath, str, bytes], ...]
                          ) -> bytearray:
@@ -213,6 +228,7 @@ class Publisher(rclpy.publisher.Publisher):
                         else None)
         #: writes CPU messages' CDR from their slots in C (codec.program_of), or None
         self._program = codec.program_of(msg_type)
+        self._described_program = codec.descriptor_program(msg_type)
         # the DataWriter was created disabled (create_publisher): its first announcement
         # carries the advertisement, and it is enabled as soon as that is set (what runs
         # meanwhile in other threads, a channel's creation say, waits for nothing of ours)
@@ -349,7 +365,7 @@ class Publisher(rclpy.publisher.Publisher):
             self._polled_at = now
             self._peers.poll()
         encoder = _Encoder(msg, serialized, [] if serialized is not None else
-                           self._buffers_of(msg), self._single)
+                           self._buffers_of(msg), self._single, self._described_program)
         with self._lock:
             if self._peers.closed:
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
@@ -407,7 +423,7 @@ class Publisher(rclpy.publisher.Publisher):
                     self._table.gone(peer.info.gid)
                     continue
                 if described:
-                    peer.channel.publish(encoder.with_descriptors(described), timestamp)
+                    encoder.write_described(described, peer.channel, timestamp)
                     peer.sent_descriptor += 1
                     peer.backend_in_use = described[0][1]
                     continue

@@ -77,6 +77,9 @@ class _Taken(NamedTuple):
     raw: object        #: a deserialized message, or CDR bytes for the codec
     publisher_gid: bytes
     info: dict         #: rclpy's message info (source_timestamp, ...)
+    #: a channel's descriptor message as the take decoded it in C: (the message without its
+    #: payload, backend type, descriptor), or None (``raw`` says what it is)
+    described: Optional[Tuple[object, str, bytes]] = None
 
     @property
     def timestamp(self) -> int:
@@ -99,11 +102,13 @@ class _PublisherPeer(ChannelPeer):
     #: What its channel had delivered to our reader when the publisher went away.
     departed: Optional[Deque[_Taken]] = None
 
-    def take(self) -> Optional[_Taken]:
-        """The next sample of its channel (raw CDR bytes), or None."""
+    def take(self, reading: Optional[codec.DescriptorReading]) -> Optional[_Taken]:
+        """The next sample of its channel (raw CDR bytes), or None. With ``reading``, for a
+        publisher that may send descriptors, a descriptor message comes decoded too."""
         if self.departed is not None:
             return self.departed.popleft() if self.departed else None
-        taken = self.channel.take()
+        taken = (self.channel.take_described(*reading.args)
+                 if reading is not None and self.descriptors_possible else self.channel.take())
         return None if taken is None else _Taken(*taken)
 
     @property
@@ -129,7 +134,7 @@ class _ReceiveView:
         # Nothing announced since its last take: whatever lands there triggers the guard
         # condition, so it is taken on that wake-up, as if it had landed a moment later. A
         # quiet publisher's channel then costs no take per message of the others.
-        return peer.take() if peer.pending else None
+        return peer.take(self._sub._reading) if peer.pending else None
 
     def classify(self, peer: _PublisherPeer, taken: _Taken):
         if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
@@ -138,7 +143,7 @@ class _ReceiveView:
             self._sub._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
                                      f'{peer.info.gid_hex}\'s participant')
             return routes.Incoming.CONTROL, None
-        if type(taken.raw) is self._sub.msg_type:
+        if taken.described is not None or type(taken.raw) is self._sub.msg_type:
             return routes.Incoming.DATA, None
         try:
             message = control.parse(taken.raw)
@@ -209,6 +214,8 @@ class Subscription(rclpy.subscription.Subscription):
         self._accepted = parse_acceptable_buffer_backends(acceptable_buffer_backends)
         #: builds the CPU messages taken in C from their slots (codec.program_of)
         self._program = codec.program_of(msg_type)
+        #: how a channel's take decodes a descriptor message in C (codec.descriptor_reading)
+        self._reading = codec.descriptor_reading(msg_type)
         self._node = node
         #: one stream per publisher: the route protocol's subscription side
         self._streams: routes.StreamTable[_Taken] = routes.StreamTable(
@@ -440,7 +447,8 @@ class Subscription(rclpy.subscription.Subscription):
                   'rejected so far)', Subscription._reject)
 
     def _decode(self, taken: _Taken, peer: Optional[_PublisherPeer]):
-        """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes."""
+        """The message of a take: ``raw`` is already one (deserialized in C) or CDR bytes, and
+        ``described`` a descriptor message the take decoded in C."""
         raw = taken.raw
         if type(raw) is self.msg_type:
             if peer is not None:
@@ -455,22 +463,30 @@ class Subscription(rclpy.subscription.Subscription):
                 peer.received_cpu += 1
                 peer.backend_in_use = CPU_BACKEND
                 return msg
-            decoded = codec.decode(raw, self.msg_type, known_backends=self._core.backends)
-            if not decoded.descriptors:
-                if peer is not None:
-                    peer.received_cpu += 1
-                    peer.backend_in_use = CPU_BACKEND
-                return decoded.msg
+            described = taken.described
+            if described is not None and peer is not None and \
+                    described[1] in self._core.backends:
+                # decoded by the take: what codec.decode gives, without its Python frames
+                msg, backend, descriptor = described
+                descriptors = ((self._reading.path, (backend, descriptor)),)
+            else:
+                decoded = codec.decode(raw, self.msg_type, known_backends=self._core.backends)
+                msg, descriptors = decoded.msg, decoded.descriptors.items()
+                if not descriptors:
+                    if peer is not None:
+                        peer.received_cpu += 1
+                        peer.backend_in_use = CPU_BACKEND
+                    return msg
             if peer is None:
                 raise codec.CodecError(
                     f'descriptors from publisher {taken.publisher_gid.hex()}, which is not a '
                     'discovered buffer-aware publisher')
-            for path, (backend, descriptor) in decoded.descriptors.items():
-                codec.set_at(decoded.msg, path, self._core.backends[backend]
+            for path, (backend, descriptor) in descriptors:
+                codec.set_at(msg, path, self._core.backends[backend]
                              .from_descriptor_with_endpoint(descriptor, peer.info))
             peer.received_descriptor += 1
             peer.backend_in_use = backend
-            return decoded.msg
+            return msg
         except Exception as exc:  # bytes from the network: reject, count, log, go on
             self._reject(taken, f'{type(exc).__name__}: {exc}')
             return None
@@ -522,14 +538,14 @@ class Subscription(rclpy.subscription.Subscription):
         peer = self._peers.get(gid)
         left = collections.deque()
         while peer is not None and peer.channel is not None:
-            taken = peer.take()
+            taken = peer.take(self._reading)
             if taken is None:
                 break
             if type(taken.raw) is not self.msg_type and not control.is_control(taken.raw):
                 msg = self._decode(taken, peer)
                 if msg is None:
                     continue
-                taken = taken._replace(raw=msg)
+                taken = taken._replace(raw=msg, described=None)
             left.append(taken)
         self._peers.drop(gid)
         if peer is not None and (left or self._streams[gid].holding):

@@ -1089,3 +1089,49 @@ def test_errors(ctx):
     with pytest.raises(Exception):  # rclpy refuses to hand out a destroyed handle
         _dds.endpoint_gid(pub)
     node.destroy_node()
+
+
+def test_write_message_writes_the_descriptor_form_from_the_slots_and_take_described_reads_it(
+        ctx):
+    """``write_message(..., descriptor=)`` writes codec.encode's descriptor bytes to channels
+    in one call; ``take_described`` gives those bytes with codec.decode's reading of them, and
+    None for everything that is not a descriptor message."""
+    from rosidl_buffer_py import control
+    node = _node(ctx, 'wdesc')
+    chan_topic = _channel_topic(_unique('wdesc'))
+    chan = _dds.create_channel_publisher(node, Image, chan_topic, QoSProfile(depth=10))
+    chan_sub = _dds.create_channel_subscription(node, Image, chan_topic, QoSProfile(depth=10))
+    main = node.create_publisher(Image, '/' + _unique('wdesc'), 10)
+    assert _wait(lambda: chan.matched_count() == 1)
+    msg = _image(300, seed=5)
+    msg.header.frame_id = 'camera'
+    program = codec.descriptor_program(Image)
+    assert program is not None
+    pair = ('demo', b'\x01' * 52)
+    assert _native.write_message(msg, STAMPS[0], [chan], program, pair) is True
+    # no program: nothing written (the codec's path is the caller's)
+    assert _native.write_message(msg, STAMPS[1], [chan], None, pair) is False
+    with pytest.raises(TypeError, match='not a ChannelPublisher'):
+        _native.write_message(msg, STAMPS[1], [chan, main], program, pair)
+    with pytest.raises(TypeError, match='backend_type, descriptor bytes'):
+        _native.write_message(msg, STAMPS[1], [chan], program, ('demo', 'text'))
+    good = serialize_message(_image(12, seed=6))
+    for data in (good, control.PROBE_BYTES, good[:30]):
+        chan.publish(data, source_timestamp=STAMPS[1])
+    reading = codec.descriptor_reading(Image)
+    assert reading.path == codec.FieldPath(('data',))
+    raw, gid, info, described = _wait(lambda: chan_sub.take_described(*reading.args))
+    assert raw == bytes(codec.encode(msg, pair)) and gid == chan.gid
+    assert info['source_timestamp'] == STAMPS[0]
+    decoded = codec.decode(raw, Image)
+    assert type(described[0]) is Image and described[0] == decoded.msg
+    assert described[1:] == pair
+    for data in (good, control.PROBE_BYTES, good[:30]):  # read by the codec, as bytes
+        taken = _wait(lambda: chan_sub.take_described(*reading.args))
+        assert taken[0] == data and taken[1] == chan.gid and taken[3] is None
+    assert chan_sub.take_described(*reading.args) is None
+    from std_msgs.msg import String  # no uint8[] payload: no descriptor form
+    assert codec.descriptor_reading(String) is None and codec.descriptor_program(String) is None
+    chan.destroy()
+    chan_sub.destroy()
+    node.destroy_node()

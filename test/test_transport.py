@@ -645,8 +645,8 @@ def test_a_quiet_publishers_channel_costs_no_take_per_message_of_another(context
     takes = {}
     take = subscription._PublisherPeer.take
 
-    def counting(peer):
-        taken = take(peer)
+    def counting(peer, reading):
+        taken = take(peer, reading)
         key = peer.info.gid
         takes[key] = takes.get(key, 0) + 1
         return taken

@@ -93,7 +93,8 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
     if transport == 'demo':
         stages.wrap(publisher.Publisher, '_describe', '    backend describe (demo ledger)')
         stages.wrap(links.Links, 'drain', '      acks and hang-ups from the peer')
-        stages.wrap(publisher._Encoder, 'with_descriptors', '    descriptor message encode')
+        stages.wrap(publisher._Encoder, 'write_described',
+                    '    descriptor message write (encoded in the DDS write\'s call)')
 
 
 def _subscriber_stages(stages: Stages, transport: str) -> None:
@@ -101,9 +102,9 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
         return  # rclpy's take and conversion are one C call
     # (the channel's guard condition holds the bound _deliver_available: _next is timed)
     stages.wrap(subscription.Subscription, '_next', 'delivery path: take to message')
-    stages.wrap(subscription._PublisherPeer, 'take', '  channel takes (empty ones too)')
+    stages.wrap(subscription._PublisherPeer, 'take',
+                '  channel takes (empty ones too; descriptor messages decoded in them)')
     if transport == 'demo':
-        stages.wrap(codec, 'decode', '  descriptor message decode')
         stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',
                     '  backend open (demo pool)')
         stages.wrap(mappings.Mappings, 'open', '    of it: segment checks, hold lock and ack')

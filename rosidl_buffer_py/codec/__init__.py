@@ -74,10 +74,11 @@ the walk that checks and copies CDR bytes), :mod:`.plans` (what is compiled once
 :func:`split_payload`, :func:`deserialize`).
 """
 from rosidl_buffer_py.codec import wire
-from rosidl_buffer_py.codec.decoder import decode, deserialize, split_payload
+from rosidl_buffer_py.codec.decoder import (
+    decode, DescriptorReading, descriptor_reading, deserialize, split_payload)
 from rosidl_buffer_py.codec.encoder import encode, encode_parts
 from rosidl_buffer_py.codec.plans import (
-    buffer_paths, buffers_of, field_paths, payload_field, program_of)
+    buffer_paths, buffers_of, descriptor_program, field_paths, payload_field, program_of)
 from rosidl_buffer_py.codec.wire import (
     BufferAt, CodecError, DESCRIPTOR_MARKER, Decoded, EncodedParts, FieldDescriptor,
     UnsupportedMessageTypeError)
@@ -88,6 +89,7 @@ __all__ = [
     'CodecError',
     'DESCRIPTOR_MARKER',
     'Decoded',
+    'DescriptorReading',
     'EACH',
     'EncodedParts',
     'FieldDescriptor',
@@ -96,6 +98,8 @@ __all__ = [
     'buffer_paths',
     'buffers_of',
     'decode',
+    'descriptor_program',
+    'descriptor_reading',
     'deserialize',
     'encode',
     'encode_parts',

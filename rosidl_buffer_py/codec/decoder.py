@@ -6,7 +6,7 @@ form runs in C (``_native.decode_descriptor``), and so does every message a slot
 every length before anything is read.
 """
 import array
-from typing import Any, Container, Dict, Optional, Tuple, Type
+from typing import Any, Container, Dict, NamedTuple, Optional, Tuple, Type
 
 from rclpy.serialization import deserialize_message
 
@@ -145,6 +145,30 @@ def decode(raw: Any, msg_type: Type,
     if payload.nbytes:
         getattr(decoded.msg, plan.slot).frombytes(payload)
     return decoded
+
+
+class DescriptorReading(NamedTuple):
+    """How a take reads the descriptor form of a type in C, the message with the payload
+    decoded there (``ChannelSubscription.take_described(*args)``): what :func:`decode` does
+    first, without its Python frames. Anything it does not read comes as bytes for
+    :func:`decode`."""
+
+    path: FieldPath  #: the payload's path, where the descriptor's Buffer goes
+    args: tuple      #: (msg_type, prefix ops, suffix size, MAX_DESCRIPTOR_SIZE, program)
+
+
+def descriptor_reading(msg_type: Type) -> Optional[DescriptorReading]:
+    """The :class:`DescriptorReading` of ``msg_type``, or None: a type without the short path
+    (its descriptor messages are decoded by :func:`decode`)."""
+    try:
+        type_codec = compiled(msg_type)
+    except CodecError:
+        return None
+    plan = type_codec.plan
+    if plan is None:
+        return None
+    return DescriptorReading(plan.path, (msg_type, plan.prefix_ops, plan.suffix_size,
+                                         MAX_DESCRIPTOR_SIZE, type_codec.program))
 
 
 def split_payload(raw: Any, msg_type: Type) -> Tuple[Any, memoryview]:

@@ -238,6 +238,17 @@ def program_of(msg_type: Type) -> Optional[tuple]:
         return None
 
 
+def descriptor_program(msg_type: Type) -> Optional[tuple]:
+    """The slot program that writes the descriptor form of ``msg_type`` (its one payload
+    described) as :func:`~rosidl_buffer_py.codec.encode` writes it, or None: a type without the
+    short path or without a program (encode then walks it)."""
+    try:
+        type_codec = compiled(msg_type)
+    except CodecError:
+        return None
+    return type_codec.program if type_codec.plan is not None else None
+
+
 def short_plan(msg_type: Type) -> Plan:
     """The short path's plan of ``msg_type`` (for types that have it)."""
     plan = compiled(msg_type).plan

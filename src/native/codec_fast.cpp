@@ -566,6 +566,78 @@ PyObject * converted(PyObject * msg_class, const std::vector<uint8_t> & small)
   return support.to_py(ros_message.get());
 }
 
+/// nullptr after clearing any pending exception: not a descriptor message (decode_described).
+PyObject * no_descriptor()
+{
+  PyErr_Clear();
+  return nullptr;
+}
+
+}  // namespace
+
+PyObject * decode_described(
+  const uint8_t * data, size_t size, PyObject * msg_class, PyObject * ops,
+  Py_ssize_t suffix_size, Py_ssize_t max_descriptor, PyObject * program)
+{
+  if (size < kHeader || suffix_size < 0 || !PyTuple_Check(ops)) {
+    return no_descriptor();
+  }
+  if (data[0] != 0 || data[1] > 1) {
+    return no_descriptor();  // not XCDR1: the codec names the encapsulation
+  }
+  Reader r{data + kHeader, size - kHeader, data[1] == 1};
+  size_t pos = 0;
+  uint32_t first;
+  if (!walk(ops, r, &pos, 0) || !r.u32(&pos, &first) || first != kMarker) {
+    return no_descriptor();  // CPU bytes (or malformed): the codec's path
+  }
+  const size_t head_end = kHeader + pos - 4;
+  uint32_t length;
+  if (!r.u32(&pos, &length) || length < 2 || length > r.end - pos ||
+    r.body[pos + length - 1] != 0 ||
+    std::memchr(r.body + pos, 0, length - 1) != nullptr)
+  {
+    return no_descriptor();
+  }
+  const char * name = reinterpret_cast<const char *>(r.body + pos);
+  const Py_ssize_t name_length = static_cast<Py_ssize_t>(length - 1);
+  pos += length;
+  uint32_t nbytes;
+  if (!r.u32(&pos, &nbytes) || nbytes > static_cast<uint64_t>(max_descriptor) ||
+    nbytes > r.end - pos)
+  {
+    return no_descriptor();
+  }
+  const uint8_t * descriptor = r.body + pos;
+  const size_t data_end = pos + nbytes;
+  if (static_cast<size_t>(suffix_size) > r.end - data_end) {
+    return no_descriptor();
+  }
+  // The message without its payload: the head, a zero length, the fields after the payload.
+  std::vector<uint8_t> small(head_end + 4 + suffix_size);
+  std::memcpy(small.data(), data, head_end);
+  std::memset(small.data() + head_end, 0, 4);
+  std::memcpy(small.data() + head_end + 4, r.body + data_end, suffix_size);
+  PyObject * msg = build_message(program, small.data(), small.size(), true);
+  if (msg == nullptr) {  // no program, or a value it leaves to the generated code
+    msg = converted(msg_class, small);
+    if (msg == nullptr) {
+      return no_descriptor();
+    }
+  }
+  PyObject * backend = PyUnicode_DecodeUTF8(name, name_length, "strict");
+  PyObject * desc = backend ? PyBytes_FromStringAndSize(
+    reinterpret_cast<const char *>(descriptor), nbytes) : nullptr;
+  PyObject * result = desc ? PyTuple_Pack(3, msg, backend, desc) : nullptr;
+  Py_DECREF(msg);
+  Py_XDECREF(backend);
+  Py_XDECREF(desc);
+  return result ? result : no_descriptor();
+}
+
+namespace
+{
+
 PyObject * decode_descriptor(PyObject *, PyObject * args)
 {
   PyObject * raw;
@@ -581,60 +653,11 @@ PyObject * decode_descriptor(PyObject *, PyObject * args)
     return nullptr;
   }
   BufferView input;
-  if (!input.get(raw) || input.size() < kHeader || suffix_size < 0) {
+  if (!input.get(raw)) {
     return fall_back();
   }
-  const uint8_t * data = input.data();
-  if (data[0] != 0 || data[1] > 1) {
-    return fall_back();  // not XCDR1: the codec names the encapsulation
-  }
-  Reader r{data + kHeader, input.size() - kHeader, data[1] == 1};
-  size_t pos = 0;
-  uint32_t first;
-  if (!walk(ops, r, &pos, 0) || !r.u32(&pos, &first) || first != kMarker) {
-    return fall_back();  // CPU bytes (or malformed): the codec's path
-  }
-  const size_t head_end = kHeader + pos - 4;
-  uint32_t length;
-  if (!r.u32(&pos, &length) || length < 2 || length > r.end - pos ||
-    r.body[pos + length - 1] != 0 ||
-    std::memchr(r.body + pos, 0, length - 1) != nullptr)
-  {
-    return fall_back();
-  }
-  const char * name = reinterpret_cast<const char *>(r.body + pos);
-  const Py_ssize_t name_length = static_cast<Py_ssize_t>(length - 1);
-  pos += length;
-  uint32_t nbytes;
-  if (!r.u32(&pos, &nbytes) || nbytes > static_cast<uint64_t>(max_descriptor) ||
-    nbytes > r.end - pos)
-  {
-    return fall_back();
-  }
-  const uint8_t * descriptor = r.body + pos;
-  const size_t data_end = pos + nbytes;
-  if (static_cast<size_t>(suffix_size) > r.end - data_end) {
-    return fall_back();
-  }
-  // The message without its payload: the head, a zero length, the fields after the payload.
-  std::vector<uint8_t> small(head_end + 4 + suffix_size);
-  std::memcpy(small.data(), data, head_end);
-  std::memset(small.data() + head_end, 0, 4);
-  std::memcpy(small.data() + head_end + 4, r.body + data_end, suffix_size);
-  PyObject * msg = build_message(program, small.data(), small.size(), true);
-  if (msg == nullptr) {  // no program, or a value it leaves to the generated code
-    msg = converted(msg_class, small);
-    if (msg == nullptr) {
-      return fall_back();
-    }
-  }
-  PyObject * backend = PyUnicode_DecodeUTF8(name, name_length, "strict");
-  PyObject * desc = backend ? PyBytes_FromStringAndSize(
-    reinterpret_cast<const char *>(descriptor), nbytes) : nullptr;
-  PyObject * result = desc ? PyTuple_Pack(3, msg, backend, desc) : nullptr;
-  Py_DECREF(msg);
-  Py_XDECREF(backend);
-  Py_XDECREF(desc);
+  PyObject * result = decode_described(
+    input.data(), input.size(), msg_class, ops, suffix_size, max_descriptor, program);
   return result ? result : fall_back();
 }
 
@@ -779,6 +802,14 @@ PyObject * serialize(PyObject *, PyObject * args)
 bool write_from_slots(PyObject * msg, PyObject * program, std::vector<char> * out)
 {
   return write_cdr(msg, program, nullptr, out);
+}
+
+bool write_described_from_slots(
+  PyObject * msg, PyObject * program, const char * backend, Py_ssize_t backend_length,
+  const char * descriptor, Py_ssize_t descriptor_length, std::vector<char> * out)
+{
+  const DescriptorPart part{backend, backend_length, descriptor, descriptor_length};
+  return write_cdr(msg, program, &part, out);
 }
 
 PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length)

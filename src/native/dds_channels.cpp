@@ -13,14 +13,17 @@
 //   ChannelSubscription(node, type_support, topic_name, reliability=1, history=1, depth=10,
 //                       guard_condition=None)
 //     .take() -> (bytes, publisher_gid, info) | None
+//     .take_described(msg_class, prefix_ops, suffix_size, max_descriptor, program=None)
+//         -> (bytes, publisher_gid, info, (message, backend_type, descriptor) | None) | None
 //     .take_message(msg_class, max_size=-1) -> (message | bytes, publisher_gid, info) | None
 //     .matched_count() -> int   matched publishers
 //     .gid, .topic_name, .valid, .on_udp (listens on UDP only: see "channel transport" below)
 //     .destroy()
 //
-//   write_message(message, source_timestamp, targets, program=None)  convert once (from the
-//       slots by a slot program where it can), write to each target
-//       (ChannelPublisher or rclpy Publisher) with that timestamp
+//   write_message(message, source_timestamp, targets, program=None, descriptor=None)
+//       convert once (from the slots by a slot program where it can), write to each target
+//       (ChannelPublisher or rclpy Publisher) with that timestamp; with a descriptor, the
+//       descriptor form from the slots to channels (False when the program cannot)
 //
 // Both pin the node's rclpy handle (rclpy defers destroy_node() until destroy()) and the
 // subscription pins its guard condition, which it triggers from the DDS thread (rmw's
@@ -747,10 +750,22 @@ void free_members(ChannelSubscriptionObject * self)
   delete self->buffer;
 }
 
-/// take() and take_message(): one serialized take; with `support`, the CDR is deserialized
-/// into a Python message when it can be (see try_deserialize).
+/// How take_described() reads a descriptor message (the arguments of decode_described).
+struct DescribedPlan
+{
+  PyObject * msg_class;
+  PyObject * ops;
+  Py_ssize_t suffix_size;
+  Py_ssize_t max_descriptor;
+  PyObject * program;
+};
+
+/// take(), take_message() and take_described(): one serialized take; with `support`, the CDR
+/// is deserialized into a Python message when it can be (see try_deserialize); with `plan`,
+/// the bytes come with their descriptor message decoded, or None.
 PyObject * sub_take_impl(
-  ChannelSubscriptionObject * self, const MessageSupport * support, Py_ssize_t max_size)
+  ChannelSubscriptionObject * self, const MessageSupport * support, Py_ssize_t max_size,
+  const DescribedPlan * plan = nullptr)
 {
   rmw_ret_t ret = RMW_RET_OK;
   bool valid = true;
@@ -789,8 +804,23 @@ PyObject * sub_take_impl(
   } else if (deserialized) {
     lock.unlock();  // the C message is ours: convert it without holding the channel
     result = taken_tuple(support->to_py(ros_message.get()), info);
-  } else {
+  } else if (plan == nullptr) {
     result = taken_tuple(serialized_bytes(*self->buffer), info);
+  } else {
+    PyObject * taken3 = taken_tuple(serialized_bytes(*self->buffer), info);
+    lock.unlock();  // the bytes are ours: decode them without holding the channel
+    if (taken3 != nullptr) {  // (bytes, gid, info, described | None)
+      PyObject * raw = PyTuple_GET_ITEM(taken3, 0);
+      PyObject * described = decode_described(
+        reinterpret_cast<const uint8_t *>(PyBytes_AS_STRING(raw)),
+        static_cast<size_t>(PyBytes_GET_SIZE(raw)), plan->msg_class, plan->ops,
+        plan->suffix_size, plan->max_descriptor, plan->program);
+      result = PyTuple_Pack(
+        4, raw, PyTuple_GET_ITEM(taken3, 1), PyTuple_GET_ITEM(taken3, 2),
+        described ? described : Py_None);
+      Py_DECREF(taken3);
+      Py_XDECREF(described);
+    }
   }
   if (lock.owns_lock()) {
     lock.unlock();
@@ -820,6 +850,19 @@ PyObject * sub_take_message(PyObject * op, PyObject * args, PyObject * kwds)
   return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), &support, max_size);
 }
 
+PyObject * sub_take_described(PyObject * op, PyObject * args)
+{
+  DescribedPlan plan{};
+  plan.program = Py_None;
+  if (!PyArg_ParseTuple(
+      args, "OO!nn|O:take_described", &plan.msg_class, &PyTuple_Type, &plan.ops,
+      &plan.suffix_size, &plan.max_descriptor, &plan.program))
+  {
+    return nullptr;
+  }
+  return sub_take_impl(reinterpret_cast<ChannelSubscriptionObject *>(op), nullptr, -1, &plan);
+}
+
 PyObject * sub_matched_count(PyObject * op, PyObject *)
 {
   return matched_count<ChannelSubscriptionObject>(
@@ -840,6 +883,13 @@ PyMethodDef sub_methods[] = {
     "Take one message and deserialize it into a msg_class instance, as rclpy's take does; CDR "
     "that does not deserialize (a descriptor payload, malformed data), or is longer than "
     "max_size bytes when max_size >= 0, comes back as bytes instead."),
+  RBPY_METHOD("take_described", sub_take_described, METH_VARARGS,
+    "take_described(msg_class, prefix_ops, suffix_size, max_descriptor, program=None) -> "
+    "(bytes, publisher_gid, info, described) | None\n\nTake one serialized message, as take(), "
+    "and decode it where it is a descriptor message (the arguments of codec_fast's "
+    "decode_descriptor): described is (message without its payload, backend_type, descriptor "
+    "bytes), or None for anything else (CPU bytes, a control message, malformed data: the bytes "
+    "say what it is)."),
   RBPY_METHOD("matched_count", sub_matched_count, METH_NOARGS,
     "matched_count() -> int: publishers currently matched."),
   RBPY_METHOD("destroy", channel_destroy<ChannelSubscriptionObject>, METH_NOARGS,
@@ -898,16 +948,39 @@ int resolve_target(PyObject * target, WriteTarget * out)
 
 PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
 {
-  static const char * kwlist[] = {"message", "source_timestamp", "targets", "program", nullptr};
+  static const char * kwlist[] = {
+    "message", "source_timestamp", "targets", "program", "descriptor", nullptr};
   PyObject * message;
   PyObject * ts_arg;
   PyObject * targets_arg;
   PyObject * program = Py_None;
+  PyObject * descriptor_arg = Py_None;
   if (!PyArg_ParseTupleAndKeywords(
-      args, kwds, "OOO|O:write_message", const_cast<char **>(kwlist), &message, &ts_arg,
-      &targets_arg, &program))
+      args, kwds, "OOO|OO:write_message", const_cast<char **>(kwlist), &message, &ts_arg,
+      &targets_arg, &program, &descriptor_arg))
   {
     return nullptr;
+  }
+  const char * backend = nullptr;
+  Py_ssize_t backend_length = 0;
+  const char * descriptor = nullptr;
+  Py_ssize_t descriptor_length = 0;
+  if (descriptor_arg != Py_None) {
+    if (!PyTuple_Check(descriptor_arg) || PyTuple_GET_SIZE(descriptor_arg) != 2 ||
+      !PyUnicode_Check(PyTuple_GET_ITEM(descriptor_arg, 0)) ||
+      !PyBytes_Check(PyTuple_GET_ITEM(descriptor_arg, 1)))
+    {
+      PyErr_Format(
+        PyExc_TypeError, "write_message: descriptor must be a (backend_type, descriptor bytes) "
+        "tuple, got %.200R", descriptor_arg);
+      return nullptr;
+    }
+    backend = PyUnicode_AsUTF8AndSize(PyTuple_GET_ITEM(descriptor_arg, 0), &backend_length);
+    if (backend == nullptr) {
+      return nullptr;
+    }
+    descriptor = PyBytes_AS_STRING(PyTuple_GET_ITEM(descriptor_arg, 1));
+    descriptor_length = PyBytes_GET_SIZE(PyTuple_GET_ITEM(descriptor_arg, 1));
   }
   int64_t source_timestamp;
   if (parse_source_timestamp(ts_arg, &source_timestamp) < 0) {
@@ -924,17 +997,34 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
       Py_DECREF(targets);
       return nullptr;
     }
+    if (descriptor != nullptr && resolved[i].channel == nullptr) {
+      PyErr_Format(
+        PyExc_TypeError, "write_message: target %zd is not a ChannelPublisher: a descriptor "
+        "message goes to channels only", i);
+      Py_DECREF(targets);
+      return nullptr;
+    }
   }
   MessageSupport support;
   PyObject * msg_class = reinterpret_cast<PyObject *>(Py_TYPE(message));
-  if (support.load(msg_class) < 0) {
-    Py_DECREF(targets);
-    return nullptr;
-  }
   // One conversion for every target: the CDR written from the slots where the type's slot
   // program writes it exactly (no Python getter per field), else the C struct rmw serializes.
   std::vector<char> cdr;
-  const bool by_program = write_from_slots(message, program, &cdr);
+  if (descriptor != nullptr) {
+    // only from the slots: the type support has no descriptor form (the caller's codec does).
+    // Written to the channels as their publish() writes serialized data: no type support
+    // needed (the program is the message's type's, and the channels the caller's for it).
+    if (!write_described_from_slots(
+        message, program, backend, backend_length, descriptor, descriptor_length, &cdr))
+    {
+      Py_DECREF(targets);
+      Py_RETURN_FALSE;
+    }
+  } else if (support.load(msg_class) < 0) {
+    Py_DECREF(targets);
+    return nullptr;
+  }
+  const bool by_program = descriptor != nullptr || write_from_slots(message, program, &cdr);
   OwnedRosMessage ros_message(&support);
   if (!by_program && ros_message.create() == nullptr) {
     Py_DECREF(targets);
@@ -962,6 +1052,16 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
           failed = i;
           break;
         }
+      }
+      if (descriptor != nullptr) {
+        eprosima::fastdds::dds::DataWriter * writer = rmw_fastrtps_cpp::get_datawriter(rmw_pub);
+        error = "rmw_fastrtps_cpp returned no DataWriter";
+        if (writer == nullptr || !write_serialized_w_timestamp(
+            writer, cdr.data(), cdr.size(), source_timestamp, &error))
+        {
+          failed = i;
+        }
+        continue;
       }
       const bool written = by_program ?
         write_cdr_w_timestamp(
@@ -991,20 +1091,23 @@ PyObject * write_message(PyObject *, PyObject * args, PyObject * kwds)
     return nullptr;
   }
   Py_DECREF(targets);
-  Py_RETURN_NONE;
+  Py_RETURN_TRUE;
 }
 
 }  // namespace
 
 PyMethodDef channel_functions[] = {
   RBPY_FUNCTION(write_message, METH_VARARGS | METH_KEYWORDS,
-    "write_message(message, source_timestamp, targets, program=None) -> None\n\nConvert a ROS "
-    "message once and write it, with source_timestamp (int, ns since the epoch), to every "
-    "target in order: ChannelPublisher objects and rclpy publishers of the message's type. "
-    "Converted to its CDR from its slots by `program` (a slot program of codec/plans.py) where "
-    "it writes it exactly, else to its C struct (as rclpy's publish does), which rmw serializes "
-    "into each DDS payload; the GIL is released for the writes. Stops at the first failing "
-    "target."),
+    "write_message(message, source_timestamp, targets, program=None, descriptor=None) -> bool"
+    "\n\nConvert a ROS message once and write it, with source_timestamp (int, ns since the "
+    "epoch), to every target in order: ChannelPublisher objects and rclpy publishers of the "
+    "message's type. Converted to its CDR from its slots by `program` (a slot program of "
+    "codec/plans.py) where it writes it exactly, else to its C struct (as rclpy's publish does), "
+    "which rmw serializes into each DDS payload; the GIL is released for the writes. Stops at "
+    "the first failing target. With `descriptor` = (backend_type, descriptor bytes), the "
+    "descriptor form (codec.encode(message, descriptor)'s bytes) goes to ChannelPublisher "
+    "targets; it is written from the slots only: False, nothing written, when the program "
+    "cannot. True once written."),
   RBPY_METHODS_END,
 };
 

@@ -198,10 +198,25 @@ bool try_deserialize(
 /// program is None or cannot build it exactly so (codec_fast.cpp). GIL held.
 PyObject * build_from_cdr(PyObject * program, const uint8_t * data, size_t length);
 
+/// The descriptor message in `data` (CDR with its encapsulation header) as the tuple
+/// (message without its payload, backend_type, descriptor bytes): codec_fast's
+/// decode_descriptor; nullptr, no exception set, for anything else (CPU bytes, malformed
+/// input, a control message), which the Python codec then reads. GIL held.
+PyObject * decode_described(
+  const uint8_t * data, size_t size, PyObject * msg_class, PyObject * ops,
+  Py_ssize_t suffix_size, Py_ssize_t max_descriptor, PyObject * program);
+
 /// `msg`'s CDR (encapsulation header, zero padding) written from its slots by a slot program,
 /// the bytes the type support writes for what convert_from_py makes of it; false (no exception
 /// set) when the program is None or cannot write it exactly so. GIL held.
 bool write_from_slots(PyObject * msg, PyObject * program, std::vector<char> * out);
+
+/// The same with the payload field as a descriptor (its marker, the backend's name, the
+/// descriptor): the bytes codec.encode(msg, (backend, descriptor)) gives; false (no exception
+/// set) when the program is None or cannot write them exactly so. GIL held.
+bool write_described_from_slots(
+  PyObject * msg, PyObject * program, const char * backend, Py_ssize_t backend_length,
+  const char * descriptor, Py_ssize_t descriptor_length, std::vector<char> * out);
 
 /// DdsError("<what>: <rmw error>") to raise once the GIL is back (GIL not needed).
 inline void set_rmw_error(PendingError * error, const std::string & what)
