@@ -107,13 +107,12 @@ class CudaBackend(BufferBackend):
             return None
         device = buffer.device
         pool = lifecycle.get_pool(device)
-        served = self._served[device]
-        token = served.token(endpoint_info.gid)
-        if token is None:
+        ledger = self._served[device].ledger_of(endpoint_info)
+        if ledger is None:
             pool.decline()
             return None
         buffer.record_writes()
-        return pool.describe(pin, served.ledger(endpoint_info, token))
+        return pool.describe(pin, ledger)
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> CudaBuffer:

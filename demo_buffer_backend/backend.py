@@ -95,12 +95,12 @@ class DemoBackend(BufferBackend):
         publisher reuse it under the new peer), a listener not of our user, or a full queue to
         it. ``EndpointGone`` when the peer's process hung up its link."""
         pool = lifecycle.get_pool()
-        token = self._served.token(endpoint_info.gid)
+        ledger = self._served.ledger_of(endpoint_info)
         pin = buffer.pin if isinstance(buffer, DemoBuffer) else None
-        if token is None or pin is None:
+        if ledger is None or pin is None:
             pool.decline()
             return None
-        return pool.describe(pin, self._served.ledger(endpoint_info, token))
+        return pool.describe(pin, ledger)
 
     def peer_ledgers(self) -> Dict[str, dict]:
         """Per peer served so far (``<gid hex>`` or ``<gid hex>/<local publisher gid hex>``):

@@ -11,15 +11,6 @@ from rosidl_buffer_py.backend import EndpointInfo
 from demo_buffer_backend.ledgers import EndpointLedger
 
 
-def depth_of(endpoint_info: EndpointInfo) -> Optional[int]:
-    """The KEEP_LAST depth that bounds what the peer can take on one channel; 0 for KEEP_ALL;
-    None when unknown, or when the local publisher is not named (its window would count other
-    channels' messages)."""
-    if endpoint_info.local_gid is None:
-        return None
-    return endpoint_info.history_depth
-
-
 class ServedEndpoints:
     """Compatible peers (gid -> the token of their process) and their ledgers."""
 
@@ -58,17 +49,26 @@ class ServedEndpoints:
     def __contains__(self, gid: bytes) -> bool:
         return gid in self._peers
 
-    def ledger(self, endpoint_info: EndpointInfo, token: str) -> EndpointLedger:
+    def ledger_of(self, endpoint_info: EndpointInfo) -> Optional[EndpointLedger]:
         """The ledger of the peer endpoint (per local publisher when named), its depth and
-        delivery check refreshed."""
-        key = (endpoint_info.gid, endpoint_info.local_gid)
-        depth = depth_of(endpoint_info)
-        with self._lock:
-            ledger = self._ledgers.get(key)
-            if ledger is None:
-                ledger = self._ledgers[key] = EndpointLedger(
-                    token, depth, per_channel=key[1] is not None)
-        ledger.depth = depth
+        delivery check refreshed; None for a peer not known to be compatible.
+
+        Its depth is the KEEP_LAST depth that bounds what the peer can take on one channel, 0
+        for KEEP_ALL; None when unknown, or when the local publisher is not named (its window
+        would count other channels' messages)."""
+        gid = endpoint_info.gid
+        token = self._peers.get(gid)
+        if token is None:
+            return None
+        key = (gid, endpoint_info.local_gid)
+        ledger = self._ledgers.get(key)  # (a dict read: safe without the lock)
+        if ledger is None or ledger.token != token:
+            with self._lock:
+                ledger = self._ledgers.get(key)
+                if ledger is None or ledger.token != token:
+                    ledger = self._ledgers[key] = EndpointLedger(
+                        token, None, per_channel=key[1] is not None)
+        ledger.depth = None if key[1] is None else endpoint_info.history_depth
         ledger.delivered = endpoint_info.delivered
         return ledger
 

@@ -29,7 +29,7 @@ endpoints of one process share those counts, which is why the in-order rule appl
 ledger of one channel (``per_channel``).
 """
 import collections
-from typing import Callable, Deque, List, NamedTuple, Optional
+from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Tuple
 
 from demo_buffer_backend import limits
 from demo_buffer_backend.diagnostics import Counters
@@ -110,8 +110,15 @@ class EndpointLedger:
     def full(self) -> bool:
         """The endpoint, whose history is known, has its share of the pool in flight, all of it
         still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
-        return (self.depth is not None and bool(self.inflight) and
-                _past_share(self.inflight, history_known=True, depth=self.depth))
+        depth, inflight = self.depth, self.inflight
+        if depth is None or not inflight:
+            return False
+        # _past_share(inflight, history_known=True, depth=depth), its limits looked up once
+        # per value (it runs on every descriptor)
+        share = limits.current
+        key = (depth, share.max_inflight_per_peer, share.max_slots, share.max_pool_bytes)
+        count, nbytes = _KNOWN_SHARES.get(key) or _known_share(key)
+        return len(inflight) >= count or sum(e.slot.capacity for e in inflight) >= nbytes
 
     def _give_up(self, entry: InFlight) -> bool:
         """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
@@ -131,6 +138,21 @@ def _past_share(inflight: Deque[InFlight], history_known: bool, depth: int = 0) 
         count = min(count, keep_last_share(depth))
     return (len(inflight) >= count or
             sum(e.slot.capacity for e in inflight) >= share.endpoint_share_bytes(history_known))
+
+
+#: (depth, the limits _past_share reads) -> (descriptors, bytes) of an endpoint whose history
+#: is known: what full() compares with.
+_KNOWN_SHARES: Dict[Tuple[int, int, int, int], Tuple[int, int]] = {}
+
+
+def _known_share(key: Tuple[int, int, int, int]) -> Tuple[int, int]:
+    depth = key[0]
+    share = limits.current
+    count = share.endpoint_share(history_known=True)
+    if depth:
+        count = min(count, keep_last_share(depth))
+    found = _KNOWN_SHARES[key] = (count, share.endpoint_share_bytes(history_known=True))
+    return found
 
 
 def keep_last_share(depth: int) -> int:

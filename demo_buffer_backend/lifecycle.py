@@ -80,9 +80,10 @@ def own_token() -> str:
     return _demo.own_token()
 
 
-def get_pool() -> Pool:
-    """The process-wide pool (created on first use, and anew after :func:`shutdown`)."""
-    return _demo.get_pool()
+#: ``get_pool() -> Pool``: the process-wide pool (created on first use, and anew after
+#: :func:`shutdown`). The Keeper's method itself: every message calls it, and a wrapper would
+#: be one more Python frame each time.
+get_pool = _demo.get_pool
 
 
 def shutdown() -> None:

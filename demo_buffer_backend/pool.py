@@ -104,7 +104,8 @@ class Pool:
         refused the link or the segment; ``EndpointGone`` when that process is gone."""
         with self.guard:
             slot = pin.slot
-            if pin.owner is not self.slots or not slot.current(pin.generation):
+            # (slot.current(pin.generation), inlined: this runs for every descriptor)
+            if pin.owner is not self.slots or slot.closed or slot.generation != pin.generation:
                 self.counters.descriptors_declined += 1
                 return None
             token = ledger.token

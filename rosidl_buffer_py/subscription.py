@@ -468,22 +468,23 @@ class Subscription(rclpy.subscription.Subscription):
                     described[1] in self._core.backends:
                 # decoded by the take: what codec.decode gives, without its Python frames
                 msg, backend, descriptor = described
-                descriptors = ((self._reading.path, (backend, descriptor)),)
+                setattr(msg, self._reading.field, self._core.backends[backend]
+                        .from_descriptor_with_endpoint(descriptor, peer.info))
             else:
                 decoded = codec.decode(raw, self.msg_type, known_backends=self._core.backends)
-                msg, descriptors = decoded.msg, decoded.descriptors.items()
-                if not descriptors:
+                msg = decoded.msg
+                if not decoded.descriptors:
                     if peer is not None:
                         peer.received_cpu += 1
                         peer.backend_in_use = CPU_BACKEND
                     return msg
-            if peer is None:
-                raise codec.CodecError(
-                    f'descriptors from publisher {taken.publisher_gid.hex()}, which is not a '
-                    'discovered buffer-aware publisher')
-            for path, (backend, descriptor) in descriptors:
-                codec.set_at(msg, path, self._core.backends[backend]
-                             .from_descriptor_with_endpoint(descriptor, peer.info))
+                if peer is None:
+                    raise codec.CodecError(
+                        f'descriptors from publisher {taken.publisher_gid.hex()}, which is not '
+                        'a discovered buffer-aware publisher')
+                for path, (backend, descriptor) in decoded.descriptors.items():
+                    codec.set_at(msg, path, self._core.backends[backend]
+                                 .from_descriptor_with_endpoint(descriptor, peer.info))
             peer.received_descriptor += 1
             peer.backend_in_use = backend
             return msg

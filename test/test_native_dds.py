@@ -1119,7 +1119,7 @@ def test_write_message_writes_the_descriptor_form_from_the_slots_and_take_descri
     for data in (good, control.PROBE_BYTES, good[:30]):
         chan.publish(data, source_timestamp=STAMPS[1])
     reading = codec.descriptor_reading(Image)
-    assert reading.path == codec.FieldPath(('data',))
+    assert reading.field == 'data' and codec.payload_field(Image) == 'data'
     raw, gid, info, described = _wait(lambda: chan_sub.take_described(*reading.args))
     assert raw == bytes(codec.encode(msg, pair)) and gid == chan.gid
     assert info['source_timestamp'] == STAMPS[0]

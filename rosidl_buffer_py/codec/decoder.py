@@ -153,8 +153,8 @@ class DescriptorReading(NamedTuple):
     first, without its Python frames. Anything it does not read comes as bytes for
     :func:`decode`."""
 
-    path: FieldPath  #: the payload's path, where the descriptor's Buffer goes
-    args: tuple      #: (msg_type, prefix ops, suffix size, MAX_DESCRIPTOR_SIZE, program)
+    field: str   #: the payload (a top-level field), where the descriptor's Buffer goes
+    args: tuple  #: (msg_type, prefix ops, suffix size, MAX_DESCRIPTOR_SIZE, program)
 
 
 def descriptor_reading(msg_type: Type) -> Optional[DescriptorReading]:
@@ -167,8 +167,8 @@ def descriptor_reading(msg_type: Type) -> Optional[DescriptorReading]:
     plan = type_codec.plan
     if plan is None:
         return None
-    return DescriptorReading(plan.path, (msg_type, plan.prefix_ops, plan.suffix_size,
-                                         MAX_DESCRIPTOR_SIZE, type_codec.program))
+    return DescriptorReading(type_codec.payload, (msg_type, plan.prefix_ops, plan.suffix_size,
+                                                  MAX_DESCRIPTOR_SIZE, type_codec.program))
 
 
 def split_payload(raw: Any, msg_type: Type) -> Tuple[Any, memoryview]:
