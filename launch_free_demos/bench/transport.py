@@ -3,9 +3,10 @@
 For each payload, a publisher process sends ``--frames`` frames at ``--rate`` Hz to a subscriber
 process; the subscriber measures publish -> callback latency (wall clock, same machine) and
 verifies every frame's checksum. Prints a markdown table of medians and p90s and the ratios the
-project targets. With ``--rounds N`` every payload is measured N times, the transports
+project targets. With ``--rounds N`` every payload is measured N times, payloads and transports
 interleaved round by round, and each cell is the median over the rounds (run-to-run noise on a
-shared machine is larger than the differences at small payloads). A benchmark: it prints, it
+shared machine is larger than the differences at small payloads). With 1 KiB and 3840x2160
+both measured, it prints a 4K demo frame's p50 against stock's 1 KiB message, per round. A benchmark: it prints, it
 asserts nothing. ``./dev bench transport``.
 """
 import argparse
@@ -69,10 +70,12 @@ def main(argv=None) -> int:
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     rounds = {}
     lost = []
-    for label, width, height, encoding in PAYLOADS:
-        if label not in args.payloads:
-            continue
-        for index in range(args.rounds):
+    # round by round, every payload and transport in each: the cross-payload ratio below
+    # compares measurements made minutes apart at most, as the transports of one payload
+    for index in range(args.rounds):
+        for label, width, height, encoding in PAYLOADS:
+            if label not in args.payloads:
+                continue
             for transport in TRANSPORTS:
                 report = measure(transport, width, height, encoding, args.frames, args.rate)
                 rounds.setdefault((label, transport), []).append(report['latency_ms'])
@@ -116,6 +119,13 @@ def main(argv=None) -> int:
     if small in results and big in results:
         print(f"\ndemo 3840x2160 / demo 1 KiB latency: "
               f"{results[big]['latency_ms']['p50'] / results[small]['latency_ms']['p50']:.2f}")
+        # what a 4K zero-copy frame costs against the smallest stock message (issue #30's
+        # target: at most 1.0), round by round
+        ratios = [b['p50'] / s['p50'] for b, s in zip(rounds[big],
+                                                      rounds[('1 KiB', 'stock rclpy')])]
+        print('demo 3840x2160 / stock 1 KiB p50 per round: '
+              + ', '.join(f'{r:.2f}' for r in ratios)
+              + f' (median {statistics.median(ratios):.2f})')
     return 0
 
 
