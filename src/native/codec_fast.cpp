@@ -585,6 +585,11 @@ PyObject * decode_described(
   if (data[0] != 0 || data[1] > 1) {
     return no_descriptor();  // not XCDR1: the codec names the encapsulation
   }
+  if (data[2] != 0 || data[3] != 0) {
+    // options the codec never writes: a channel's control message ('RB', rosidl_buffer_py
+    // /control.py) is never read as a descriptor message, whatever its value bytes hold
+    return no_descriptor();
+  }
   Reader r{data + kHeader, size - kHeader, data[1] == 1};
   size_t pos = 0;
   uint32_t first;
