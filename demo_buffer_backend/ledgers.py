@@ -110,15 +110,8 @@ class EndpointLedger:
     def full(self) -> bool:
         """The endpoint, whose history is known, has its share of the pool in flight, all of it
         still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
-        depth, inflight = self.depth, self.inflight
-        if depth is None or not inflight:
-            return False
-        # _past_share(inflight, history_known=True, depth=depth), its limits looked up once
-        # per value (it runs on every descriptor)
-        share = limits.current
-        key = (depth, share.max_inflight_per_peer, share.max_slots, share.max_pool_bytes)
-        count, nbytes = _KNOWN_SHARES.get(key) or _known_share(key)
-        return len(inflight) >= count or sum(e.slot.capacity for e in inflight) >= nbytes
+        return (self.depth is not None and bool(self.inflight) and
+                _past_share(self.inflight, history_known=True, depth=self.depth))
 
     def _give_up(self, entry: InFlight) -> bool:
         """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
@@ -133,25 +126,24 @@ def _past_share(inflight: Deque[InFlight], history_known: bool, depth: int = 0) 
     """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes); for
     a KEEP_LAST ``depth``, at most :func:`keep_last_share` descriptors."""
     share = limits.current
+    key = (history_known, depth, share.max_inflight_per_peer, share.max_slots,
+           share.max_pool_bytes)
+    # the share looked up once per value of what it depends on: full() asks on every descriptor
+    count, nbytes = _SHARES.get(key) or _share(key)
+    return len(inflight) >= count or sum(e.slot.capacity for e in inflight) >= nbytes
+
+
+#: (history known, depth, the limits it reads) -> (descriptors, bytes): an endpoint's share
+_SHARES: Dict[Tuple[bool, int, int, int, int], Tuple[int, int]] = {}
+
+
+def _share(key: Tuple[bool, int, int, int, int]) -> Tuple[int, int]:
+    history_known, depth = key[:2]
+    share = limits.current
     count = share.endpoint_share(history_known)
     if depth:
         count = min(count, keep_last_share(depth))
-    return (len(inflight) >= count or
-            sum(e.slot.capacity for e in inflight) >= share.endpoint_share_bytes(history_known))
-
-
-#: (depth, the limits _past_share reads) -> (descriptors, bytes) of an endpoint whose history
-#: is known: what full() compares with.
-_KNOWN_SHARES: Dict[Tuple[int, int, int, int], Tuple[int, int]] = {}
-
-
-def _known_share(key: Tuple[int, int, int, int]) -> Tuple[int, int]:
-    depth = key[0]
-    share = limits.current
-    count = share.endpoint_share(history_known=True)
-    if depth:
-        count = min(count, keep_last_share(depth))
-    found = _KNOWN_SHARES[key] = (count, share.endpoint_share_bytes(history_known=True))
+    found = _SHARES[key] = (count, share.endpoint_share_bytes(history_known))
     return found
 
 
