@@ -142,7 +142,8 @@ class _Encoder:
     and the descriptor form once per distinct set of descriptors.
     """
 
-    __slots__ = ('msg', 'buffers', 'cpu_message', '_single', '_program', '_cpu', '_described')
+    __slots__ = ('msg', 'buffers', 'cpu_message', '_single', '_described_program', '_cpu',
+                 '_described')
 
     def __init__(self, msg, serialized, buffers: List[codec.BufferAt],
                  single: Optional[str], program: Optional[tuple]) -> None:
@@ -152,7 +153,7 @@ class _Encoder:
         self.cpu_message = serialized is None and not buffers
         self._single = single if len(buffers) == 1 else None
         #: the type's codec.descriptor_program (the one payload's descriptor form from C)
-        self._program = program
+        self._described_program = program
         self._cpu = serialized
         self._described = None
 
@@ -177,9 +178,9 @@ class _Encoder:
         the one payload's form written from the message's slots straight into the DataWriter
         (one native call: no encoded bytes object, no Python-level codec work), else
         :meth:`with_descriptors` published."""
-        if self._single is not None and self._program is not None:
+        if self._single is not None and self._described_program is not None:
             (_, backend, descriptor), = described
-            if write_message(self.msg, timestamp, (channel,), self._program,
+            if write_message(self.msg, timestamp, (channel,), self._described_program,
                              (backend, descriptor)):
                 return
         channel.publish(self.with_descriptors(described), timestamp)

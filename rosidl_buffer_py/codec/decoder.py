@@ -12,7 +12,8 @@ from rclpy.serialization import deserialize_message
 
 from rosidl_buffer_py import _native
 from rosidl_buffer_py.backend import MAX_DESCRIPTOR_SIZE
-from rosidl_buffer_py.codec.plans import compiled, payload_field, Plan, program_of, TypeCodec
+from rosidl_buffer_py.codec.plans import (
+    compiled, payload_field, Plan, program_of, short_path_codec, TypeCodec)
 from rosidl_buffer_py.codec.walker import Out, read_u32, truncated, walk
 from rosidl_buffer_py.codec.wire import (
     CodecError, Decoded, DESCRIPTOR_MARKER, ENCAPSULATION_CDR_BE, ENCAPSULATION_CDR_LE,
@@ -160,13 +161,10 @@ class DescriptorReading(NamedTuple):
 def descriptor_reading(msg_type: Type) -> Optional[DescriptorReading]:
     """The :class:`DescriptorReading` of ``msg_type``, or None: a type without the short path
     (its descriptor messages are decoded by :func:`decode`)."""
-    try:
-        type_codec = compiled(msg_type)
-    except CodecError:
+    type_codec = short_path_codec(msg_type)
+    if type_codec is None:
         return None
     plan = type_codec.plan
-    if plan is None:
-        return None
     return DescriptorReading(type_codec.payload, (msg_type, plan.prefix_ops, plan.suffix_size,
                                                   MAX_DESCRIPTOR_SIZE, type_codec.program))
 

@@ -238,15 +238,22 @@ def program_of(msg_type: Type) -> Optional[tuple]:
         return None
 
 
-def descriptor_program(msg_type: Type) -> Optional[tuple]:
-    """The slot program that writes the descriptor form of ``msg_type`` (its one payload
-    described) as :func:`~rosidl_buffer_py.codec.encode` writes it, or None: a type without the
-    short path or without a program (encode then walks it)."""
+def short_path_codec(msg_type: Type) -> Optional[TypeCodec]:
+    """The compiled codec of ``msg_type`` when it has the short path (its descriptor form is its
+    one payload described, what C encodes and decodes), else None."""
     try:
         type_codec = compiled(msg_type)
     except CodecError:
         return None
-    return type_codec.program if type_codec.plan is not None else None
+    return type_codec if type_codec.plan is not None else None
+
+
+def descriptor_program(msg_type: Type) -> Optional[tuple]:
+    """The slot program that writes the descriptor form of ``msg_type`` (its one payload
+    described) as :func:`~rosidl_buffer_py.codec.encode` writes it, or None: a type without the
+    short path or without a program (encode then walks it)."""
+    type_codec = short_path_codec(msg_type)
+    return None if type_codec is None else type_codec.program
 
 
 def short_plan(msg_type: Type) -> Plan:

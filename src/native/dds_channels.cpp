@@ -807,18 +807,14 @@ PyObject * sub_take_impl(
   } else if (plan == nullptr) {
     result = taken_tuple(serialized_bytes(*self->buffer), info);
   } else {
-    PyObject * taken3 = taken_tuple(serialized_bytes(*self->buffer), info);
+    PyObject * raw = serialized_bytes(*self->buffer);
     lock.unlock();  // the bytes are ours: decode them without holding the channel
-    if (taken3 != nullptr) {  // (bytes, gid, info, described | None)
-      PyObject * raw = PyTuple_GET_ITEM(taken3, 0);
+    if (raw != nullptr) {  // (bytes, gid, info, described | None)
       PyObject * described = decode_described(
         reinterpret_cast<const uint8_t *>(PyBytes_AS_STRING(raw)),
         static_cast<size_t>(PyBytes_GET_SIZE(raw)), plan->msg_class, plan->ops,
         plan->suffix_size, plan->max_descriptor, plan->program);
-      result = PyTuple_Pack(
-        4, raw, PyTuple_GET_ITEM(taken3, 1), PyTuple_GET_ITEM(taken3, 2),
-        described ? described : Py_None);
-      Py_DECREF(taken3);
+      result = taken_tuple(raw, info, described ? described : Py_None);
       Py_XDECREF(described);
     }
   }

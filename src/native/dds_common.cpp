@@ -210,11 +210,12 @@ PyObject * message_info_dict(const rmw_message_info_t & info)
     "from_intra_process", info.from_intra_process ? Py_True : Py_False);
 }
 
-PyObject * taken_tuple(PyObject * data, const rmw_message_info_t & info)
+PyObject * taken_tuple(PyObject * data, const rmw_message_info_t & info, PyObject * extra)
 {
   PyObject * gid = data ? gid_bytes(info.publisher_gid.data) : nullptr;
   PyObject * info_dict = gid ? message_info_dict(info) : nullptr;
-  PyObject * result = info_dict ? PyTuple_Pack(3, data, gid, info_dict) : nullptr;
+  PyObject * result = !info_dict ? nullptr : extra ?
+    PyTuple_Pack(4, data, gid, info_dict, extra) : PyTuple_Pack(3, data, gid, info_dict);
   Py_XDECREF(data);
   Py_XDECREF(gid);
   Py_XDECREF(info_dict);

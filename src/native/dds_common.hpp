@@ -157,8 +157,10 @@ private:
 /// A bytes copy of serialized CDR (GIL held).
 PyObject * serialized_bytes(const rmw_serialized_message_t & serialized);
 
-/// `(data, publisher_gid, info)` of a take; takes over `data` (nullptr: an exception is set).
-PyObject * taken_tuple(PyObject * data, const rmw_message_info_t & info);
+/// `(data, publisher_gid, info)` of a take, and `extra` as a fourth item when given (borrowed);
+/// takes over `data` (nullptr: an exception is set).
+PyObject * taken_tuple(
+  PyObject * data, const rmw_message_info_t & info, PyObject * extra = nullptr);
 
 /// A caller's serialized CDR (any C-contiguous buffer holding at least the 4-byte
 /// encapsulation header), held for the duration of a call. Read it without the GIL.
