@@ -38,9 +38,13 @@ class Keeper:
         return token.token
 
     def get_pool(self) -> Pool:
-        """The process-wide pool (created on first use, and anew after :meth:`shutdown`)."""
+        """The process-wide pool (created on first use, and anew after :meth:`shutdown`).
+
+        Every describe and every open asks for it: a forked child forgets the parent's pool
+        in its at-fork hook, so a pool found here is this process's and no ``getpid()``
+        system call is made (one per call before: two per publish, one per take)."""
         pool = self._pool
-        if pool is not None and pool.pid == os.getpid():
+        if pool is not None:
             return pool
         with self._lock:
             if self._pool is None or self._pool.pid != os.getpid():

@@ -396,10 +396,14 @@ def test_shutdown_closes_our_segments_and_fork_child_leaves_them(fresh):
     segment = buf.segment
     pid = os.fork()
     if pid == 0:  # the child inherits the pool but must never touch the parent's segments
+        code = 1
         try:
+            # its at-fork hook forgot the parent's pool: the child's own, made anew
+            pool = lifecycle.get_pool()
+            code = 0 if pool.pid == os.getpid() and not pool.slots.by_id else 2
             demo_buffer_backend.shutdown()
         finally:
-            os._exit(0)
+            os._exit(code)
     assert os.waitpid(pid, 0)[1] == 0
     assert segment[1] in lifecycle.get_pool().slots.by_id
     assert DemoBuffer.from_cpu(b'g' * 100).in_shm
