@@ -238,6 +238,25 @@ def test_under_churn_on_a_loaded_machine_steady_subscribers_get_what_stocks_get_
     assert stock[4] == '-' and ours[4] == '0', completed.stdout
 
 
+def test_bench_bare_prints_stock_the_bare_descriptor_path_and_demo_per_round():
+    """README's ./dev bench bare, short: the latency split of stock rclpy, the bare descriptor
+    path (native write, guard wake, native take) and the demo backend, and each round's
+    ratios; the bare path's frames arrive decoded (its medians exist)."""
+    command = [str(ROOT / 'dev'), 'bench', 'bare'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench.bare']
+    completed = subprocess.run(command + ['--frames', '8', '--rate', '20', '--rounds', '1'],
+                               cwd=ROOT, capture_output=True, text=True, timeout=300,
+                               env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    assert rows[''] == ['stock rclpy', 'bare', 'demo'], completed.stdout
+    for what in ('stamp -> reception (publisher, DDS)', 'reception -> callback (subscriber)',
+                 'total'):
+        assert len(rows[what]) == 3 and all(float(c) > 0 for c in rows[what]), completed.stdout
+    assert rows['round'] == ['bare / stock rclpy', 'demo / stock rclpy', 'demo - bare (µs)']
+    assert len(rows['1']) == 3 and float(rows['1'][0]) > 0, completed.stdout
+
+
 def test_bench_hotpath_times_every_stage_of_every_transport():
     """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""

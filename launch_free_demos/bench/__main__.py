@@ -12,6 +12,7 @@ BENCHMARKS = {
     'mixed': ('mixed', 'CPU per frame beside a legacy listener (demo publisher, 4K, 10 Hz)'),
     'bringup': ('bringup', "a new subscriber's wait for zero-copy (demo publisher, 1080p, 30 Hz)"),
     'hotpath': ('hotpath', "one message's time, stage by stage, on both sides"),
+    'bare': ('bare', 'our per-message Python: stock rclpy, the bare descriptor path, demo'),
     'churn': ('churn', 'subscribers coming and going: what the steady ones get, ours vs stock'),
     'cuda': ('cuda', 'GPU frames between processes: cuda backend vs D2H + stock + H2D (a GPU)'),
 }
