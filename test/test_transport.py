@@ -288,7 +288,7 @@ def test_a_plain_subscriber_joining_a_settled_topic_gets_every_message_once_matc
     participant that joins long after the routes settled gets every message published once
     it and the main DataWriter matched. The same graph of stock endpoints is the oracle."""
     from rosidl_buffer_py.publisher import EPOCH_GRACE_SECONDS
-    topic = f'/epoch_image_{kind}'  # one per kind: a failed run's endpoints cannot leak
+    topic = f'/epoch_image_{kind}_{time.monotonic_ns()}'  # a failed run's endpoints cannot leak
     other = rclpy.Context()
     rclpy.init(context=other)
     node = legacy_node = None
