@@ -128,7 +128,8 @@ def _bare_receiver(node, on_frame: Callable) -> None:
             if taken is None:
                 return
             _, _, info, described = taken
-            on_frame(described[0], info)
+            if described is not None:  # (only this bench's publisher writes there)
+                on_frame(described[0], info)
     guard = node.create_guard_condition(on_wake)
     channels.append(_dds.create_channel_subscription(node, Image, 'rt' + TOPIC, QOS, guard))
 
