@@ -9,7 +9,6 @@ import time
 
 import pytest
 import rclpy
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
@@ -280,68 +279,59 @@ def test_publishing_from_the_first_matched_instant_switches_each_route_once(cont
     node.destroy_node()
 
 
-@pytest.mark.parametrize('kind', ['stock', 'ours'])
-def test_a_plain_subscriber_joining_a_settled_topic_gets_every_message_once_matched(context,
-                                                                                   kind):
+def test_a_plain_subscriber_joining_a_settled_topic_is_written_to_from_its_match_on(context):
     """The publisher reads its matched counts from DDS only after discovery moved (the
-    process's discovery epoch), or every RECHECK_SECONDS: a plain subscription of another
-    participant that joins long after the routes settled gets every message published once
-    it and the main DataWriter matched. The same graph of stock endpoints is the oracle."""
+    process's discovery epoch), or every RECHECK_SECONDS. While its one subscription is served
+    on a channel it writes no main-topic copy; once its main DataWriter matched a plain
+    subscription of another participant that joined long after the routes settled, every
+    publish writes the main topic: a cached signature never withholds a message from it.
+
+    What such a late joiner then receives, against the same graph of stock endpoints, is the
+    equivalence scenarios' (``transient_local_early_ours``: VOLATILE plain and buffer-aware
+    late joiners beside subscriptions served on channels, in processes of their own). Here the
+    late joiner was once another participant of this process and the test compared its
+    messages with stock's: in one full CI run stock's own reader missed the 30 messages owed
+    to it, in another it matched (its matched event came) and received nothing at all in
+    20 s, so that comparison measured Fast DDS between two participants of one loaded
+    process, not this publisher. Without the epoch re-read (the signature trusted until
+    RECHECK_SECONDS), this test fails: the first publishes after the match write no copy."""
     from rosidl_buffer_py.publisher import EPOCH_GRACE_SECONDS
-    topic = f'/epoch_image_{kind}_{time.monotonic_ns()}'  # a failed run's endpoints cannot leak
+    topic = f'/epoch_image_{time.monotonic_ns()}'  # a failed run's endpoints cannot leak
     other = rclpy.Context()
     rclpy.init(context=other)
     node = legacy_node = None
     try:
         node = rclpy.create_node('epoch_pub', context=context)
-        served, legacy_got = [], []
-        ours = kind == 'ours'
-        if ours:
-            rosidl_buffer_py.create_subscription(
-                node, Image, topic, lambda m: served.append(check_frame(m).counter), RELIABLE)
-            pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
-        else:
-            node.create_subscription(
-                Image, topic, lambda m: served.append(check_frame(m).counter), RELIABLE)
-            pub = node.create_publisher(Image, topic, RELIABLE)
+        rosidl_buffer_py.create_subscription(node, Image, topic, lambda m: None, RELIABLE)
+        pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
-        assert spin_until(executor, (lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
-                          if ours else (lambda: pub.get_subscription_count() == 1))
+        assert spin_until(executor, lambda: any(p['channel_serving'] for p in pub.buffer_peers()))
         counter, quiet_until = 0, time.monotonic() + EPOCH_GRACE_SECONDS + 1.0
         while time.monotonic() < quiet_until:  # past the grace: the signature is trusted
             pub.publish(frame(counter, 'cpu'))
             counter += 1
             executor.spin_once(timeout_sec=0.02)
-        if ours:
-            assert pub.statistics()['sent_on_main_topic'] == 0  # the channel serves the only one
+        assert pub.statistics()['sent_on_main_topic'] == 0  # the channel serves the only one
         legacy_node = rclpy.create_node('epoch_legacy', context=other)
-        reader_matched = []
-        legacy_node.create_subscription(
-            Image, topic, lambda m: legacy_got.append(check_frame(m).counter), RELIABLE,
-            event_callbacks=SubscriptionEventCallbacks(
-                matched=lambda info: reader_matched.append(info.current_count)))
+        legacy_node.create_subscription(Image, topic, lambda m: None, RELIABLE)
         other_executor = SingleThreadedExecutor(context=other)
         other_executor.add_node(legacy_node)
-        owed, deadline = [], time.monotonic() + 20.0
-        while len(owed) < 30 and time.monotonic() < deadline:
-            # Both ends matched before this publish: what DDS promises a reliable reader.
-            # The writer's match alone can come before the reader knows the writer.
-            if pub.get_subscription_count() == 2 and reader_matched:
-                owed.append(counter)
+        written, deadline = [], time.monotonic() + 20.0
+        while len(written) < 30 and time.monotonic() < deadline:
+            matched = pub.get_subscription_count() == 2  # DDS's own count, read directly
+            before = pub.statistics()['sent_on_main_topic']
             pub.publish(frame(counter, 'cpu'))
             counter += 1
+            if matched:  # stock's writer sends this one to the plain subscription
+                written.append(pub.statistics()['sent_on_main_topic'] - before)
             executor.spin_once(timeout_sec=0.002)
             other_executor.spin_once(timeout_sec=0.002)
-        stats = pub.statistics() if ours else None
-        assert len(owed) == 30, (owed, stats)
-        assert spin_until(other_executor, lambda: set(owed) <= set(legacy_got)), (
-            sorted(set(owed) - set(legacy_got)), len(legacy_got),
-            legacy_got and (min(legacy_got), max(legacy_got)), reader_matched, stats)
+        assert len(written) == 30, (written, pub.statistics())
+        assert written == [1] * 30, (written, pub.statistics())
         executor.shutdown()
         other_executor.shutdown()
     finally:
-        # A failed run must not leave its reader alive in this domain for the next one.
         for created in (legacy_node, node):
             if created is not None:
                 created.destroy_node()
