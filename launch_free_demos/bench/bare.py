@@ -32,6 +32,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from sensor_msgs.msg import Image
 
+from launch_free_demos.bench.hotpath import mono8_frame, stamp_split
 from launch_free_demos.domains import claim_domain_ids
 
 MODES = ('stock rclpy', 'bare', 'demo')
@@ -43,10 +44,7 @@ QOS = QoSProfile(depth=10)
 
 
 def _image(stamp_ns: int, data) -> Image:
-    msg = Image(height=1, width=WIDTH, encoding='mono8', step=WIDTH)
-    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
-    msg.data = data
-    return msg
+    return mono8_frame(WIDTH, stamp_ns, data)
 
 
 # --- the publisher process ---------------------------------------------------------------------
@@ -140,9 +138,7 @@ def run_subscriber(mode: str, frames: int, rate: float) -> List[Tuple[int, int]]
     split: List[Tuple[int, int]] = []
 
     def on_frame(msg, info) -> None:
-        now = time.time_ns()
-        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-        split.append((info['received_timestamp'] - stamp, now - info['received_timestamp']))
+        split.append(stamp_split(msg, info, time.time_ns()))
 
     rclpy.init()
     publisher = None

@@ -111,12 +111,20 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
     stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
 
 
-def _frame(width: int, stamp_ns: int, data):
+def mono8_frame(width: int, stamp_ns: int, data) -> Image:
+    """A one-row mono8 Image of ``data`` stamped ``stamp_ns`` (this benchmark's frame, and
+    ``./dev bench bare``'s)."""
     msg = Image()
     msg.width, msg.height, msg.encoding, msg.step = width, 1, 'mono8', width
     msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
     msg.data = data
     return msg
+
+
+def stamp_split(msg, info: dict, now_ns: int) -> Tuple[int, int]:
+    """A frame's (stamp to its reception by the DataReader, reception to ``now_ns``) in ns."""
+    stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+    return info['received_timestamp'] - stamp, now_ns - info['received_timestamp']
 
 
 def run_publisher_here(transport: str, width: int, frames: int, rate: float,
@@ -150,7 +158,7 @@ def run_publisher_here(transport: str, width: int, frames: int, rate: float,
                     data = backend.allocate(width) if backend else bytes(width)
                     executor.spin_once(timeout_sec=0.0)
                     time.sleep(1.0 / rate)
-                    pub.publish(_frame(width, time.time_ns(), data))
+                    pub.publish(mono8_frame(width, time.time_ns(), data))
             finally:
                 stages.restore()
             time.sleep(0.5)
@@ -179,9 +187,7 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
     stages_from = min(STAGES_FROM, frames // 2)
 
     def on_frame(msg, info) -> None:
-        now = time.time_ns()
-        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-        split.append((info['received_timestamp'] - stamp, now - info['received_timestamp']))
+        split.append(stamp_split(msg, info, time.time_ns()))
         if len(split) == stages_from:
             _subscriber_stages(stages, transport)
 
@@ -218,7 +224,7 @@ def run_subscriber_here(transport: str, width: int, frames: int, rate: float,
 
 def cold_penalty(idle: float, count: int = 30) -> Tuple[float, float]:
     """Median µs of one descriptor-message encode (native) back to back, and after ``idle``."""
-    msg = _frame(1024, time.time_ns(), DemoBuffer.allocate(1024))
+    msg = mono8_frame(1024, time.time_ns(), DemoBuffer.allocate(1024))
     descriptor = ('demo', bytes(70))
     warm, cold = [], []
     for pause, sink in ((0.0, warm), (idle, cold)):

@@ -6,8 +6,8 @@ verifies every frame's checksum. Prints a markdown table of medians and p90s and
 project targets. With ``--rounds N`` every payload is measured N times, payloads and transports
 interleaved round by round, and each cell is the median over the rounds (run-to-run noise on a
 shared machine is larger than the differences at small payloads). With 1 KiB and 3840x2160
-both measured, it prints a 4K demo frame's p50 against stock's 1 KiB message, per round. A benchmark: it prints, it
-asserts nothing. ``./dev bench transport``.
+both measured, it prints a 4K demo frame's p50 against stock's 1 KiB message, per round. A
+benchmark: it prints, it asserts nothing. ``./dev bench transport``.
 """
 import argparse
 import os
