@@ -77,6 +77,8 @@ class EndpointLedger:
         """Bring the in-flight list up to date before message ``seq`` is sent: drop what the
         endpoint took or what was reclaimed, give up what it can no longer take and, when its
         history is not known, what exceeds its share."""
+        if not self.inflight:  # nothing to settle (an endpoint that keeps up, between frames)
+            return
         token = self.token
         kept: List[InFlight] = []
         for entry in self.inflight:

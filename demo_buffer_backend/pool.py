@@ -186,10 +186,6 @@ class Pool:
         ledger.record(slot)
         slot.last_used = time.monotonic_ns()
         self.counters.descriptors_created += 1
-        if pin.packed is None:
-            pin.packed = codec.pack(codec.Descriptor(
-                self.pid, self.nonce, slot.id, pin.generation, 0, pin.size),
-                self.medium.descriptor_magic)
         return pin.packed
 
     def renew(self, pin: Pin, timeout: Optional[float]) -> bool:
@@ -201,7 +197,7 @@ class Pool:
             if not self.slots.renew(slot, pin.size, self.links.gone):
                 return False
             pin.generation = slot.generation
-            pin.packed = None
+            pin.packed = pin.descriptor()
             return True
         return self._wait(pin, timeout, renewed)
 

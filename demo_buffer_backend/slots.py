@@ -14,6 +14,7 @@ import errno
 import time
 from typing import AbstractSet, Any, Callable, Dict, List, Optional, Tuple
 
+from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import limits, memory
 from demo_buffer_backend.diagnostics import Diagnostics, logger
 from demo_buffer_backend.guard import Guard
@@ -72,7 +73,16 @@ class Pin:
         self.slot = slot
         self.generation = slot.generation
         self.size = size
-        self.packed: Optional[bytes] = None  #: the descriptor, packed on first use
+        #: the descriptor of this generation, packed here, before the frame is published
+        #: (every endpoint described gets these bytes; ``renew`` packs the next generation's)
+        self.packed = self.descriptor()
+
+    def descriptor(self) -> bytes:
+        """The descriptor of the pinned bytes in this generation of the slot."""
+        owner = self.owner
+        return codec.pack(codec.Descriptor(owner.pid, owner.nonce, self.slot.id,
+                                           self.generation, 0, self.size),
+                          owner.medium.descriptor_magic)
 
     @property
     def segment(self) -> Tuple[int, int]:

@@ -329,6 +329,23 @@ class Dispatch(NamedTuple):
     timer: Optional[bool]
 
 
+class _Cached(NamedTuple):
+    """A :class:`RouteTable`'s plan while the view's signature holds."""
+
+    plan: Plan
+    signature: Hashable
+    #: The dispatch of every message under this plan, when that is always the same: no route
+    #: fences, no main-topic write (whose per-subscription bookkeeping runs per message). Only
+    #: a transition can change that, and every transition drops the cached plan.
+    steady: Optional[Dispatch]
+
+
+def _steady_dispatch(plan: Plan, routes: Dict[Hashable, Route]) -> Optional[Dispatch]:
+    if plan.main or any(routes[key].state is RouteState.FENCING for key in plan.channel):
+        return None
+    return Dispatch((), tuple((key, None) for key in plan.channel), False, plan.withheld, None)
+
+
 class RouteTable(Generic[K]):
     """The routes of one publisher, by subscription key (its GID)."""
 
@@ -340,9 +357,11 @@ class RouteTable(Generic[K]):
         self._last_main: Dict[K, int] = {}
         #: Source timestamp of the last message dispatched (0: none yet).
         self.last_published = 0
-        #: The plan of the next messages and the view's signature it was made with (None:
-        #: plan again; asking DDS for the matched subscriptions takes tens of microseconds).
-        self._cached: Optional[Tuple[Plan, Hashable]] = None
+        #: The plan of the next messages, the view's signature it was made with, and the
+        #: dispatch that serves every message while it holds when that is always the same
+        #: (None: plan again; asking DDS for the matched subscriptions takes tens of
+        #: microseconds).
+        self._cached: Optional[_Cached] = None
 
     def add(self, key: K, *, handshake: bool, depth: int = 0) -> Route:
         """A buffer-aware subscription was discovered: its route starts UNMATCHED."""
@@ -386,7 +405,7 @@ class RouteTable(Generic[K]):
             if count:
                 probes.append((key, count))
         plan = self.plan(now, view.matched_subscriptions())
-        self._cached = (plan, signature)
+        self._cached = _Cached(plan, signature, _steady_dispatch(plan, self.routes))
         return Advance(tuple(probes), plan.recheck_at - now < RECHECK_SECONDS)
 
     def dispatch(self, now: float, timestamp: int, view: 'RouteView[K]') -> Dispatch:
@@ -396,10 +415,13 @@ class RouteTable(Generic[K]):
         view's signature holds and its ``recheck_at`` has not passed."""
         cached = self._cached
         probes, timer = (), None
-        if cached is None or now >= cached[0].recheck_at or view.signature() != cached[1]:
+        if cached is None or now >= cached.plan.recheck_at or view.signature() != cached.signature:
             probes, timer = self.advance(now, view)
             cached = self._cached
-        plan = cached[0]
+        elif cached.steady is not None:
+            self.last_published = timestamp
+            return cached.steady
+        plan = cached.plan
         channel, deferred = [], []
         delivered = None  # whether the main topic's readers acknowledged all they were sent
         for key in plan.channel:

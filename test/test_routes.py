@@ -13,8 +13,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
     CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_DEFER_SECONDS, FENCE_TIMEOUT_SECONDS,
-    PROBE_INTERVAL_SECONDS, Fence, Incoming, Receiver, Route, RouteState, RouteTable, Stream,
-    StreamState, StreamTable, Verdict)
+    PROBE_INTERVAL_SECONDS, Dispatch, Fence, Incoming, Receiver, Route, RouteState, RouteTable,
+    Stream, StreamState, StreamTable, Verdict)
 
 S = RouteState
 
@@ -224,6 +224,35 @@ def test_dispatch_uses_its_cached_plan_until_the_signature_or_recheck_time_chang
     table.invalidate()  # a subscription changed in a way the counts do not show
     table.dispatch(0.3, 4, view)
     assert 'matched' in view.asked
+
+
+def test_a_steady_plan_serves_every_message_with_one_dispatch_until_a_transition():
+    """Routes served on their channels, no fence due and no main-topic write: every message
+    under that plan goes the same way, and the table answers with the same Dispatch (no
+    per-route work per message); a transition plans again."""
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True})
+    route = table.add('a', handshake=False, depth=0)
+    route.state = S.SERVING
+    first = table.dispatch(0.0, 1, view)
+    second = table.dispatch(0.01, 2, view)
+    assert second is table.dispatch(0.02, 3, view)
+    assert first == Dispatch((), (('a', None),), False, (), False)  # (the timer stops)
+    assert second == Dispatch((), (('a', None),), False, (), None)
+    assert table.last_published == 3
+    table.gone('a')
+    assert table.dispatch(0.03, 4, view).channel == ()
+    # a due fence or a main-topic write is never served by a steady dispatch
+    table, view = RouteTable(), FakeView(matched=['a', 'legacy'], channels={'a': True})
+    table.add('a', handshake=False, depth=0).state = S.SERVING
+    mixed = [table.dispatch(0.01 * i, i, view) for i in range(1, 4)]
+    assert all(d.main and d.channel == (('a', None),) for d in mixed)
+    assert table._last_main['legacy'] == 3  # the main topic's bookkeeping ran per message
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True})
+    route = table.add('a', handshake=True, depth=2)
+    route.state, route.acknowledged_probes, route.last_main = S.FENCING, True, 1
+    fenced = table.dispatch(0.0, 2, view)
+    assert fenced.channel == (('a', Fence(1, delivered=True)),)
+    assert table.dispatch(0.01, 3, view).channel == (('a', None),)
 
 
 def test_a_due_fence_waits_for_the_main_topics_acknowledgment_then_names_the_last_message():
