@@ -257,6 +257,31 @@ def test_bench_bare_prints_stock_the_bare_descriptor_path_and_demo_per_round():
     assert len(rows['1']) == 3 and float(rows['1'][0]) > 0, completed.stdout
 
 
+def test_bench_bare_counts_the_python_opcodes_of_each_side_by_origin():
+    """./dev bench bare --opcodes, short: per message and side, the opcodes of this package,
+    rclpy, the message classes, the benchmark and Python's library, per mode. The bare path
+    runs nothing of ours on the subscriber (its take decodes in C); the demo path runs ours on
+    both sides; stock's subscriber builds its message in the generated class."""
+    command = [str(ROOT / 'dev'), 'bench', 'bare'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench.bare']
+    completed = subprocess.run(command + ['--opcodes', '--frames', '8', '--rate', '20'],
+                               cwd=ROOT, capture_output=True, text=True, timeout=300,
+                               env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: [float(c) for c in row[1:]] for row in table_rows(completed.stdout)
+            if row[0]}  # (the header row's first cell is empty)
+    origins = ['this package', 'rclpy', 'generated message classes', 'this benchmark',
+               "Python's library", 'total']
+    assert set(rows) == {f'{side}: {o}' for side in ('publisher', 'subscriber')
+                         for o in origins}, completed.stdout
+    stock, bare, demo = range(3)
+    for side in ('publisher', 'subscriber'):
+        assert all(v > 0 for v in rows[f'{side}: total']), completed.stdout
+        assert rows[f'{side}: this package'][demo] > 100, completed.stdout
+    assert rows['subscriber: this package'][bare] == 0, completed.stdout
+    assert rows['subscriber: generated message classes'][stock] > 0, completed.stdout
+
+
 def test_bench_hotpath_times_every_stage_of_every_transport():
     """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""

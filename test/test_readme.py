@@ -63,6 +63,7 @@ COVERAGE = {
     './dev bench transport --payloads "1 KiB" --frames 60 --rate 5 --rounds 8': 'here',  # fewer
     './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     './dev bench bare': 'test_benchmark.py',              # 8 frames, one round
+    './dev bench bare --opcodes': 'test_benchmark.py',    # 8 frames
     './dev bench mixed': 'test_benchmark.py',             # small frames, fewer of them
     # run_latency, the measurement this command prints per run, on the mixed graph
     './dev bench mixed --latency --graphs pure,mixed --payload 640x480 --rate 30 --frames 600':

@@ -15,17 +15,25 @@ processes, interleaved round by round (the machine drifts within a run):
 Each subscriber measures the frame's stamp (taken right before the publish) to its reception
 by the DataReader, and from there to the callback. ``bare`` is the floor of the design (a DDS
 topic per route, woken through a guard condition); ``demo`` minus ``bare`` is what our routes,
-pool and endpoints cost per message. A benchmark: it prints, it asserts nothing.
-``./dev bench bare [--frames 40] [--rate 10] [--rounds 3]``
+pool and endpoints cost per message.
+
+With ``--opcodes`` it times nothing and counts instead: the Python opcodes each side runs per
+message, by where their code lives (this package, rclpy, the generated message classes, Python's
+library, this benchmark), one run per mode. A count does not drift with the machine: it shows
+what a change of the per-message Python removes where timings at camera rates are too noisy to.
+A benchmark: it prints, it asserts nothing.
+``./dev bench bare [--frames 40] [--rate 10] [--rounds 3] [--opcodes]``
 """
 import argparse
+import collections
+import contextlib
 import json
 import os
 import statistics
 import subprocess
 import sys
 import time
-from typing import Any, Callable, Dict, List, NamedTuple, Tuple
+from typing import Any, Callable, Dict, Iterator, List, NamedTuple, Optional, Tuple
 
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -45,6 +53,62 @@ QOS = QoSProfile(depth=10)
 
 def _image(stamp_ns: int, data) -> Image:
     return mono8_frame(WIDTH, stamp_ns, data)
+
+
+# --- counting opcodes --------------------------------------------------------------------------
+
+#: Where traced code lives, by a part of its file name (the first that matches), and the name
+#: the table gives it; code found under none of them is Python's library.
+ORIGINS = (
+    (('/rosidl_buffer_py/', '/demo_buffer_backend/'), 'this package'),
+    (('/rclpy/',), 'rclpy'),
+    (('/msg/_',), 'generated message classes'),
+    (('/launch_free_demos/',), 'this benchmark'),
+)
+LIBRARY = "Python's library"
+#: The printed line that carries one side's counts from a process to the bench.
+OPCODES_LINE = 'opcodes per message: '
+
+
+class OpcodeCount:
+    """Python opcodes run by this thread inside :meth:`tracing`, by origin (``ORIGINS``),
+    over ``messages`` messages."""
+
+    def __init__(self) -> None:
+        self.by_origin: collections.Counter = collections.Counter()
+        self.messages = 0
+        self._origins: Dict[str, str] = {}
+
+    def _origin(self, filename: str) -> str:
+        origin = self._origins.get(filename)
+        if origin is None:
+            origin = self._origins[filename] = next(
+                (name for parts, name in ORIGINS if any(p in filename for p in parts)), LIBRARY)
+        return origin
+
+    def _call(self, frame, event, arg):
+        frame.f_trace_opcodes = True
+        origin = self._origin(frame.f_code.co_filename)
+        by_origin = self.by_origin
+
+        def opcode(frame, event, arg):
+            if event == 'opcode':
+                by_origin[origin] += 1
+            return opcode
+        return opcode
+
+    @contextlib.contextmanager
+    def tracing(self) -> Iterator[None]:
+        sys.settrace(self._call)
+        try:
+            yield
+        finally:
+            sys.settrace(None)
+
+    def line(self) -> str:
+        """Per message, by origin, as the printed line the bench reads back."""
+        return OPCODES_LINE + json.dumps(
+            {origin: count / max(self.messages, 1) for origin, count in self.by_origin.items()})
 
 
 # --- the publisher process ---------------------------------------------------------------------
@@ -91,7 +155,9 @@ def _demo_sender(node) -> Sender:
 SENDERS = {'stock rclpy': _stock_sender, 'bare': _bare_sender, 'demo': _demo_sender}
 
 
-def run_publisher(mode: str, frames: int, rate: float) -> None:
+def run_publisher(mode: str, frames: int, rate: float, count: Optional[OpcodeCount] = None
+                  ) -> None:
+    """With ``count``, the publishes after the first ``SKIP`` are counted, and printed."""
     rclpy.init()
     try:
         node = rclpy.create_node('bare_pub')
@@ -102,11 +168,18 @@ def run_publisher(mode: str, frames: int, rate: float) -> None:
         while not sender.ready() and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
         time.sleep(0.5)
-        for _ in range(frames):
+        for index in range(frames):
             payload = sender.frame()
             executor.spin_once(timeout_sec=0.0)
             time.sleep(1.0 / rate)
-            sender.send(payload)
+            if count is None or index < SKIP:
+                sender.send(payload)
+                continue
+            with count.tracing():
+                sender.send(payload)
+            count.messages += 1
+        if count is not None:
+            print(count.line(), flush=True)
         time.sleep(1.0)
     finally:
         rclpy.try_shutdown()
@@ -132,9 +205,11 @@ def _bare_receiver(node, on_frame: Callable) -> None:
     channels.append(_dds.create_channel_subscription(node, Image, 'rt' + TOPIC, QOS, guard))
 
 
-def run_subscriber(mode: str, frames: int, rate: float) -> List[Tuple[int, int]]:
+def run_subscriber(mode: str, frames: int, rate: float, count: Optional[OpcodeCount] = None
+                   ) -> List[Tuple[int, int]]:
     """Starts the publisher process; returns (stamp to reception, reception to callback) in
-    ns per frame."""
+    ns per frame. With ``count``, the executor's turns that deliver frames after the first
+    ``SKIP`` are counted (its other turns are not), and printed; the publisher counts too."""
     split: List[Tuple[int, int]] = []
 
     def on_frame(msg, info) -> None:
@@ -154,11 +229,22 @@ def run_subscriber(mode: str, frames: int, rate: float) -> List[Tuple[int, int]]
                                                  acceptable_buffer_backends='demo')
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        publisher = subprocess.Popen(_command('pub', mode, frames, rate))
+        publisher = subprocess.Popen(_command('pub', mode, frames, rate, count is not None))
         deadline = time.monotonic() + frames / rate + 60.0
         while len(split) < frames and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.25)
+            before = len(split)
+            if count is None or before < SKIP:
+                executor.spin_once(timeout_sec=0.25)
+                continue
+            counted = count.by_origin.copy()
+            with count.tracing():
+                executor.spin_once(timeout_sec=0.25)
+            if len(split) == before:  # a turn that delivered nothing: not a message's cost
+                count.by_origin = counted
+            count.messages += len(split) - before
         publisher.wait(timeout=30.0)
+        if count is not None:
+            print(count.line(), flush=True)
     finally:
         if publisher is not None and publisher.poll() is None:
             publisher.kill()
@@ -167,9 +253,10 @@ def run_subscriber(mode: str, frames: int, rate: float) -> List[Tuple[int, int]]
     return split
 
 
-def _command(role: str, mode: str, frames: int, rate: float) -> List[str]:
+def _command(role: str, mode: str, frames: int, rate: float, opcodes: bool = False
+             ) -> List[str]:
     return [sys.executable, '-m', 'launch_free_demos.bench.bare', '--role', role, '--mode', mode,
-            '--frames', str(frames), '--rate', str(rate)]
+            '--frames', str(frames), '--rate', str(rate)] + (['--opcodes'] if opcodes else [])
 
 
 # --- the bench -------------------------------------------------------------------------------
@@ -187,6 +274,44 @@ def measure(mode: str, frames: int, rate: float) -> Tuple[float, float]:
         raise RuntimeError(f'{mode}: no frame past the first {SKIP} arrived')
     return (statistics.median(a for a, _ in split) / 1e3,
             statistics.median(b for _, b in split) / 1e3)
+
+
+class Opcodes(NamedTuple):
+    """One mode's Python opcodes per message, by origin."""
+
+    publisher: Dict[str, float]
+    subscriber: Dict[str, float]
+
+
+def count_opcodes(mode: str, frames: int, rate: float) -> Opcodes:
+    """One run of ``mode`` with both processes counting (the publisher's line comes first:
+    the subscriber prints once it has exited)."""
+    completed = subprocess.run(_command('sub', mode, frames, rate, opcodes=True),
+                               capture_output=True, text=True, timeout=frames / rate + 180.0,
+                               env=dict(os.environ))
+    counts = [json.loads(line[len(OPCODES_LINE):]) for line in completed.stdout.splitlines()
+              if line.startswith(OPCODES_LINE)]
+    if completed.returncode != 0 or len(counts) != 2:
+        raise RuntimeError(f'{mode}: the counting run failed\n{completed.stdout}'
+                           f'{completed.stderr}')
+    return Opcodes(*counts)
+
+
+def opcode_table(counts: Dict[str, Opcodes], frames: int, rate: float) -> str:
+    origins = [name for _, name in ORIGINS] + [LIBRARY]
+    lines = [f'Python opcodes per message, by where their code lives (1 KiB at {rate:g} Hz, '
+             f'{frames - SKIP} messages counted per side; the subscriber\'s from the executor\'s '
+             'wake-up to the callback\'s return).', '',
+             '| | ' + ' | '.join(MODES) + ' |', '|---|' + '---|' * len(MODES)]
+    for side in Opcodes._fields:
+        for origin in origins + ['total']:
+            cells = []
+            for mode in MODES:
+                by_origin = getattr(counts[mode], side)
+                value = sum(by_origin.values()) if origin == 'total' else by_origin.get(origin, 0)
+                cells.append(f'{value:.0f}')
+            lines.append(f'| {side}: {origin} | ' + ' | '.join(cells) + ' |')
+    return '\n'.join(lines)
 
 
 def table(results: Dict[str, List[Tuple[float, float]]], frames: int, rate: float) -> str:
@@ -215,20 +340,32 @@ def main(argv=None) -> int:
     parser.add_argument('--frames', type=int, default=40)
     parser.add_argument('--rate', type=float, default=10.0)
     parser.add_argument('--rounds', type=int, default=3)
+    parser.add_argument('--opcodes', action='store_true',
+                        help='count the Python opcodes per message instead of timing (one run '
+                             'per mode)')
     parser.add_argument('--role', choices=('pub', 'sub'), help=argparse.SUPPRESS)
     parser.add_argument('--mode', choices=MODES, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.frames <= SKIP:
         parser.error(f'--frames must be more than {SKIP} (the first {SKIP} are left out), '
                      f'got {args.frames}')
+    count = OpcodeCount() if args.opcodes else None
     if args.role == 'pub':
-        run_publisher(args.mode, args.frames, args.rate)
+        run_publisher(args.mode, args.frames, args.rate, count)
         return 0
     if args.role == 'sub':
-        print(json.dumps(run_subscriber(args.mode, args.frames, args.rate)))
+        print(json.dumps(run_subscriber(args.mode, args.frames, args.rate, count)))
         return 0
     os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids(1)[0])  # the processes inherit it
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    if args.opcodes:
+        counts = {}
+        for mode in MODES:
+            counts[mode] = count_opcodes(mode, args.frames, args.rate)
+            print(f'{mode}: counted', flush=True)
+        print()
+        print(opcode_table(counts, args.frames, args.rate))
+        return 0
     results: Dict[str, List[Tuple[float, float]]] = {mode: [] for mode in MODES}
     for index in range(args.rounds):
         for mode in MODES:
