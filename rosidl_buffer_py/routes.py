@@ -341,6 +341,8 @@ class _Cached(NamedTuple):
 
 
 def _steady_dispatch(plan: Plan, routes: Dict[Hashable, Route]) -> Optional[Dispatch]:
+    """The one Dispatch of every message under ``plan``, or None when a message may change a
+    route (a fence to take, a main-topic write to note)."""
     if plan.main or any(routes[key].state is RouteState.FENCING for key in plan.channel):
         return None
     return Dispatch((), tuple((key, None) for key in plan.channel), False, plan.withheld, None)
