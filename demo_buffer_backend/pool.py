@@ -196,8 +196,7 @@ class Pool:
         def renewed(slot: Slot) -> bool:
             if not self.slots.renew(slot, pin.size, self.links.gone):
                 return False
-            pin.generation = slot.generation
-            pin.packed = pin.descriptor()
+            pin.follow_slot()
             return True
         return self._wait(pin, timeout, renewed)
 

@@ -71,18 +71,21 @@ class Pin:
     def __init__(self, owner: 'Slots', slot: Slot, size: int) -> None:
         self.owner = owner
         self.slot = slot
-        self.generation = slot.generation
         self.size = size
-        #: the descriptor of this generation, packed here, before the frame is published
-        #: (every endpoint described gets these bytes; ``renew`` packs the next generation's)
-        self.packed = self.descriptor()
+        self.generation = 0
+        #: the descriptor of ``generation``, packed before the frame is published (every
+        #: endpoint described gets these bytes)
+        self.packed = b''
+        self.follow_slot()
 
-    def descriptor(self) -> bytes:
-        """The descriptor of the pinned bytes in this generation of the slot."""
+    def follow_slot(self) -> None:
+        """Pin the slot's current generation (made, or renewed for a new frame): its
+        generation and its descriptor, packed now."""
         owner = self.owner
-        return codec.pack(codec.Descriptor(owner.pid, owner.nonce, self.slot.id,
-                                           self.generation, 0, self.size),
-                          owner.medium.descriptor_magic)
+        self.generation = self.slot.generation
+        self.packed = codec.pack(codec.Descriptor(owner.pid, owner.nonce, self.slot.id,
+                                                  self.generation, 0, self.size),
+                                 owner.medium.descriptor_magic)
 
     @property
     def segment(self) -> Tuple[int, int]:
