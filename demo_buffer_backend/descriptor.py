@@ -38,25 +38,39 @@ def pack(desc: Descriptor, magic: bytes = MAGIC) -> bytes:
 
 
 def unpack(data, magic: bytes = MAGIC) -> Descriptor:
-    """Parse and validate a descriptor received from the network; ``ValueError`` otherwise."""
+    """Parse and validate a descriptor received from the network; ``ValueError`` otherwise.
+
+    A valid one passes one test (it runs for every message taken); what is wrong with another
+    :func:`_invalid` says."""
+    try:
+        found, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
+            offset, size = _LAYOUT.unpack(data)
+    except (TypeError, struct.error):
+        raise _invalid(data, magic) from None
+    if (found != magic or version != VERSION or reserved1 or reserved2 or reserved3 or
+            not pid or not generation or size > MAX_SIZE or offset > MAX_SIZE):
+        raise _invalid(data, magic)
+    return Descriptor(pid, nonce, segment_id, generation, offset, size)
+
+
+def _invalid(data, magic: bytes) -> ValueError:
+    """What is wrong with ``data``, which :func:`unpack` refused."""
     try:
         data = bytes(data)
     except TypeError:
-        raise ValueError(f'demo descriptor must be bytes, got {type(data).__name__}') from None
+        return ValueError(f'demo descriptor must be bytes, got {type(data).__name__}')
     if len(data) != SIZE:
-        raise ValueError(f'demo descriptor has {len(data)} bytes, expected {SIZE}')
-    found, version, reserved1, reserved2, pid, nonce, segment_id, reserved3, generation, \
-        offset, size = _LAYOUT.unpack(data)
+        return ValueError(f'demo descriptor has {len(data)} bytes, expected {SIZE}')
+    found, version, reserved1, reserved2, pid, _, _, reserved3, generation, offset, size = \
+        _LAYOUT.unpack(data)
     if found != magic:
-        raise ValueError(f'not a demo descriptor (magic {found!r}, expected {magic!r})')
+        return ValueError(f'not a demo descriptor (magic {found!r}, expected {magic!r})')
     if version != VERSION:
-        raise ValueError(f'unsupported demo descriptor version {version} (expected {VERSION})')
+        return ValueError(f'unsupported demo descriptor version {version} (expected {VERSION})')
     if reserved1 or reserved2 or reserved3:
-        raise ValueError('demo descriptor has non-zero reserved bits')
+        return ValueError('demo descriptor has non-zero reserved bits')
     if pid == 0:
-        raise ValueError('demo descriptor names publisher pid 0')
+        return ValueError('demo descriptor names publisher pid 0')
     if generation == 0:
-        raise ValueError('demo descriptor generation 0 is never published')
-    if size > MAX_SIZE or offset > MAX_SIZE:
-        raise ValueError(f'demo descriptor offset {offset} / size {size} is implausibly large')
-    return Descriptor(pid, nonce, segment_id, generation, offset, size)
+        return ValueError('demo descriptor generation 0 is never published')
+    return ValueError(f'demo descriptor offset {offset} / size {size} is implausibly large')

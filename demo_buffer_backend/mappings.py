@@ -107,6 +107,10 @@ class Mappings:
         self.by_key: Dict[SegmentKey, Mapping] = {}
         self.per_process: Dict[int, int] = {}  #: publisher pid -> its segments mapped
         self.last_sweep = 0.0  #: time.monotonic() of the last drain of the inbox
+        #: takes not yet acknowledged, in take order: (connection, segment id, generation).
+        #: A take is acknowledged once its view is let go or the next descriptor is opened,
+        #: whichever comes first: off the path from the take to the callback (see :meth:`open`)
+        self.unacked: List[Tuple[socket.socket, int, int]] = []
 
     def __len__(self) -> int:
         return len(self.by_key)
@@ -147,6 +151,8 @@ class Mappings:
         """Take every segment handed over meanwhile (never blocks), note the publishers that
         hung up, then close the segments nobody can use any more."""
         self.last_sweep = time.monotonic()
+        if self.unacked:
+            self.acknowledge()
         self._settle_reads()
         for delivery in self.inbox.drain():
             self._take_delivery(delivery)
@@ -256,8 +262,22 @@ class Mappings:
                     waiting.append((mapping, fence))
             self.reading = waiting
 
+    def acknowledge(self) -> None:
+        """Tell the publishers of the takes not yet acknowledged that they were taken (their
+        ledgers count them taken: :mod:`.ledgers`), in take order."""
+        unacked, self.unacked = self.unacked, []
+        for conn, segment_id, generation in unacked:
+            if conn.fileno() < 0:  # its publisher hung up meanwhile
+                continue
+            if not handover.send_reply(conn, ReplyKind.TAKEN, segment_id, generation):
+                self.counters.acks_unsent += 1
+
     def release(self, mapping: Mapping) -> None:
-        """A hold is dropped (run through the guard): the last one unlocks the segment."""
+        """A hold is dropped (run through the guard): the last one unlocks the segment, after
+        the takes are acknowledged (a publisher then never finds the segment unlocked while a
+        take of it still counts as in flight)."""
+        if self.unacked:
+            self.acknowledge()
         mapping.refs -= 1
         if mapping.refs == 0 and not mapping.closed:
             memory.unlock(mapping.received.fd)
@@ -267,6 +287,7 @@ class Mappings:
     def close(self) -> None:
         """Close every segment. Views still alive keep their memory (the kernel frees it with
         them)."""
+        self.acknowledge()
         self.reading = []
         for mapping in list(self.by_key.values()):
             self._close(mapping)
@@ -278,58 +299,69 @@ class Mappings:
         self.by_key = {}
         self.per_process = {}
         self.reading = []
+        self.unacked = []
         return fds
 
     # --- taking -------------------------------------------------------------------------------
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:
         """A read-only view of the bytes ``d`` names and the hold that protects it;
-        ``ValueError`` saying why not."""
-        key = (d.pid, d.nonce, d.segment_id)  # finds the SegmentKey (a tuple) it equals
+        ``ValueError`` saying why not. (It runs for every descriptor taken: each value it reads
+        is read once.)"""
+        if self.unacked:  # what was taken before this (a view still held)
+            self.acknowledge()
         if self.reading:
             self._settle_reads()
-        mapping = self.by_key.get(key)
-        if mapping is None or time.monotonic() - self.last_sweep >= limits.SWEEP_INTERVAL:
+        now = time.monotonic()
+        mapping = self.by_key.get((d.pid, d.nonce, d.segment_id))  # equals the SegmentKey
+        if mapping is None or now - self.last_sweep >= limits.SWEEP_INTERVAL:
             self.receive()
-            mapping = self.by_key.get(key)
+            mapping = self.by_key.get((d.pid, d.nonce, d.segment_id))
         if mapping is None or mapping.retired:
             raise ValueError(f'{self.medium.name} descriptor names segment {d.segment_id} of '
                              f'publisher pid '
                              f'{d.pid}, which that process did not hand to this one (or '
                              'removed since)')
-        capacity = mapping.received.capacity
-        if d.offset > capacity or d.size > capacity - d.offset:
-            raise ValueError(f'demo descriptor range [{d.offset}, {d.offset + d.size}) is '
-                             f'outside its segment ({capacity} data bytes)')
-        if mapping.refs == 0 and not _acquire_hold(mapping.received.fd):
+        received = mapping.received
+        offset, size = d.offset, d.size
+        if offset > received.capacity or size > received.capacity - offset:
+            raise ValueError(f'demo descriptor range [{offset}, {offset + size}) is '
+                             f'outside its segment ({received.capacity} data bytes)')
+        if mapping.refs == 0 and not _acquire_hold(received.fd):
             self.counters.stale += 1
             raise ValueError(f'demo descriptor for segment {d.segment_id} generation '
                              f'{d.generation} is stale: its publisher is reusing the slot')
         mapping.refs += 1
         try:
-            _, _, generation, *recorded = memory.HEADER.unpack_from(mapping.received.map)
-            if generation != d.generation:
-                self.counters.stale += 1
-                raise ValueError(f'demo descriptor for segment {d.segment_id} is stale: '
-                                 f'generation {d.generation}, the slot is at {generation}')
-            if recorded != [d.offset, d.size]:
-                raise ValueError(f'demo descriptor names bytes [{d.offset}, {d.offset + d.size})'
-                                 f' but its publisher recorded [{recorded[0]}, '
-                                 f'{sum(recorded)}) for generation {generation}')
+            _, _, generation, recorded_offset, recorded_size = memory.HEADER.unpack_from(
+                received.map)
         except BaseException:
             self.release(mapping)
             raise
-        self._acknowledge(mapping, d)
-        mapping.last_used = time.monotonic()
-        self.counters.taken += 1
-        return mapping.view[d.offset:d.offset + d.size], Hold(self, mapping, generation)
-
-    def _acknowledge(self, mapping: Mapping, d: codec.Descriptor) -> None:
+        if generation != d.generation or recorded_offset != offset or recorded_size != size:
+            self.release(mapping)
+            raise self._mismatch(d, generation, recorded_offset, recorded_size)
         if mapping.conn is not None:
-            if not handover.send_reply(mapping.conn, ReplyKind.TAKEN, d.segment_id,
-                                       d.generation):
-                self.counters.acks_unsent += 1
-        elif d.pid == self.slots.pid and d.nonce == self.slots.nonce:
-            self.slots.acknowledge(d.segment_id, d.generation, self.token)
+            # acknowledged when the view is let go or the next descriptor opened: its
+            # publisher's ledger learns of it at its next allocate or renew either way, and
+            # the system call is not made between the take and the callback
+            self.unacked.append((mapping.conn, d.segment_id, generation))
+        elif d.pid == self.slots.pid and d.nonce == self.slots.nonce:  # ours
+            self.slots.acknowledge(d.segment_id, generation, self.token)
+        mapping.last_used = now
+        self.counters.taken += 1
+        return mapping.view[offset:offset + size], Hold(self, mapping, generation)
+
+    def _mismatch(self, d: codec.Descriptor, generation: int, recorded_offset: int,
+                  recorded_size: int) -> ValueError:
+        """Why ``d`` does not name what its segment's header records (``generation`` and the
+        bytes ``[recorded_offset, +recorded_size)``): stale (counted), or a wrong range."""
+        if generation != d.generation:
+            self.counters.stale += 1
+            return ValueError(f'demo descriptor for segment {d.segment_id} is stale: '
+                              f'generation {d.generation}, the slot is at {generation}')
+        return ValueError(f'demo descriptor names bytes [{d.offset}, {d.offset + d.size}) but '
+                          f'its publisher recorded [{recorded_offset}, '
+                          f'{recorded_offset + recorded_size}) for generation {generation}')
 
 
 def _close_all(fds: Sequence[int]) -> None:

@@ -73,7 +73,27 @@ def test_a_handed_over_segment_opens_read_only_and_the_take_is_acked(ends):
     assert hold.segment == (os.getpid(), pin.slot.id) and hold.generation == desc.generation
     assert ends.subscriber.counters.handovers_received == 1
     ends.links.drain(ends.links.get(ends.token))
+    # acknowledged once the view is let go, not between the take and the callback
+    assert pin.slot.taken == {} and ends.publisher.counters.acks == 0
+    del view, hold
+    gc.collect()
+    ends.links.drain(ends.links.get(ends.token))
     assert pin.slot.taken == {ends.token: 1} and ends.publisher.counters.acks == 1
+
+
+def test_a_take_still_held_is_acknowledged_before_the_next_one_opens(ends):
+    first_pin, first = ends.publish(b'first')
+    held = ends.mappings.open(first)
+    second_pin, second = ends.publish(b'second')
+    assert second_pin.slot is not first_pin.slot
+    view, hold = ends.mappings.open(second)
+    ends.links.drain(ends.links.get(ends.token))
+    assert first_pin.slot.taken == {ends.token: 1} and second_pin.slot.taken == {}
+    del view, hold
+    gc.collect()
+    ends.links.drain(ends.links.get(ends.token))
+    assert second_pin.slot.taken == {ends.token: 1} and ends.publisher.counters.acks == 2
+    assert bytes(held[0]) == b'first'
 
 
 def test_a_hold_keeps_the_publisher_from_reusing_the_slot(ends):
