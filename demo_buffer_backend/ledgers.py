@@ -132,7 +132,12 @@ def _past_share(inflight: Deque[InFlight], history_known: bool, depth: int = 0) 
            share.max_pool_bytes)
     # the share looked up once per value of what it depends on: full() asks on every descriptor
     count, nbytes = _SHARES.get(key) or _share(key)
-    return len(inflight) >= count or sum(e.slot.capacity for e in inflight) >= nbytes
+    if len(inflight) >= count:
+        return True
+    pinned = 0  # (a loop, not sum() of a generator: one frame less on every descriptor)
+    for entry in inflight:
+        pinned += entry.slot.capacity
+    return pinned >= nbytes
 
 
 #: (history known, depth, the limits it reads) -> (descriptors, bytes): an endpoint's share

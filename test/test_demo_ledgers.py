@@ -123,3 +123,67 @@ def test_reused_slots_leave_the_ledger_and_are_not_given_up(new_slot):
     _send(ledger, new_slot(), counters)
     assert counters.released_window == 0 and not slot.released
     assert [e.generation for e in ledger.inflight] == [1]
+
+
+def _settled_by_the_rules(entries, token, per_channel):
+    """The rule settle() follows for what leaves, as one plain walk: reclaimed entries and
+    those the endpoint took or gave up leave; on one channel, a take gives up every older entry
+    still kept (counted while its slot is current). Returns (kept entries, given up)."""
+    kept, skipped = [], 0
+    for entry in entries:
+        slot = entry.slot
+        if slot.closed or slot.generation != entry.generation:
+            continue
+        if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
+            if per_channel:
+                for older in kept:
+                    if not older.slot.closed and older.slot.generation == older.generation:
+                        older.slot.released[token] = older.slot.released.get(token, 0) + 1
+                        skipped += 1
+                kept = []
+            continue
+        kept.append(entry)
+    return kept, skipped
+
+
+def test_settle_follows_the_rules_for_random_takes_reclaims_and_closes(new_slot):
+    """What settle() keeps and gives up (no window, no share) is what the rule gives, for
+    random takes, reused and removed slots, on one channel and on several."""
+    import random
+    rng = random.Random(30)
+    limits.configure(max_inflight_per_peer=1000)
+    slots = [new_slot() for _ in range(6)]
+
+    def counts():
+        return [(dict(s.sent), dict(s.taken), dict(s.released)) for s in slots]
+
+    def restore(saved):
+        for slot, (sent, taken, released) in zip(slots, saved):
+            slot.sent, slot.taken, slot.released = dict(sent), dict(taken), dict(released)
+
+    for trial in range(400):
+        per_channel = trial % 2 == 0
+        ledger, counters = EndpointLedger(TOKEN, depth=0, per_channel=per_channel), Counters()
+        for slot in slots:
+            slot.start_generation(slot.generation + 1, 10)
+            slot.closed = False
+        for _ in range(rng.randrange(1, 8)):
+            _send(ledger, rng.choice(slots), counters)
+        for slot in slots:  # the endpoint takes some, a few slots are reused or removed
+            if slot.sent and rng.random() < 0.4:
+                slot.taken[TOKEN] = slot.sent[TOKEN] - rng.randrange(2)
+            if rng.random() < 0.1:
+                slot.start_generation(slot.generation + 1, 10)
+            elif rng.random() < 0.05:
+                slot.closed = True
+        before, saved = list(ledger.inflight), counts()
+        kept, skipped = _settled_by_the_rules(before, TOKEN, per_channel)
+        expected = counts()
+        restore(saved)
+        ledger.seq += 1
+        counters = Counters()
+        ledger.settle(counters)
+        assert list(ledger.inflight) == kept, (trial, before)
+        assert counters.released_skipped == skipped and counts() == expected, trial
+    for slot in slots:
+        slot.closed = False
