@@ -28,11 +28,11 @@ A ledger counts per process token in its slots (``sent``, ``taken``, ``released`
 endpoints of one process share those counts, which is why the in-order rule applies only to a
 ledger of one channel (``per_channel``).
 """
-import collections
-from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Tuple
+from typing import Callable, List, NamedTuple, Optional, Tuple
+
+from rosidl_buffer_py._native import LedgerCore
 
 from demo_buffer_backend import limits
-from demo_buffer_backend.diagnostics import Counters
 from demo_buffer_backend.slots import Slot
 
 
@@ -44,114 +44,53 @@ class InFlight(NamedTuple):
     seq: int  #: the endpoint's message number it was sent with
 
 
-class EndpointLedger:
+class EndpointLedger(LedgerCore):
     """The descriptors in flight to one subscriber endpoint (see the module docstring).
 
     ``token``: the endpoint's process. ``depth``: its KEEP_LAST history depth, 0 for KEEP_ALL,
     None when unknown (or when the ledger may see the messages of several channels: not
     ``per_channel``). ``delivered``: whether its reader received everything sent so far
     (``EndpointInfo.delivered``; None: not known, what was sent counts).
+
+    Its rules run natively (``rosidl_buffer_py._native.LedgerCore``: they run for every
+    descriptor, where each Python line costs ten to thirty times its warm cost):
+
+    - ``record(slot)``: one descriptor of the slot's generation is sent with the current
+      message number ``seq``;
+    - ``settle(counters)``: bring the in-flight list up to date before message ``seq`` is sent:
+      drop what the endpoint took or what was reclaimed, give up what it can no longer take
+      and, when its history is not known, what exceeds its share;
+    - ``full()``: the endpoint, whose history is known, has its share of the pool in flight,
+      all of it still takeable: its next message goes as CPU bytes (after ``settle``).
+
+    Its share is :meth:`_share`'s, asked again whenever the limits it depends on change.
     """
 
-    __slots__ = ('token', 'depth', 'per_channel', 'delivered', 'seq', 'inflight')
+    __slots__ = ()
 
     def __init__(self, token: str, depth: Optional[int] = None, per_channel: bool = True,
                  delivered: Optional[Callable[[], bool]] = None) -> None:
-        self.token = token
-        self.depth = depth
-        self.per_channel = per_channel
-        self.delivered = delivered
-        self.seq = 0  #: messages described for the endpoint
-        self.inflight: Deque[InFlight] = collections.deque()
+        super().__init__(token, depth, per_channel, delivered, limits.current)
+
+    @property
+    def inflight(self) -> List[InFlight]:
+        """The descriptors in flight, oldest first."""
+        return [InFlight(*entry) for entry in self._entries()]
 
     def summary(self) -> dict:
         return {'token': self.token, 'depth': self.depth, 'messages': self.seq,
-                'in_flight': len(self.inflight)}
+                'in_flight': self.in_flight}
 
-    def record(self, slot: Slot) -> None:
-        """One descriptor of the slot's generation is sent with the current message number."""
-        slot.sent[self.token] = slot.sent.get(self.token, 0) + 1
-        self.inflight.append(InFlight(slot, slot.generation, self.seq))
-
-    def settle(self, counters: Counters) -> None:
-        """Bring the in-flight list up to date before message ``seq`` is sent: drop what the
-        endpoint took or what was reclaimed, give up what it can no longer take and, when its
-        history is not known, what exceeds its share."""
-        if not self.inflight:  # nothing to settle (an endpoint that keeps up, between frames)
-            return
-        token = self.token
-        kept: List[InFlight] = []
-        for entry in self.inflight:
-            slot = entry.slot
-            # reclaimed or removed: nothing left to protect (slot.current(), inlined: this runs
-            # for every entry on every message)
-            if slot.closed or slot.generation != entry.generation:
-                continue
-            if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
-                if self.per_channel:  # taken in order: what it had not taken, it dropped
-                    for skipped in kept:
-                        counters.released_skipped += self._give_up(skipped)
-                    kept = []
-                continue
-            kept.append(entry)
-        inflight = collections.deque(kept)
-        depth = self.depth
-        if depth and inflight:  # seq is the message being described now
-            # what was sent counts (N newer), or, with ``delivered``, what reached the reader:
-            # everything up to seq - 1, so more than N newer must have been sent
-            behind = depth if self.delivered is None else depth + 1
-            if self.seq - inflight[0].seq >= behind and (
-                    self.delivered is None or self.delivered()):
-                while inflight and self.seq - inflight[0].seq >= behind:
-                    counters.released_window += self._give_up(inflight.popleft())
-        if depth is None:  # it may no longer hold its oldest: give them up
-            while inflight and _past_share(inflight, history_known=False):
-                counters.released_share += self._give_up(inflight.popleft())
-        self.inflight = inflight
-
-    def full(self) -> bool:
-        """The endpoint, whose history is known, has its share of the pool in flight, all of it
-        still takeable: its next message goes as CPU bytes (after :meth:`settle`)."""
-        return (self.depth is not None and bool(self.inflight) and
-                _past_share(self.inflight, history_known=True, depth=self.depth))
-
-    def _give_up(self, entry: InFlight) -> bool:
-        """Stop ``entry`` pinning its slot; False when the slot moved on meanwhile."""
-        slot = entry.slot
-        if slot.closed or slot.generation != entry.generation:
-            return False
-        slot.released[self.token] = slot.released.get(self.token, 0) + 1
-        return True
-
-
-def _past_share(inflight: Deque[InFlight], history_known: bool, depth: int = 0) -> bool:
-    """Whether ``inflight`` holds an endpoint's share of the pool (descriptors or bytes); for
-    a KEEP_LAST ``depth``, at most :func:`keep_last_share` descriptors."""
-    share = limits.current
-    key = (history_known, depth, share.max_inflight_per_peer, share.max_slots,
-           share.max_pool_bytes)
-    # the share looked up once per value of what it depends on: full() asks on every descriptor
-    count, nbytes = _SHARES.get(key) or _share(key)
-    if len(inflight) >= count:
-        return True
-    pinned = 0  # (a loop, not sum() of a generator: one frame less on every descriptor)
-    for entry in inflight:
-        pinned += entry.slot.capacity
-    return pinned >= nbytes
-
-
-#: (history known, depth, the limits it reads) -> (descriptors, bytes): an endpoint's share
-_SHARES: Dict[Tuple[bool, int, int, int, int], Tuple[int, int]] = {}
-
-
-def _share(key: Tuple[bool, int, int, int, int]) -> Tuple[int, int]:
-    history_known, depth = key[:2]
-    share = limits.current
-    count = share.endpoint_share(history_known)
-    if depth:
-        count = min(count, keep_last_share(depth))
-    found = _SHARES[key] = (count, share.endpoint_share_bytes(history_known))
-    return found
+    @staticmethod
+    def _share(history_known: bool, depth: int) -> Tuple[int, int]:
+        """(descriptors, bytes) an endpoint may have in flight: its share of the pool (see
+        :class:`~.limits.Limits`), and for a KEEP_LAST ``depth`` at most
+        :func:`keep_last_share` descriptors."""
+        share = limits.current
+        count = share.endpoint_share(history_known)
+        if depth:
+            count = min(count, keep_last_share(depth))
+        return count, share.endpoint_share_bytes(history_known)
 
 
 def keep_last_share(depth: int) -> int:

@@ -6,7 +6,7 @@ Every function taking an endpoint, a node or a guard condition accepts the rclpy
 :class:`DdsError`; an entity of another rmw raises :class:`UnsupportedRmwError`; wrong
 arguments raise ``TypeError``/``ValueError``.
 """
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 from typing_extensions import Buffer as _Bytes  # anything with the buffer protocol
 
@@ -280,3 +280,23 @@ def recv_records(fd: int, size: int) -> Tuple[bytes, bool]:
     """``(records, hung_up)``: the records of exactly ``size`` bytes queued on a SOCK_SEQPACKET
     socket, joined (others skipped), read without blocking and without raising when none is
     left; ``hung_up`` when the peer closed or the socket failed."""
+
+
+class LedgerCore:
+    """The rules of a demo backend endpoint ledger, run natively: the base of
+    :class:`demo_buffer_backend.ledgers.EndpointLedger`, which supplies ``_share``."""
+
+    token: str
+    seq: int
+    per_channel: bool
+    depth: Optional[int]
+    delivered: Optional[Callable[[], bool]]
+
+    def __init__(self, token: str, depth: Optional[int], per_channel: bool,
+                 delivered: Optional[Callable[[], bool]], limits: Any) -> None: ...
+    @property
+    def in_flight(self) -> int: ...
+    def record(self, slot: Any) -> None: ...
+    def settle(self, counters: Any) -> None: ...
+    def full(self) -> bool: ...
+    def _entries(self) -> List[Tuple[Any, int, int]]: ...

@@ -1,13 +1,15 @@
 """Unit tests of the demo backend's per-endpoint ledgers (demo_buffer_backend/ledgers.py): what
 an endpoint gives up by its KEEP_LAST window (once newer messages reached its reader), by taking
 in order and, when its history is not bounded or not known, past its share."""
+import collections
 import os
+import random
 
 import pytest
 
 from demo_buffer_backend import limits, memory
 from demo_buffer_backend.diagnostics import Counters
-from demo_buffer_backend.ledgers import EndpointLedger, keep_last_share
+from demo_buffer_backend.ledgers import EndpointLedger, InFlight, keep_last_share
 from demo_buffer_backend.slots import Slot
 
 TOKEN = f'{os.getpid()}_00000000000000aa'
@@ -125,65 +127,109 @@ def test_reused_slots_leave_the_ledger_and_are_not_given_up(new_slot):
     assert [e.generation for e in ledger.inflight] == [1]
 
 
-def _settled_by_the_rules(entries, token, per_channel):
-    """The rule settle() follows for what leaves, as one plain walk: reclaimed entries and
-    those the endpoint took or gave up leave; on one channel, a take gives up every older entry
-    still kept (counted while its slot is current). Returns (kept entries, given up)."""
-    kept, skipped = [], 0
-    for entry in entries:
+class _RuleModel:
+    """The ledger's rules as plain Python (how EndpointLedger ran them before they moved to
+    native code): the model the native rules must follow, operation by operation."""
+
+    def __init__(self, token, depth, per_channel, delivered):
+        self.token, self.depth, self.per_channel = token, depth, per_channel
+        self.delivered, self.seq, self.inflight = delivered, 0, collections.deque()
+
+    def record(self, slot):
+        slot.sent[self.token] = slot.sent.get(self.token, 0) + 1
+        self.inflight.append(InFlight(slot, slot.generation, self.seq))
+
+    def settle(self, counters):
+        token, kept = self.token, []
+        for entry in self.inflight:
+            slot = entry.slot
+            if slot.closed or slot.generation != entry.generation:
+                continue
+            if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
+                if self.per_channel:
+                    for skipped in kept:
+                        counters.released_skipped += self._give_up(skipped)
+                    kept = []
+                continue
+            kept.append(entry)
+        inflight = collections.deque(kept)
+        depth = self.depth
+        if depth and inflight:
+            behind = depth if self.delivered is None else depth + 1
+            if self.seq - inflight[0].seq >= behind and (
+                    self.delivered is None or self.delivered()):
+                while inflight and self.seq - inflight[0].seq >= behind:
+                    counters.released_window += self._give_up(inflight.popleft())
+        if depth is None:
+            while inflight and self._past_share(inflight, False, 0):
+                counters.released_share += self._give_up(inflight.popleft())
+        self.inflight = inflight
+
+    def full(self):
+        return (self.depth is not None and bool(self.inflight) and
+                self._past_share(self.inflight, True, self.depth))
+
+    def _give_up(self, entry):
         slot = entry.slot
         if slot.closed or slot.generation != entry.generation:
-            continue
-        if slot.taken.get(token, 0) + slot.released.get(token, 0) >= slot.sent.get(token, 0):
-            if per_channel:
-                for older in kept:
-                    if not older.slot.closed and older.slot.generation == older.generation:
-                        older.slot.released[token] = older.slot.released.get(token, 0) + 1
-                        skipped += 1
-                kept = []
-            continue
-        kept.append(entry)
-    return kept, skipped
+            return False
+        slot.released[self.token] = slot.released.get(self.token, 0) + 1
+        return True
+
+    @staticmethod
+    def _past_share(inflight, history_known, depth):
+        count, nbytes = EndpointLedger._share(history_known, depth)
+        return len(inflight) >= count or sum(e.slot.capacity for e in inflight) >= nbytes
 
 
-def test_settle_follows_the_rules_for_random_takes_reclaims_and_closes(new_slot):
-    """What settle() keeps and gives up (no window, no share) is what the rule gives, for
-    random takes, reused and removed slots, on one channel and on several."""
-    import random
+def test_the_native_rules_are_the_model_rules(new_slot):
+    """Random runs of what the pool does (describe: seq, settle, full, record) and of what
+    happens meanwhile (takes, acks lost, slots reused or removed, readers that stop receiving,
+    limits changed) on the native ledger and on the plain-Python model, each on its own slots:
+    the same in-flight lists, counters, slot counts and verdicts after every step."""
     rng = random.Random(30)
-    limits.configure(max_inflight_per_peer=1000)
-    slots = [new_slot() for _ in range(6)]
-
-    def counts():
-        return [(dict(s.sent), dict(s.taken), dict(s.released)) for s in slots]
-
-    def restore(saved):
-        for slot, (sent, taken, released) in zip(slots, saved):
-            slot.sent, slot.taken, slot.released = dict(sent), dict(taken), dict(released)
-
-    for trial in range(400):
-        per_channel = trial % 2 == 0
-        ledger, counters = EndpointLedger(TOKEN, depth=0, per_channel=per_channel), Counters()
-        for slot in slots:
-            slot.start_generation(slot.generation + 1, 10)
-            slot.closed = False
-        for _ in range(rng.randrange(1, 8)):
-            _send(ledger, rng.choice(slots), counters)
-        for slot in slots:  # the endpoint takes some, a few slots are reused or removed
-            if slot.sent and rng.random() < 0.4:
-                slot.taken[TOKEN] = slot.sent[TOKEN] - rng.randrange(2)
-            if rng.random() < 0.1:
-                slot.start_generation(slot.generation + 1, 10)
-            elif rng.random() < 0.05:
-                slot.closed = True
-        before, saved = list(ledger.inflight), counts()
-        kept, skipped = _settled_by_the_rules(before, TOKEN, per_channel)
-        expected = counts()
-        restore(saved)
-        ledger.seq += 1
-        counters = Counters()
-        ledger.settle(counters)
-        assert list(ledger.inflight) == kept, (trial, before)
-        assert counters.released_skipped == skipped and counts() == expected, trial
-    for slot in slots:
-        slot.closed = False
+    for trial in range(300):
+        depth = rng.choice((None, 0, 1, 2, 5))
+        per_channel = rng.random() < 0.7
+        reached = [True]
+        delivered = (lambda: reached[0]) if rng.random() < 0.5 else None
+        limits.configure(max_inflight_per_peer=rng.choice((0, 2, 4)),
+                         max_slots=rng.choice((6, 64)),
+                         max_pool_bytes=rng.choice((8, 64)) * memory.PAGE_SIZE)
+        ours = EndpointLedger(TOKEN, depth=depth, per_channel=per_channel, delivered=delivered)
+        model = _RuleModel(TOKEN, depth, per_channel, delivered)
+        pairs = [(new_slot(), new_slot()) for _ in range(5)]
+        index = {id(slot): n for n, pair in enumerate(pairs) for slot in pair}
+        ours_counters, model_counters = Counters(), Counters()
+        for step in range(rng.randrange(1, 25)):
+            action = rng.random()
+            if action < 0.5:  # describe one message
+                native_slot, model_slot = rng.choice(pairs)
+                for ledger, counters in ((ours, ours_counters), (model, model_counters)):
+                    ledger.seq += 1
+                    ledger.settle(counters)
+                full = ours.full()
+                assert full == model.full(), (trial, step)
+                if not full:
+                    ours.record(native_slot)
+                    model.record(model_slot)
+            elif action < 0.7:  # the endpoint takes what it was sent of a slot
+                native_slot, model_slot = rng.choice(pairs)
+                for slot in (native_slot, model_slot):
+                    slot.taken[TOKEN] = slot.sent.get(TOKEN, 0)
+            elif action < 0.8:  # a slot is reused, or removed
+                reused = rng.random() < 0.8
+                for slot in rng.choice(pairs):
+                    if reused:
+                        slot.start_generation(slot.generation + 1, 10)
+                    else:
+                        slot.closed = True
+            elif action < 0.9:  # its reader stops or resumes receiving
+                reached[0] = not reached[0]
+            else:  # the limits change
+                limits.configure(max_inflight_per_peer=rng.choice((0, 1, 3)))
+            assert [(index[id(e.slot)], e.generation, e.seq) for e in ours.inflight] == \
+                [(index[id(e.slot)], e.generation, e.seq) for e in model.inflight], (trial, step)
+            assert ours_counters == model_counters, (trial, step)
+            assert [(a.sent, a.taken, a.released) for a, _ in pairs] == \
+                [(b.sent, b.taken, b.released) for _, b in pairs], (trial, step)

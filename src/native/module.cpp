@@ -7,8 +7,10 @@
 //                 take with publisher GID.
 //   dlpack_capsule - raw host or device memory as a DLPack capsule that keeps its owner alive.
 //   recv_records - a SOCK_SEQPACKET socket's queued records, read without raising.
+//   LedgerCore - the demo backend's ledger rules, run on every descriptor described (#30).
 #include "buffer_base.hpp"
 #include "dds_common.hpp"
+#include "demo_ledger.hpp"
 #include "dlpack_export.hpp"
 #include "records.hpp"
 
@@ -32,7 +34,8 @@ PyMODINIT_FUNC PyInit__native(void)
     return nullptr;
   }
   if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0 ||
-    add_dlpack_export(module) < 0 || add_records(module) < 0)
+    add_dlpack_export(module) < 0 || add_records(module) < 0 ||
+    add_demo_ledger_type(module) < 0)
   {
     Py_DECREF(module);
     return nullptr;
