@@ -37,6 +37,12 @@ def pack(desc: Descriptor, magic: bytes = MAGIC) -> bytes:
                         desc.generation, desc.offset, desc.size)
 
 
+def prefix(magic: bytes = MAGIC) -> bytes:
+    """The first 8 bytes of every valid descriptor with ``magic``: the magic, the version and
+    the zero reserved bytes (what native code compares in one go)."""
+    return _LAYOUT.pack(magic, VERSION, 0, 0, 0, 0, 0, 0, 0, 0, 0)[:8]
+
+
 def unpack(data, magic: bytes = MAGIC) -> Descriptor:
     """Parse and validate a descriptor received from the network; ``ValueError`` otherwise.
 

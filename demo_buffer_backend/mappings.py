@@ -14,10 +14,13 @@ process's own slots the same way (:meth:`Mappings.adopt_own`).
 
 Callers hold the pool's guard (:mod:`.guard`); a hold is dropped through it.
 """
+import functools
 import os
 import socket
 import time
 from typing import Any, Dict, List, NamedTuple, Optional, Sequence, Tuple
+
+from rosidl_buffer_py._native import open_mapped
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -111,6 +114,10 @@ class Mappings:
         #: A take is acknowledged once its view is let go or the next descriptor is opened,
         #: whichever comes first: off the path from the take to the callback (see :meth:`open`)
         self.unacked: List[Tuple[socket.socket, int, int]] = []
+        #: the native open of a descriptor of this medium (see :meth:`take`)
+        self._open_mapped = functools.partial(
+            open_mapped, codec.prefix(medium.descriptor_magic), memory.SHARED_LOCK_REQUEST,
+            memory.UNLOCK_REQUEST, self.counters)
 
     def __len__(self) -> int:
         return len(self.by_key)
@@ -303,6 +310,28 @@ class Mappings:
         return fds
 
     # --- taking -------------------------------------------------------------------------------
+    def take(self, raw) -> Tuple[memoryview, Hold]:
+        """A read-only view of the bytes the descriptor ``raw`` (from the network) names and
+        the hold that protects it; ``ValueError`` saying why not.
+
+        A well-formed descriptor of a segment that is mapped and current is opened in one
+        native call (``_native.open_mapped``, the same checks and steps as :meth:`open`: every
+        line of it would run on cold caches); anything else, and a take when the inbox is due
+        for a sweep, by :meth:`open`, which receives what was handed over or says why not."""
+        if self.unacked:  # what was taken before this (a view still held)
+            self.acknowledge()
+        if self.reading:
+            self._settle_reads()
+        now = time.monotonic()
+        if now - self.last_sweep < limits.SWEEP_INTERVAL:
+            opened = self._open_mapped(raw, self.by_key, self.unacked, now)
+            if opened is not None:
+                view, mapping, generation, acknowledged_later = opened
+                if not acknowledged_later:
+                    self._acknowledge_own(mapping.key, generation)
+                return view, Hold(self, mapping, generation)
+        return self.open(codec.unpack(raw, self.medium.descriptor_magic))
+
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:
         """A read-only view of the bytes ``d`` names and the hold that protects it;
         ``ValueError`` saying why not. (It runs for every descriptor taken: each value it reads
@@ -345,11 +374,17 @@ class Mappings:
             # publisher's ledger learns of it at its next allocate or renew either way, and
             # the system call is not made between the take and the callback
             self.unacked.append((mapping.conn, d.segment_id, generation))
-        elif d.pid == self.slots.pid and d.nonce == self.slots.nonce:  # ours
-            self.slots.acknowledge(d.segment_id, generation, self.token)
+        else:
+            self._acknowledge_own(mapping.key, generation)
         mapping.last_used = now
         self.counters.taken += 1
         return mapping.view[offset:offset + size], Hold(self, mapping, generation)
+
+    def _acknowledge_own(self, key: SegmentKey, generation: int) -> None:
+        """A take of a segment without a connection: one of ours (an in-process subscription)
+        is counted taken at once; one of a publisher that hung up needs no acknowledgment."""
+        if key.pid == self.slots.pid and key.nonce == self.slots.nonce:
+            self.slots.acknowledge(key.segment_id, generation, self.token)
 
     def _mismatch(self, d: codec.Descriptor, generation: int, recorded_offset: int,
                   recorded_size: int) -> ValueError:

@@ -42,6 +42,10 @@ _F_OFD_SETLK = getattr(fcntl, 'F_OFD_SETLK', 37)
 #: The three requests on the hold byte, packed once (every message locks and unlocks it)
 _WRLCK, _RDLCK, _UNLCK = (_FLOCK.pack(kind, os.SEEK_SET, HOLD_BYTE, 1, 0)
                           for kind in (fcntl.F_WRLCK, fcntl.F_RDLCK, fcntl.F_UNLCK))
+#: The shared lock and the unlock of the hold byte as packed requests, for the native open
+#: (``rosidl_buffer_py._native.open_mapped``), which takes a subscriber's hold as
+#: :func:`try_lock` does.
+SHARED_LOCK_REQUEST, UNLOCK_REQUEST = _RDLCK, _UNLCK
 
 
 def _close(data, mapped: mmap.mmap, fd: int) -> None:

@@ -264,11 +264,11 @@ class Pool:
         ``ValueError`` (counted, warned about once per cause) when it names none."""
         with self.guard:
             try:
-                d = codec.unpack(raw, self.medium.descriptor_magic)
                 if self.closed:
+                    codec.unpack(raw, self.medium.descriptor_magic)  # malformed: says so first
                     raise ValueError(f'the {self.medium.name} backend of this process is '
                                      'shut down')
-                return self.mappings.open(d)
+                return self.mappings.take(raw)
             except ValueError as exc:
                 self.counters.rejected += 1
                 self.diagnostics.warn_once(f'reject_{exc}',

@@ -300,3 +300,12 @@ class LedgerCore:
     def settle(self, counters: Any) -> None: ...
     def full(self) -> bool: ...
     def _entries(self) -> List[Tuple[Any, int, int]]: ...
+
+
+def open_mapped(prefix: bytes, read_lock: bytes, unlock: bytes, counters: Any, raw: Any,
+                by_key: Dict[Any, Any], unacked: List[Any], now: float
+                ) -> Optional[Tuple[memoryview, Any, int, bool]]:
+    """The demo descriptor ``raw`` opened, ``(view, mapping, generation, acknowledged later)``,
+    for a well-formed one (its first 8 bytes ``prefix``) of a current segment in ``by_key``,
+    as :meth:`demo_buffer_backend.mappings.Mappings.open` opens it; None, with nothing
+    changed, for anything else."""

@@ -341,3 +341,96 @@ def test_replies_on_a_closed_link_say_hung_up(link_pair):
     link.sock.close()
     theirs.close()
     assert link.replies() == ([], True)
+
+
+def _take_all(ends, raws):
+    """What taking each of ``raws`` gives: the view's bytes and the hold's generation, or the
+    error's text; the holds are kept."""
+    outcomes, holds = [], []
+    for raw in raws:
+        try:
+            view, hold = ends.mappings.take(raw)
+        except ValueError as exc:
+            outcomes.append(('refused', str(exc)))
+            continue
+        outcomes.append(('opened', bytes(view), view.readonly, hold.generation, hold.segment))
+        holds.append((view, hold))
+    return outcomes, holds
+
+
+def _native_open_scenario(ends):
+    """Good and bad descriptors of two segments, through every state the open checks."""
+    pin, good = ends.publish(b'alpha' * 20)
+    other_pin, other = ends.publish(b'beta' * 30)
+    forged = [good._replace(**change) for change in (
+        {'generation': good.generation + 1}, {'offset': 5, 'size': good.size - 5},
+        {'size': good.size - 1}, {'size': 1 << 30}, {'offset': 1 << 41}, {'pid': good.pid + 1},
+        {'segment_id': good.segment_id + 100}, {'nonce': good.nonce ^ 1},
+        {'generation': 0}, {'pid': 0})]
+    packed = codec.pack(good)
+    raws = [packed, packed, memoryview(packed), bytearray(packed), codec.pack(other)]
+    raws += [codec.pack(d) for d in forged]
+    raws += [b'XXXX' + packed[4:], packed[:4] + b'\x09' + packed[5:],
+             packed[:6] + b'\x01' + packed[7:], packed[:24] + b'\x01' + packed[25:],
+             packed[:-1], packed + b'\x00', b'', 12345, 'text']
+    first, holds = _take_all(ends, raws)
+    refs = sorted(m.refs for m in ends.mappings.by_key.values())
+    del holds
+    gc.collect()
+    ends.links.drain(ends.links.get(ends.token))
+    taken = (pin.slot.taken.get(ends.token), other_pin.slot.taken.get(ends.token))
+    # its publisher holds the slot (renewing it): a take is refused as stale
+    assert memory.try_lock(pin.slot.segment.fd, exclusive=True)
+    held_out, _ = _take_all(ends, [packed])
+    memory.unlock(pin.slot.segment.fd)
+    # a reused slot, then a retired one
+    assert ends.slots.renew(pin.slot, 10, gone=set())
+    pin.follow_slot()
+    reused, holds = _take_all(ends, [packed, codec.pack(good._replace(
+        generation=pin.generation, size=10))])
+    del holds
+    gc.collect()
+    ends.slots.remove(other_pin.slot)
+    ends.mappings.receive()
+    retired, _ = _take_all(ends, [codec.pack(other)])
+    counters = ends.subscriber.counters.as_dict()
+    return first, refs, taken, held_out, reused, retired, counters
+
+
+def test_the_native_open_gives_what_the_python_open_gives():
+    """The same descriptors, good and bad, through every state the open checks (mapped or not,
+    current or stale, the range recorded or not, held by its publisher, retired), taken with
+    the native open and with the Python open alone, each in a pair of ends of its own: the same
+    views and errors, holds, acknowledgments and counters."""
+    results = []
+    for native in (True, False):
+        made = Ends()
+        try:
+            if not native:
+                made.mappings._open_mapped = lambda *args: None
+            results.append(_native_open_scenario(made))
+        finally:
+            made.close()
+    assert results[0] == results[1]
+    first = results[0][0]
+    assert [kind for kind, *_ in first[:5]] == ['opened'] * 5
+    assert sum(kind == 'refused' for kind, *_ in first) == len(first) - 5
+
+
+def test_a_mapped_current_segment_opens_natively(ends):
+    """Only a take the native open cannot make goes through the Python open (the first of a
+    segment not received yet, anything refused)."""
+    pin, desc = ends.publish(b'n' * 64)
+    opened_in_python = []
+    python_open = ends.mappings.open
+
+    def counting_open(d):
+        opened_in_python.append(d)
+        return python_open(d)
+    ends.mappings.open = counting_open
+    ends.mappings.last_sweep = 0.0  # the first take sweeps: the Python open receives it
+    holds = [ends.mappings.take(codec.pack(desc)) for _ in range(3)]
+    assert len(opened_in_python) == 1 and [bytes(v) for v, _ in holds] == [b'n' * 64] * 3
+    with pytest.raises(ValueError, match='stale'):
+        ends.mappings.take(codec.pack(desc._replace(generation=desc.generation + 1)))
+    assert len(opened_in_python) == 2
