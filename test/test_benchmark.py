@@ -298,7 +298,7 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
             completed.stdout
     demo_only = ['backend describe (demo ledger)',
                  "descriptor message write (encoded in the DDS write's call)",
-                 'backend open (demo pool)', 'of it: segment checks, hold lock and ack']
+                 'backend open (demo pool)', 'of it: segment checks and hold lock']
     ours = ['writes (descriptor or CPU message)',
             'channel takes (empty ones too; descriptor messages decoded in them)',
             'delivery path: take to message'] + demo_only

@@ -107,7 +107,7 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
     if transport == 'demo':
         stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',
                     '  backend open (demo pool)')
-        stages.wrap(mappings.Mappings, 'open', '    of it: segment checks, hold lock and ack')
+        stages.wrap(mappings.Mappings, 'take', '    of it: segment checks and hold lock')
     stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
 
 
