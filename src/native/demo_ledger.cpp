@@ -22,6 +22,9 @@
 namespace
 {
 
+using rbpy_glue::int_attr;
+using rbpy_glue::intern;
+
 // Attribute names, interned once.
 PyObject * s_closed, * s_generation, * s_capacity, * s_sent, * s_taken, * s_released;
 PyObject * s_released_skipped, * s_released_window, * s_released_share, * s_share;
@@ -56,18 +59,6 @@ struct LedgerObject
 };
 
 LedgerObject * as_ledger(PyObject * self) {return reinterpret_cast<LedgerObject *>(self);}
-
-/// `obj.name` as a long long; -1 with an exception set on error (check PyErr_Occurred()).
-long long int_attr(PyObject * obj, PyObject * name)
-{
-  PyObject * value = PyObject_GetAttr(obj, name);
-  if (value == nullptr) {
-    return -1;
-  }
-  const long long result = PyLong_AsLongLong(value);
-  Py_DECREF(value);
-  return result;
-}
 
 /// `obj.name`, which must be a dict (a new reference), or nullptr with an exception set.
 PyObject * counts_of(PyObject * obj, PyObject * name)
@@ -181,6 +172,21 @@ int give_up(LedgerObject * ledger, const Entry & entry)
 }
 
 void drop(Entry & entry) {Py_CLEAR(entry.slot);}
+
+/// Give up the oldest entry and remove it, adding 1 to `*given` when it still pinned its slot.
+/// False with an exception set on error (the entry then stays).
+bool give_up_oldest(LedgerObject * ledger, long long * given)
+{
+  Entry entry = ledger->inflight->front();
+  const int result = give_up(ledger, entry);
+  if (result < 0) {
+    return false;
+  }
+  ledger->inflight->pop_front();
+  drop(entry);
+  *given += result;
+  return true;
+}
 
 /// The share (descriptors, bytes) for `history_known` and `depth`: cached while the limits
 /// it depends on hold, else the subclass's `_share(history_known, depth)`. False with an
@@ -436,14 +442,9 @@ PyObject * ledger_settle(PyObject * self, PyObject * counters)
       }
       long long window = 0;
       while (delivered && !inflight.empty() && ledger->seq - inflight.front().seq >= behind) {
-        Entry entry = inflight.front();
-        const int given = give_up(ledger, entry);
-        if (given < 0) {
+        if (!give_up_oldest(ledger, &window)) {
           return nullptr;
         }
-        inflight.pop_front();
-        drop(entry);
-        window += given;
       }
       if (add_counter(counters, s_released_window, window) < 0) {
         return nullptr;
@@ -460,14 +461,9 @@ PyObject * ledger_settle(PyObject * self, PyObject * counters)
       if (!past) {
         break;
       }
-      Entry entry = inflight.front();
-      const int given = give_up(ledger, entry);
-      if (given < 0) {
+      if (!give_up_oldest(ledger, &share)) {
         return nullptr;
       }
-      inflight.pop_front();
-      drop(entry);
-      share += given;
     }
     if (add_counter(counters, s_released_share, share) < 0) {
       return nullptr;
@@ -520,36 +516,38 @@ PyObject * ledger_in_flight(PyObject * self, void *)
   return ready(ledger) ? PyLong_FromSize_t(ledger->inflight->size()) : nullptr;
 }
 
-PyObject * ledger_get_depth(PyObject * self, void *)
+/// An optional object field's value (None when unset).
+PyObject * optional(PyObject * field) {return Py_NewRef(field ? field : Py_None);}
+
+/// Set an optional object field to None or a value `accepts`; -1 with the TypeError `message`
+/// otherwise.
+int set_optional(PyObject ** field, PyObject * value, bool accepts, const char * message)
 {
-  PyObject * depth = as_ledger(self)->depth;
-  return Py_NewRef(depth ? depth : Py_None);
+  if (value == nullptr || (value != Py_None && !accepts)) {
+    PyErr_SetString(PyExc_TypeError, message);
+    return -1;
+  }
+  Py_XSETREF(*field, Py_NewRef(value));
+  return 0;
 }
+
+PyObject * ledger_get_depth(PyObject * self, void *) {return optional(as_ledger(self)->depth);}
 
 int ledger_set_depth(PyObject * self, PyObject * value, void *)
 {
-  if (value == nullptr || (value != Py_None && !PyLong_Check(value))) {
-    PyErr_SetString(PyExc_TypeError, "depth must be None or an int");
-    return -1;
-  }
-  Py_XSETREF(as_ledger(self)->depth, Py_NewRef(value));
-  return 0;
+  return set_optional(&as_ledger(self)->depth, value, value && PyLong_Check(value),
+    "depth must be None or an int");
 }
 
 PyObject * ledger_get_delivered(PyObject * self, void *)
 {
-  PyObject * delivered = as_ledger(self)->delivered;
-  return Py_NewRef(delivered ? delivered : Py_None);
+  return optional(as_ledger(self)->delivered);
 }
 
 int ledger_set_delivered(PyObject * self, PyObject * value, void *)
 {
-  if (value == nullptr || (value != Py_None && !PyCallable_Check(value))) {
-    PyErr_SetString(PyExc_TypeError, "delivered must be None or a callable");
-    return -1;
-  }
-  Py_XSETREF(as_ledger(self)->delivered, Py_NewRef(value));
-  return 0;
+  return set_optional(&as_ledger(self)->delivered, value, value && PyCallable_Check(value),
+    "delivered must be None or a callable");
 }
 
 PyMethodDef ledger_methods[] = {
@@ -609,12 +607,6 @@ PyType_Spec ledger_spec = {
   Py_TPFLAGS_DEFAULT | Py_TPFLAGS_BASETYPE | Py_TPFLAGS_HAVE_GC,
   ledger_slots,
 };
-
-bool intern(PyObject ** name, const char * text)
-{
-  *name = PyUnicode_InternFromString(text);
-  return *name != nullptr;
-}
 
 }  // namespace
 

@@ -19,6 +19,9 @@
 namespace
 {
 
+using rbpy_glue::int_attr;
+using rbpy_glue::intern;
+
 PyObject * s_retired, * s_received, * s_refs, * s_conn, * s_view, * s_capacity, * s_fd, * s_map;
 PyObject * s_last_used, * s_taken;
 
@@ -40,18 +43,6 @@ T read_le(const unsigned char * at)
 
 /// Borrowed-free attribute read: `obj.name` as a new reference, or nullptr with an exception.
 PyObject * attr(PyObject * obj, PyObject * name) {return PyObject_GetAttr(obj, name);}
-
-/// `obj.name` as a long long; -1 with an exception set on error (check PyErr_Occurred()).
-long long int_attr(PyObject * obj, PyObject * name)
-{
-  PyObject * value = attr(obj, name);
-  if (value == nullptr) {
-    return -1;
-  }
-  const long long result = PyLong_AsLongLong(value);
-  Py_DECREF(value);
-  return result;
-}
 
 /// Copy a packed `struct flock` (bytes of exactly its size) into `out`.
 bool flock_of(PyObject * packed, struct flock * out)
@@ -292,12 +283,6 @@ PyMethodDef open_functions[] = {
     "for anything else."},
   RBPY_METHODS_END,
 };
-
-bool intern(PyObject ** name, const char * text)
-{
-  *name = PyUnicode_InternFromString(text);
-  return *name != nullptr;
-}
 
 }  // namespace
 

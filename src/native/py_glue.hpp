@@ -102,6 +102,26 @@ inline PyObject * add_type(PyObject * module, PyType_Spec * spec)
   return add_object(module, dot ? dot + 1 : spec->name, Py_XNewRef(type)) < 0 ? nullptr : type;
 }
 
+/// Intern `text` into `*name` (an attribute name read on a hot path). False with an exception
+/// set on error.
+inline bool intern(PyObject ** name, const char * text)
+{
+  *name = PyUnicode_InternFromString(text);
+  return *name != nullptr;
+}
+
+/// `obj.name` as a long long; -1 with an exception set on error (check PyErr_Occurred()).
+inline long long int_attr(PyObject * obj, PyObject * name)
+{
+  PyObject * value = PyObject_GetAttr(obj, name);
+  if (value == nullptr) {
+    return -1;
+  }
+  const long long result = PyLong_AsLongLong(value);
+  Py_DECREF(value);
+  return result;
+}
+
 }  // namespace rbpy_glue
 
 #endif  // ROSIDL_BUFFER_PY_NATIVE__PY_GLUE_HPP_
