@@ -112,7 +112,7 @@ class Mappings:
         self.last_sweep = 0.0  #: time.monotonic() of the last drain of the inbox
         #: takes not yet acknowledged, in take order: (connection, segment id, generation).
         #: A take is acknowledged once its view is let go or the next descriptor is opened,
-        #: whichever comes first: off the path from the take to the callback (see :meth:`open`)
+        #: whichever comes first: off the path from the take to the callback (see :meth:`take`)
         self.unacked: List[Tuple[socket.socket, int, int]] = []
         #: the native open of a descriptor of this medium (see :meth:`take`)
         self._open_mapped = functools.partial(
@@ -334,8 +334,9 @@ class Mappings:
 
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:
         """A read-only view of the bytes ``d`` names and the hold that protects it;
-        ``ValueError`` saying why not. (It runs for every descriptor taken: each value it reads
-        is read once.)"""
+        ``ValueError`` saying why not: the whole open, which :meth:`take` runs for what the
+        native open hands back (it receives handovers, waits for a lock its publisher holds,
+        and says what is wrong)."""
         if self.unacked:  # what was taken before this (a view still held)
             self.acknowledge()
         if self.reading:
