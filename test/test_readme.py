@@ -61,6 +61,8 @@ COVERAGE = {
     './dev bench foundation': 'here',
     './dev bench transport': 'here',                      # with fewer frames and payloads
     './dev bench transport --payloads "1 KiB" --frames 60 --rate 5 --rounds 8': 'here',  # fewer
+    './dev bench transport --payloads "1 KiB" "3840x2160 rgb8" --frames 30 --rate 10 '
+    '--rounds 3': 'here',                                 # fewer frames, one round
     './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     './dev bench bare': 'test_benchmark.py',              # 8 frames, one round
     './dev bench bare --opcodes': 'test_benchmark.py',    # 8 frames
@@ -313,13 +315,17 @@ def test_dev_bench_prints_the_table():
     bench = run('./dev bench foundation', 300)
     assert bench.returncode == 0, bench.stderr[-2000:]
     assert '| 3840x2160 rgb8 | 24,883,200 |' in bench.stdout
-    # the documented rounds command, with fewer frames and rounds (./dev bench transport alone
-    # is the same code with every payload, one round)
-    [command] = [c for c in COVERAGE if c.startswith('./dev bench transport --')]
-    transport = run(command.replace('--frames 60', '--frames 5').replace('--rounds 8',
-                                                                         '--rounds 2'), 300)
-    assert transport.returncode == 0, transport.stderr[-2000:]
-    assert '| 1 KiB |' in transport.stdout
+    # the documented rounds commands, with fewer frames and rounds (./dev bench transport
+    # alone is the same code with every payload, one round)
+    commands = [c for c in COVERAGE if c.startswith('./dev bench transport --')]
+    assert len(commands) == 2, commands
+    for command in commands:
+        transport = run(re.sub(r'--frames \d+', '--frames 4',
+                               re.sub(r'--rounds \d+', '--rounds 1', command)), 300)
+        assert transport.returncode == 0, transport.stderr[-2000:]
+        assert '| 1 KiB |' in transport.stdout, transport.stdout
+    assert '| 3840x2160 rgb8 |' in transport.stdout and \
+        'demo 3840x2160 / stock 1 KiB p50 per round' in transport.stdout, transport.stdout
 
 
 @dev_only
