@@ -363,7 +363,7 @@ def _native_open_scenario(ends):
     pin, good = ends.publish(b'alpha' * 20)
     other_pin, other = ends.publish(b'beta' * 30)
     forged = [good._replace(**change) for change in (
-        {'generation': good.generation + 1}, {'offset': 5, 'size': good.size - 5},
+        {'generation': good.generation + 1}, {'offset': 5}, {'offset': 5, 'size': good.size - 5},
         {'size': good.size - 1}, {'size': 1 << 30}, {'offset': 1 << 41}, {'pid': good.pid + 1},
         {'segment_id': good.segment_id + 100}, {'nonce': good.nonce ^ 1},
         {'generation': 0}, {'pid': 0})]

@@ -27,7 +27,7 @@ using rbpy_glue::intern;
 
 // Attribute names, interned once.
 PyObject * s_closed, * s_generation, * s_capacity, * s_sent, * s_taken, * s_released;
-PyObject * s_released_skipped, * s_released_window, * s_released_share, * s_share;
+PyObject * s_released_skipped, * s_released_window, * s_released_share;
 PyObject * s_max_inflight_per_peer, * s_max_slots, * s_max_pool_bytes;
 
 struct Entry
@@ -381,35 +381,33 @@ PyObject * ledger_settle(PyObject * self, PyObject * counters)
   // it had not taken before it. The list is replaced only once the walk succeeded.
   std::deque<Entry> kept;  // its entries hold references of their own
   long long skipped = 0;
-  const auto abandon = [&kept]() -> PyObject * {
+  const auto release_kept = [&kept]() {
       for (Entry & entry : kept) {
         drop(entry);
       }
-      return nullptr;
+      kept.clear();
     };
   for (const Entry & entry : inflight) {
     const int is_current = current(entry);
-    if (is_current < 0) {
-      return abandon();
+    const int is_settled = is_current > 0 ? settled(entry.slot, ledger->token) : 0;
+    if (is_current < 0 || is_settled < 0) {
+      release_kept();
+      return nullptr;
     }
     if (is_current == 0) {  // reclaimed or removed: nothing left to protect
       continue;
-    }
-    const int is_settled = settled(entry.slot, ledger->token);
-    if (is_settled < 0) {
-      return abandon();
     }
     if (is_settled) {
       if (ledger->per_channel) {  // taken in order: what it had not taken, it dropped
         for (const Entry & older : kept) {
           const int given = give_up(ledger, older);
           if (given < 0) {
-            return abandon();
+            release_kept();
+            return nullptr;
           }
           skipped += given;
         }
-        abandon();
-        kept.clear();
+        release_kept();
       }
       continue;
     }
@@ -617,7 +615,7 @@ int add_demo_ledger_type(PyObject * module)
     !intern(&s_taken, "taken") || !intern(&s_released, "released") ||
     !intern(&s_released_skipped, "released_skipped") ||
     !intern(&s_released_window, "released_window") ||
-    !intern(&s_released_share, "released_share") || !intern(&s_share, "_share") ||
+    !intern(&s_released_share, "released_share") ||
     !intern(&s_max_inflight_per_peer, "max_inflight_per_peer") ||
     !intern(&s_max_slots, "max_slots") || !intern(&s_max_pool_bytes, "max_pool_bytes"))
   {

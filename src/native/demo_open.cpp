@@ -10,7 +10,6 @@
 
 #include <fcntl.h>
 
-#include <cerrno>
 #include <cstdint>
 #include <cstring>
 
@@ -40,9 +39,6 @@ T read_le(const unsigned char * at)
   std::memcpy(&value, at, sizeof(T));  // little-endian host (x86_64, aarch64)
   return value;
 }
-
-/// Borrowed-free attribute read: `obj.name` as a new reference, or nullptr with an exception.
-PyObject * attr(PyObject * obj, PyObject * name) {return PyObject_GetAttr(obj, name);}
 
 /// Copy a packed `struct flock` (bytes of exactly its size) into `out`.
 bool flock_of(PyObject * packed, struct flock * out)
@@ -100,7 +96,7 @@ bool parse(PyObject * raw, PyObject * prefix, Descriptor * d)
 /// set on error.
 bool header_of(PyObject * received, uint64_t * generation, uint64_t * offset, uint64_t * size)
 {
-  PyObject * map = attr(received, s_map);
+  PyObject * map = PyObject_GetAttr(received, s_map);
   if (map == nullptr) {
     return false;
   }
@@ -167,26 +163,21 @@ PyObject * open_mapped(PyObject *, PyObject * const * args, Py_ssize_t nargs)
     Py_RETURN_NONE;  // not (yet) handed over: the Python open receives, or says why not
   }
   Py_INCREF(mapping);
-  PyObject * received = nullptr, * conn = nullptr, * result = nullptr;
+  PyObject * received = nullptr, * conn = nullptr, * record = nullptr, * view = nullptr;
+  PyObject * part = nullptr, * result = nullptr;
   struct flock lock_request, unlock_request;
-  long long refs = 0, capacity = 0, fd = -1;
+  long long refs = 0, capacity = 0, fd = -1, taken = 0;
   uint64_t generation = 0, recorded_offset = 0, recorded_size = 0;
   bool locked = false;
-  PyObject * retired = attr(mapping, s_retired);
+  PyObject * retired = PyObject_GetAttr(mapping, s_retired);
   const int is_retired = retired ? PyObject_IsTrue(retired) : -1;
   Py_XDECREF(retired);
   if (is_retired != 0) {
     goto done;  // error, or retired: the Python open says why
   }
-  received = attr(mapping, s_received);
-  if (received == nullptr) {
-    goto done;
-  }
-  capacity = int_attr(received, s_capacity);
-  if (PyErr_Occurred()) {
-    goto done;
-  }
-  if (d.offset > static_cast<uint64_t>(capacity) ||
+  received = PyObject_GetAttr(mapping, s_received);
+  capacity = received ? int_attr(received, s_capacity) : -1;
+  if (PyErr_Occurred() || d.offset > static_cast<uint64_t>(capacity) ||
     d.size > static_cast<uint64_t>(capacity) - d.offset)
   {
     goto done;
@@ -213,48 +204,33 @@ PyObject * open_mapped(PyObject *, PyObject * const * args, Py_ssize_t nargs)
   if (generation != d.generation || recorded_offset != d.offset || recorded_size != d.size) {
     goto done;  // stale, or not what its publisher recorded: the Python open says which
   }
+  // what can fail first (the acknowledgment record, the view, the answer), then the take is
+  // committed
+  conn = PyObject_GetAttr(mapping, s_conn);
+  if (conn != nullptr && conn != Py_None) {  // acknowledged once the view is let go
+    record = Py_BuildValue("(Okk)", conn, static_cast<unsigned long>(d.segment_id),
+        static_cast<unsigned long>(generation));
+  }
+  view = conn && (conn == Py_None || record) ? PyObject_GetAttr(mapping, s_view) : nullptr;
+  part = view ? PySequence_GetSlice(view, static_cast<Py_ssize_t>(d.offset),
+      static_cast<Py_ssize_t>(d.offset + d.size)) : nullptr;
+  taken = part ? int_attr(counters, s_taken) : -1;
+  result = part && !PyErr_Occurred() ?
+    Py_BuildValue("(OOKO)", part, mapping, static_cast<unsigned long long>(generation),
+      conn != Py_None ? Py_True : Py_False) : nullptr;
+  if (result == nullptr || set_attr(mapping, s_refs, PyLong_FromLongLong(refs + 1)) < 0) {
+    Py_CLEAR(result);
+    goto done;
+  }
+  locked = false;  // the hold owns the lock from here on
+  if ((record != nullptr && PyList_Append(unacked, record) < 0) ||
+    set_attr(mapping, s_last_used, Py_NewRef(now)) < 0 ||
+    set_attr(counters, s_taken, PyLong_FromLongLong(taken + 1)) < 0)
   {
-    // what can fail first, then the take is committed
-    conn = attr(mapping, s_conn);
-    PyObject * record = nullptr, * part = nullptr;
-    if (conn != nullptr && conn != Py_None) {  // acknowledged once the view is let go
-      record = Py_BuildValue("(Okk)", conn, static_cast<unsigned long>(d.segment_id),
-          static_cast<unsigned long>(generation));
-    }
-    if (conn != nullptr && (conn == Py_None || record != nullptr)) {
-      PyObject * view = attr(mapping, s_view);
-      PyObject * start = view ? PyLong_FromUnsignedLongLong(d.offset) : nullptr;
-      PyObject * stop = start ? PyLong_FromUnsignedLongLong(d.offset + d.size) : nullptr;
-      PyObject * slice = stop ? PySlice_New(start, stop, nullptr) : nullptr;
-      part = slice ? PyObject_GetItem(view, slice) : nullptr;
-      Py_XDECREF(slice);
-      Py_XDECREF(stop);
-      Py_XDECREF(start);
-      Py_XDECREF(view);
-    }
-    const long long taken = part ? int_attr(counters, s_taken) : -1;
-    if (part == nullptr || PyErr_Occurred() ||
-      set_attr(mapping, s_refs, PyLong_FromLongLong(refs + 1)) < 0)
-    {
-      Py_XDECREF(record);
-      Py_XDECREF(part);
-      goto done;
-    }
-    locked = false;  // the hold owns the lock from here on
-    if ((record != nullptr && PyList_Append(unacked, record) < 0) ||
-      set_attr(mapping, s_last_used, Py_NewRef(now)) < 0 ||
-      set_attr(counters, s_taken, PyLong_FromLongLong(taken + 1)) < 0)
-    {
-      // (memory errors only) undo the hold, as the Python open's release would
-      set_attr(mapping, s_refs, PyLong_FromLongLong(refs));
-      locked = refs == 0;
-      Py_XDECREF(record);
-      Py_XDECREF(part);
-      goto done;
-    }
-    Py_XDECREF(record);
-    result = Py_BuildValue("(NOKO)", part, mapping, static_cast<unsigned long long>(generation),
-        conn != Py_None ? Py_True : Py_False);
+    // (memory errors only) undo the hold, as the Python open's release would
+    set_attr(mapping, s_refs, PyLong_FromLongLong(refs));
+    locked = refs == 0;
+    Py_CLEAR(result);
   }
 
 done:
@@ -262,6 +238,9 @@ done:
     rbpy_glue::SavedException saved;
     fcntl(static_cast<int>(fd), F_OFD_SETLK, &unlock_request);
   }
+  Py_XDECREF(part);
+  Py_XDECREF(view);
+  Py_XDECREF(record);
   Py_XDECREF(conn);
   Py_XDECREF(received);
   Py_DECREF(mapping);
