@@ -27,6 +27,7 @@ import weakref
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping, Optional, Protocol
 
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.logging import get_logger
 
 from rosidl_buffer_py import _dds, advertisement
@@ -130,6 +131,25 @@ class ParticipantDiscovery:
         except Exception as exc:  # the participant may already be gone at shutdown
             _logger.debug(f'remove_discovery_wakeup: {exc}')
 
+    def wake_with(self, node) -> None:
+        """Process discovery on the executor that spins ``node``, whatever its endpoints.
+
+        One guard condition per node, not per endpoint: each guard costs the executor a few
+        hundred opcodes on every wake-up, a message's too. The tap triggers it whenever an event
+        arrives. It is in a reentrant callback group of its own, so no callback of the node
+        delays discovery (:meth:`process` serializes itself). rclpy destroys it after the
+        node's endpoints, in ``destroy_node()``: its wakeup goes then, and the participant stops
+        listening if the node is its context's last (rmw destroys the participant with it,
+        before the context shuts down: see :meth:`silence_if_last`).
+        """
+        guard = node.create_guard_condition(self.process, ReentrantCallbackGroup())
+        self.add_wakeup(node, guard)
+        seams.before_guard_destroyed(guard, functools.partial(self._node_destroyed, node, guard))
+
+    def _node_destroyed(self, node, guard) -> None:
+        self.remove_wakeup(guard)
+        self.silence_if_last(node)
+
     def nodes(self) -> List:
         """The live nodes of this participant that use it."""
         with self._lock:
@@ -229,9 +249,7 @@ def for_node(node) -> ParticipantDiscovery:
             return discovery
         else:
             discovery.attach_node(node)
-    # rmw destroys the participant with the context's last node, in destroy_node(), before
-    # the context shuts down: it stops listening first if this node is that last one
-    seams.before_node_handle_destroyed(node, functools.partial(discovery.silence_if_last, node))
+    discovery.wake_with(node)
     return discovery
 
 

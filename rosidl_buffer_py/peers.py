@@ -84,7 +84,6 @@ class PeerTable(Generic[R]):
         self.closed = False
         self._owner = owner
         self._node = node
-        self._callback_group = callback_group
         self._topic_name = topic_name
         self._gid = gid
         self._backends = backends
@@ -93,7 +92,6 @@ class PeerTable(Generic[R]):
         #: moves whenever a record comes or goes (what a publisher's route signature reads)
         self.version = 0
         self._discovery = discovery.for_node(node)
-        self._discovery_guard = None
         self.reannouncer = Reannouncer(node, callback_group, self, announce,
                                        owner.channels_checked)
 
@@ -129,11 +127,9 @@ class PeerTable(Generic[R]):
     # lifetime -------------------------------------------------------------------------------
 
     def open(self) -> None:
-        """Start watching the topic (discovery wakes the executor through a guard condition
-        in the owner's callback group) and take in the peers already known."""
-        self._discovery_guard = self._node.create_guard_condition(
-            self._discovery.process, self._callback_group)
-        self._discovery.add_wakeup(self._node, self._discovery_guard)
+        """Start watching the topic (discovery wakes the executor that spins the node, see
+        :meth:`~rosidl_buffer_py.discovery.ParticipantDiscovery.wake_with`) and take in the
+        peers already known."""
         teardown.track(self)
         with self.lock:
             for peer in self._discovery.watch(dds_topic(self._topic_name), self):
@@ -155,13 +151,10 @@ class PeerTable(Generic[R]):
                 return
             self.closed = True  # from here on on_peer adds nothing
         self._discovery.unwatch(dds_topic(self._topic_name), self)
-        if self._discovery_guard is not None:
-            self._discovery.remove_wakeup(self._discovery_guard)
         with self.lock:
             for gid in list(self._records):
                 self.drop(gid)
-            destroy_node_entities(self._node, [self.reannouncer.timer, self._discovery_guard],
-                                  self._logger)
+            self.reannouncer.close()
             self._owner.release()
         teardown.untrack(self)
 

@@ -46,7 +46,8 @@ from rosidl_buffer_py.diagnostics import PublisherStatistics, SubscriptionPeer
 from rosidl_buffer_py.endpoint import (
     ChannelPeer, EndpointCore, advertise, advertised_backends, buffer_aware, split_deadline)
 from rosidl_buffer_py.message_support import enable_buffer_fields
-from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
+from rosidl_buffer_py.on_demand import OnDemandTimer
+from rosidl_buffer_py.peers import PeerHandlers, PeerTable
 from rosidl_buffer_py.plain import PlainPublisher, check_wait_arguments
 from rosidl_buffer_py.qos import (
     incompatible_qos_once_per_peer, parse_history_metadata, reliable_subscription)
@@ -244,7 +245,6 @@ class Publisher(rclpy.publisher.Publisher):
         super().__init__(publisher_impl, msg_type, topic, qos_profile,
                          event_callbacks=event_callbacks, callback_group=callback_group)
         self._node = node
-        self._callback_group = callback_group
         self._topic_name = super().topic_name  # usable after rclpy destroyed the handle
         self._last_timestamp = 0
         self._sent_main = 0
@@ -260,7 +260,6 @@ class Publisher(rclpy.publisher.Publisher):
         self._exclusions: Optional[bool] = None
         #: the last exclusion registered was not empty (the next main write must re-register)
         self._excluding = False
-        self._route_timer = None
         self._peers_added = 0
         self._peers_removed = 0
         self._polled_at = 0.0
@@ -281,6 +280,8 @@ class Publisher(rclpy.publisher.Publisher):
                                   self._release))
         self._lock = core.lock
         self._logger = core.logger
+        self._route_timer = OnDemandTimer(node, routes.PROBE_INTERVAL_SECONDS,
+                                          self._on_route_timer, callback_group, core.logger)
         self._peers: PeerTable[_SubscriptionPeer] = core.peers
         self._view = _RouteView(self, core.peers)
         core.open()
@@ -487,15 +488,11 @@ class Publisher(rclpy.publisher.Publisher):
 
     def _arm_route_timer(self, needed: bool) -> None:
         """Routes in bring-up (probes, settle time, confirmation) advance on the executor too,
-        not only when a message is published: a timer runs while some route needs it."""
-        timer = self._route_timer
-        if needed and timer is None:
-            self._route_timer = self._node.create_timer(
-                routes.PROBE_INTERVAL_SECONDS, self._on_route_timer, self._callback_group)
-        elif needed and timer.is_canceled():
-            timer.reset()
-        elif not needed and timer is not None and not timer.is_canceled():
-            timer.cancel()
+        not only when a message is published: a timer exists while some route needs it."""
+        if needed:
+            self._route_timer.start()
+        else:
+            self._route_timer.stop()
 
     def _on_route_timer(self) -> None:
         with self._lock:
@@ -570,7 +567,7 @@ class Publisher(rclpy.publisher.Publisher):
                 remove_write_exclusions(self)
             except Exception as exc:  # rclpy already destroyed it (exit): nothing left to do
                 self._logger.debug(f'removing the main-topic exclusions: {exc}')
-        destroy_node_entities(self._node, [self._route_timer], self._logger)
+        self._route_timer.stop()
 
     def _add_peer(self, info: EndpointInfo, backends: Dict[str, str]) -> _SubscriptionPeer:
         # backends account per channel: which local publisher serves this peer, and what its

@@ -134,16 +134,15 @@ def is_c_endpoint(endpoint, kind: str) -> bool:
     return isinstance(endpoint, _rclpy.Publisher if kind == 'publisher' else _rclpy.Subscription)
 
 
-def before_node_handle_destroyed(node, callback: Callable[[], None]) -> None:
-    """Call ``callback()`` in ``node.destroy_node()`` after the node's endpoints are destroyed
-    and before its rcl node is (rmw destroys the context's participant with its last node).
+def before_guard_destroyed(guard, callback: Callable[[], None]) -> None:
+    """Call ``callback()`` when ``guard`` (a guard condition of a node) is destroyed, first. In
+    ``node.destroy_node()`` that is after the node's endpoints are destroyed and before its rcl
+    node is (rmw destroys the context's participant with its last node).
 
     rclpy 7.1's ``Node.destroy_node`` destroys publishers, subscriptions, clients, services,
-    timers, then guard conditions (each through its ``destroy()``), then the node's handle: a
-    guard condition of ours whose ``destroy`` runs ``callback`` first is that point. It never
-    triggers, so executors never call it.
+    timers, then guard conditions (each through its ``destroy()``), then the node's handle: the
+    guard's ``destroy`` is wrapped, on the instance.
     """
-    guard = node.create_guard_condition(lambda: None)
     destroy = guard.destroy
 
     def destroy_after_callback() -> None:

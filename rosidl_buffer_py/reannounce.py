@@ -10,6 +10,8 @@ the node (:meth:`Reannouncer.spinning`).
 import time
 from typing import Callable, Set
 
+from rosidl_buffer_py.on_demand import OnDemandTimer
+
 #: A channel unmatched this long means the peer probably missed our advertisement: re-announce
 #: (at most this often).
 UNMATCHED_REANNOUNCE_SECONDS = 1.0
@@ -32,16 +34,16 @@ class Reannouncer:
     """The re-announce check of one endpoint over its :class:`~rosidl_buffer_py.peers.PeerTable`.
 
     The timer is created with the first peer, calls ``checked`` at each run (a channel may
-    have matched: no DDS event says so), retires (cancels itself) once every channel is
-    matched, and a new peer re-arms it. An endpoint without buffer-aware peers never wakes its
-    executor, as a stock one; each wake-up costs a node about half a millisecond of CPU, which
-    at camera rates was most of what a publisher spent beyond stock rclpy's.
+    have matched: no DDS event says so), retires (is destroyed) once every channel is matched,
+    and a new peer creates it again. An endpoint without buffer-aware peers, or whose peers'
+    channels are all matched, has no timer, as a stock one: it never wakes its executor (each
+    wake-up costs a node about half a millisecond of CPU, which at camera rates was most of
+    what a publisher spent beyond stock rclpy's), and adds nothing to the executor's other
+    wake-ups (see :mod:`rosidl_buffer_py.on_demand`).
     """
 
     def __init__(self, node, callback_group, peers, announce: Callable[[], None],
                  checked: Callable[[], None]) -> None:
-        self._node = node
-        self._callback_group = callback_group
         self._peers = peers
         self._announce = announce
         #: called under the peers' lock after each look at the channels (see
@@ -52,18 +54,19 @@ class Reannouncer:
         self._greeted: Set[bytes] = set()
         self._spun_at = 0.0
         self._retired = False
-        #: the timer (None until the first peer): the owner's node entity
-        self.timer = None
+        #: the timer, running while some peer's channel is to be watched
+        self.timer = OnDemandTimer(node, NEW_PEER_REANNOUNCE_SECONDS, self._on_timer,
+                                   callback_group)
 
     def rearm(self) -> None:
         """A new peer's channel is to be watched (under the lock, on the executor's thread:
         only a spun node retires its timer, and a spun node handles discovery there)."""
-        if self.timer is None:
-            self.timer = self._node.create_timer(
-                NEW_PEER_REANNOUNCE_SECONDS, self._on_timer, self._callback_group)
-        elif self._retired:
-            self._retired = False
-            self.timer.reset()
+        self._retired = False
+        self.timer.start()
+
+    def close(self) -> None:
+        """Stop checking (the endpoint is torn down)."""
+        self.timer.stop()
 
     def spinning(self, now: float) -> bool:
         """Whether an executor runs our node: then discovery wakes us by itself.
@@ -102,5 +105,5 @@ class Reannouncer:
             self._checked()
             if all(peer.channel is None or peer.channel.matched_count() > 0
                    for peer in self._peers):
-                self.timer.cancel()
+                self.timer.stop()
                 self._retired = True

@@ -49,6 +49,7 @@ from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
 from rosidl_buffer_py.endpoint import (
     ChannelPeer, EndpointCore, advertise, advertised_backends, buffer_aware, split_deadline)
 from rosidl_buffer_py.message_support import enable_buffer_fields
+from rosidl_buffer_py.on_demand import OnDemandTimer
 from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
 from rosidl_buffer_py.plain import PlainSubscription
 from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
@@ -263,10 +264,11 @@ class Subscription(rclpy.subscription.Subscription):
         self._lock = core.lock
         self._logger = core.logger
         self._peers: PeerTable[_PublisherPeer] = core.peers
-        self._fence_timer = None
+        self._fence_timer = OnDemandTimer(node, routes.FENCE_TIMEOUT_SECONDS / 4,
+                                          self._on_fence_timer, callback_group, core.logger)
         self._channel_guard = node.create_guard_condition(self._deliver_available,
                                                           callback_group)
-        # discovery wakes its own guard (the table's): data wake-ups do not poll discovery
+        # discovery wakes the node's own guard: data wake-ups do not poll discovery
         core.open()
         reader.take = self._next  # None once closed: _next checks
 
@@ -410,20 +412,15 @@ class Subscription(rclpy.subscription.Subscription):
 
     def _on_fence_timer(self) -> None:
         with self._lock:
-            if self._streams.next_deadline() is None and self._fence_timer is not None:
-                self._fence_timer.cancel()
+            if self._streams.next_deadline() is None:
+                self._fence_timer.stop()
         self._deliver_available()
 
     def _arm_fence_timer(self) -> None:
         """Waiting streams give up on a lost fenced message after FENCE_TIMEOUT_SECONDS: a
-        timer runs while some stream waits."""
-        if self._streams.next_deadline() is None:
-            return
-        if self._fence_timer is None:
-            self._fence_timer = self._node.create_timer(
-                routes.FENCE_TIMEOUT_SECONDS / 4, self._on_fence_timer, self.callback_group)
-        elif self._fence_timer.is_canceled():
-            self._fence_timer.reset()
+        timer exists while some stream waits."""
+        if self._streams.next_deadline() is not None:
+            self._fence_timer.start()
 
     def _call(self, msg, info) -> None:
         if self._callback_type is rclpy.subscription.Subscription.CallbackType.MessageOnly:
@@ -564,7 +561,8 @@ class Subscription(rclpy.subscription.Subscription):
         self._channels = [p for p in self._channels if p.info.gid != record.info.gid]
 
     def _release(self) -> None:
-        destroy_node_entities(self._node, [self._channel_guard, self._fence_timer], self._logger)
+        self._fence_timer.stop()
+        destroy_node_entities(self._node, [self._channel_guard], self._logger)
 
 
 def create_subscription(node, msg_type, topic: str, callback: Callable,

@@ -18,13 +18,7 @@ class Timer:
     timer_period_ns = 1
 
     def __init__(self, callback):
-        self.callback, self.canceled = callback, False
-
-    def cancel(self):
-        self.canceled = True
-
-    def reset(self):
-        self.canceled = False
+        self.callback = callback
 
 
 class Node:
@@ -51,7 +45,7 @@ class Node:
 
 class Discovery:
     def __init__(self):
-        self.watching, self.wakeups, self.known = set(), set(), []
+        self.watching, self.known = set(), []
 
     def watch(self, topic, watcher):
         self.watching.add(topic)
@@ -59,12 +53,6 @@ class Discovery:
 
     def unwatch(self, topic, watcher):
         self.watching.discard(topic)
-
-    def add_wakeup(self, node, guard):
-        self.wakeups.add(guard)
-
-    def remove_wakeup(self, guard):
-        self.wakeups.discard(guard)
 
     def process(self):
         pass
@@ -153,13 +141,13 @@ def peer(gid: bytes, backends=None, kind=EndpointKind.SUBSCRIPTION, local=False)
 
 def test_a_buffer_aware_peer_gets_a_record_and_the_owner_hears_of_it(table):
     t, owner, _, discovery, _ = table
-    assert discovery.watching == {'rt' + TOPIC} and discovery.wakeups
+    assert discovery.watching == {'rt' + TOPIC}
     gid = b'\x01' * 16
     t.on_peer(peer(gid, {'cpu': '', 'demo': 'meta'}))
     # no announcement at once (see test_a_new_peers_unmatched_channel_is_announced_soon)
     assert owner.calls == [('add', gid), ('update', gid, frozenset({'demo'}))]
     assert gid in t and len(t) == 1 and t[gid].created_at > 0
-    assert t.reannouncer.timer is not None  # the first peer brings the unmatched check
+    assert t.reannouncer.timer.running  # the first peer brings the unmatched check
     t.on_peer(peer(b'\x02' * 16, {'cpu': ''}, kind=EndpointKind.PUBLISHER))  # other kind
     assert owner.seen == 1
     t.on_peer(peer(b'\x03' * 16))  # a legacy endpoint: no record, yet routes may change
@@ -183,11 +171,12 @@ def test_a_withdrawn_or_gone_peer_is_dropped_with_its_channel(table):
 def test_close_drops_every_peer_and_releases_the_owner_once(table):
     t, owner, node, discovery, _ = table
     t.on_peer(peer(b'\x01' * 16, {'cpu': ''}, local=True))
+    timer = t.reannouncer.timer.timer
     t.close()
     t.close()
-    assert t.closed and not discovery.watching and not discovery.wakeups
+    assert t.closed and not discovery.watching
     assert owner.calls.count('release') == 1 and len(t) == 0
-    assert t.reannouncer.timer in node.destroyed
+    assert node.destroyed == [timer] and not t.reannouncer.timer.running
     t.on_peer(peer(b'\x02' * 16, {'cpu': ''}))  # nothing is added after teardown
     assert len(t) == 0
 
@@ -197,7 +186,8 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     t, owner, _, _, _ = table
     now = [1000.0]
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
-    t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner.announce,
+    node = Node()
+    t.reannouncer = reannounce.Reannouncer(node, None, t, owner.announce,
                                            owner.channels_checked)
     gid = b'\x01' * 16
     t.on_peer(peer(gid, {'cpu': ''}, local=True))
@@ -208,8 +198,11 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     t.reannouncer._on_timer()
     assert owner.calls == ['announce'] and t.reannouncer.spinning(now[0])
     t[gid].channel.matched = 1
+    timer = t.reannouncer.timer.timer
     t.reannouncer._on_timer()
-    assert t.reannouncer.timer.canceled  # retired: every channel is matched
+    # retired: every channel is matched; destroyed, not cancelled (rclpy's executor waits on
+    # cancelled timers too, and pays for each on every wake-up)
+    assert not t.reannouncer.timer.running and node.destroyed == [timer]
     now[0] += 10 * reannounce.SPIN_EVIDENCE_SECONDS
     assert t.reannouncer.spinning(now[0])  # only a spun node retires its timer
 
@@ -250,6 +243,6 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     assert owner.calls.count('announce') == 3
     t[missed].channel.matched = t[late].channel.matched = 1
     t.reannouncer._on_timer()
-    assert t.reannouncer.timer.canceled
+    assert not t.reannouncer.timer.running
     assert owner.checks == 6  # each run: a channel may have matched (a publisher re-plans)
 

@@ -83,6 +83,34 @@ def test_destroy_node_and_shutdown_in_any_order(order):
     assert not list(node.publishers) and not list(node.subscriptions)
 
 
+def test_the_executor_waits_on_one_guard_per_node_and_one_per_subscription(context):
+    """What a buffer-aware endpoint adds to every wait of the executor (each entity costs it a
+    few hundred opcodes per wake-up, a message's too): one guard condition per node, whatever
+    its endpoints (discovery's), and one per buffer-aware subscription (its channels'). Both
+    discovery wake-ups go with destroy_node(), the node's endpoints first."""
+    from rosidl_buffer_py import _native
+    stock = rclpy.create_node('waits_stock', context=context)
+    node = rclpy.create_node('waits_ours', context=context)
+    other = rclpy.create_node('waits_other', context=context)
+    guards = len(list(node.guards))
+    pubs = [rosidl_buffer_py.create_publisher(node, Image, f'/waits_{i}', RELIABLE)
+            for i in range(2)]
+    subs = [rosidl_buffer_py.create_subscription(node, Image, f'/waits_{i}', lambda m: None,
+                                                 RELIABLE, acceptable_buffer_backends='demo')
+            for i in range(3)]
+    rosidl_buffer_py.create_publisher(other, Image, '/waits_0', RELIABLE)
+    assert len(list(node.guards)) == guards + 1 + len(subs)
+    assert len(list(node.timers)) == len(list(stock.timers))
+    assert _native.discovery_stats(node)['wakeups'] == 2  # one per node
+    for endpoint in pubs + subs:
+        endpoint.destroy()
+    assert len(list(node.guards)) == guards + 1  # the node's discovery goes with the node
+    node.destroy_node()
+    assert _native.discovery_stats(other)['wakeups'] == 1
+    other.destroy_node()
+    stock.destroy_node()
+
+
 def _served_pair(context, name: str, accept: str):
     """A node with a buffer-aware publisher and subscription (``accept``) of ``/<name>``, spun
     until the channel serves: (node, publisher, received messages, executor)."""
