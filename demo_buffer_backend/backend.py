@@ -110,7 +110,7 @@ class DemoBackend(BufferBackend):
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> DemoBuffer:
         view, hold = lifecycle.get_pool().open_descriptor(descriptor)
-        return DemoBuffer(view, keepalive=hold)
+        return DemoBuffer.received(view, hold)
 
     def allocate(self, nbytes: int) -> DemoBuffer:
         return DemoBuffer.allocate(nbytes)

@@ -79,6 +79,13 @@ class DemoBuffer(Buffer):
         self._claim = self._pin or self._hold
 
     @classmethod
+    def received(cls, view: memoryview, hold: Hold) -> 'DemoBuffer':
+        """A subscriber's DemoBuffer over the read-only ``view`` of a segment the pool mapped,
+        which ``hold`` keeps (``cls(view, keepalive=hold)``, without the checks that a view of
+        the pool's own need not pass: it runs for every message received)."""
+        return cls.over_view(BACKEND_TYPE, view, hold, _pin=None, _hold=hold, _claim=hold)
+
+    @classmethod
     def allocate(cls, nbytes: int) -> 'DemoBuffer':
         """A writable DemoBuffer of ``nbytes`` (contents unspecified) to fill in place."""
         if isinstance(nbytes, bool) or not isinstance(nbytes, int):

@@ -51,6 +51,18 @@ class Buffer(BufferBase):
         self._readonly = True if view is None else view.readonly
         self._keepalive = keepalive
 
+    @classmethod
+    def over_view(cls, backend_type: str, view: memoryview, keepalive: Any = None,
+                  **attributes: Any) -> 'Buffer':
+        """What ``cls(backend_type, view, keepalive=keepalive)`` makes, without its checks, for
+        a backend's receive path, where ``view`` is its own mapping's: a 1-D, C-contiguous
+        memoryview of format ``'B'``. ``attributes``: a subclass's own, set on it too."""
+        buffer = cls.__new__(cls)
+        BufferBase.__init__(buffer, view)
+        buffer.__dict__.update(_backend_type=backend_type, _size=view.nbytes,
+                               _readonly=view.readonly, _keepalive=keepalive, **attributes)
+        return buffer
+
     @property
     def backend_type(self) -> str:
         """Name of the backend that owns the memory."""

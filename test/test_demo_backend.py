@@ -192,6 +192,11 @@ def test_descriptor_round_trip_in_process_is_zero_copy_and_read_only(backend):
     assert (buf.pin.slot.id, buf.hold, got.pin) == (buf.segment[1], None, None)
     assert got.hold.mapping.key.segment_id == buf.segment[1]  # what republishing cannot describe
     assert bytes(memoryview(got)) == bytes(memoryview(buf))
+    # the receive path's unchecked constructor makes what the checked one would
+    checked = DemoBuffer(memoryview(got), keepalive=got.hold)
+    assert vars(checked) == vars(got)
+    assert (len(checked), checked.readonly, repr(checked)) == (len(got), True, repr(got))
+    del checked
     numpy.asarray(buf)[0] = 200  # the subscriber's view is the same memory
     assert numpy.asarray(got)[0] == 200
     with pytest.raises(ValueError):
