@@ -24,9 +24,12 @@ process. Everything runs under one guard (:mod:`.guard`); limits and timings are
 :mod:`.limits`, counters and warnings in :mod:`.diagnostics`. Nothing is named in any filesystem:
 what a process holds the kernel frees with it.
 """
+import functools
 import os
 import time
 from typing import Any, Callable, Optional, Tuple
+
+from rosidl_buffer_py._native import describe_linked
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -81,6 +84,8 @@ class Pool:
         self.mappings = Mappings(token, self.inbox, self.slots, self.guard, self.diagnostics,
                                  medium)
         self.porter: Optional[Porter] = None  #: the inbox's thread, from the first advertise()
+        #: the native describe of the steady case (see :meth:`describe`)
+        self._describe_linked = functools.partial(describe_linked, ReplyKind.ACCEPTED)
 
     def _retire(self, slot: Slot) -> None:
         self.links.retire(slot)
@@ -101,8 +106,16 @@ class Pool:
         without the guard, for ``limits.VERDICT_SECONDS`` at most). None (CPU bytes for this
         endpoint) when the pin is stale, the endpoint has its share of the pool in flight (and
         can still take all of it), its process is not of our user, its queue is full, or it
-        refused the link or the segment; ``EndpointGone`` when that process is gone."""
+        refused the link or the segment; ``EndpointGone`` when that process is gone.
+
+        The steady case, a current pin for an endpoint of another process that mapped the
+        slot's segment and has room in its ledger, runs in one native call
+        (``_native.describe_linked``: the same steps as below, for every descriptor sent);
+        anything else, here."""
         with self.guard:
+            descriptor = self._describe_linked(self, pin, ledger)
+            if descriptor is not None:
+                return descriptor
             slot = pin.slot
             # (slot.current(pin.generation), inlined: this runs for every descriptor)
             if pin.owner is not self.slots or slot.closed or slot.generation != pin.generation:

@@ -302,6 +302,13 @@ class LedgerCore:
     def _entries(self) -> List[Tuple[Any, int, int]]: ...
 
 
+def describe_linked(accepted: int, pool: Any, pin: Any, ledger: Any) -> Optional[bytes]:
+    """The pin's packed descriptor for the ledger's endpoint, recorded in flight, as
+    :meth:`demo_buffer_backend.pool.Pool.describe` makes it for a current pin and an endpoint of
+    another process that mapped the segment (its verdict ``accepted``) and has room; None,
+    with nothing changed, for anything else."""
+
+
 def open_mapped(prefix: bytes, read_lock: bytes, unlock: bytes, counters: Any, raw: Any,
                 by_key: Dict[Any, Any], unacked: List[Any], now: float
                 ) -> Optional[Tuple[memoryview, Any, int, bool]]:

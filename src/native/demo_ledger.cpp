@@ -22,6 +22,7 @@
 namespace
 {
 
+using rbpy_glue::add_counter;
 using rbpy_glue::int_attr;
 using rbpy_glue::intern;
 
@@ -106,22 +107,6 @@ int add_count(PyObject * obj, PyObject * name, PyObject * key, long long delta)
   const int result = value ? PyDict_SetItem(counts, key, value) : -1;
   Py_XDECREF(value);
   Py_DECREF(counts);
-  return result;
-}
-
-/// `counters.name += delta`. 0, or -1 with an exception set.
-int add_counter(PyObject * counters, PyObject * name, long long delta)
-{
-  if (delta == 0) {
-    return 0;
-  }
-  const long long now = int_attr(counters, name);
-  if (now == -1 && PyErr_Occurred()) {
-    return -1;
-  }
-  PyObject * value = PyLong_FromLongLong(now + delta);
-  const int result = value ? PyObject_SetAttr(counters, name, value) : -1;
-  Py_XDECREF(value);
   return result;
 }
 

@@ -9,8 +9,10 @@
 //   recv_records - a SOCK_SEQPACKET socket's queued records, read without raising.
 //   LedgerCore - the demo backend's ledger rules, run on every descriptor described (#30).
 //   open_mapped - a demo descriptor's view opened, for every descriptor taken (#30).
+//   describe_linked - a demo descriptor described, for every descriptor sent (#30).
 #include "buffer_base.hpp"
 #include "dds_common.hpp"
+#include "demo_describe.hpp"
 #include "demo_ledger.hpp"
 #include "demo_open.hpp"
 #include "dlpack_export.hpp"
@@ -37,7 +39,8 @@ PyMODINIT_FUNC PyInit__native(void)
   }
   if (add_buffer_base_type(module) < 0 || add_dds_api(module) < 0 ||
     add_dlpack_export(module) < 0 || add_records(module) < 0 ||
-    add_demo_ledger_type(module) < 0 || add_demo_open(module) < 0)
+    add_demo_ledger_type(module) < 0 || add_demo_open(module) < 0 ||
+    add_demo_describe(module) < 0)
   {
     Py_DECREF(module);
     return nullptr;

@@ -122,6 +122,22 @@ inline long long int_attr(PyObject * obj, PyObject * name)
   return result;
 }
 
+/// `obj.name += delta` (an int attribute, a counter). 0, or -1 with an exception set.
+inline int add_counter(PyObject * obj, PyObject * name, long long delta)
+{
+  if (delta == 0) {
+    return 0;
+  }
+  const long long now = int_attr(obj, name);
+  if (now == -1 && PyErr_Occurred()) {
+    return -1;
+  }
+  PyObject * value = PyLong_FromLongLong(now + delta);
+  const int result = value ? PyObject_SetAttr(obj, name, value) : -1;
+  Py_XDECREF(value);
+  return result;
+}
+
 }  // namespace rbpy_glue
 
 #endif  // ROSIDL_BUFFER_PY_NATIVE__PY_GLUE_HPP_

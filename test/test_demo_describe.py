@@ -1,0 +1,184 @@
+"""Pool.describe's steady case runs natively (``_native.describe_linked``): the same random runs
+of frames, describes, takes and releases, through two pools of this process (a publisher's and
+a subscriber's, with its inbox thread), with the native call and with the Python path alone,
+give the same descriptors, ledgers, slots and counters after every step; and so does every
+state the native call hands back to the Python path, forged one at a time."""
+import gc
+import os
+import random
+
+import pytest
+
+from rosidl_buffer_py.backend import EndpointGone
+
+from demo_buffer_backend import descriptor as codec
+from demo_buffer_backend import handover, limits
+from demo_buffer_backend.ledgers import EndpointLedger
+from demo_buffer_backend.pool import Pool
+
+PUBLISHER_GID = b'\x01' * 16
+#: small enough that endpoints' shares fill and slots are reused within a run
+LIMITS = {'max_slots': 6, 'max_pool_bytes': 6 * 4096, 'max_inflight_per_peer': 2}
+
+
+def _state(publisher: Pool, ledgers, tokens) -> tuple:
+    """What a describe reads and writes, tokens named by role (each run has its own)."""
+    def named(counts):
+        return sorted((tokens[token], n) for token, n in counts.items())
+    by_use = sorted(publisher.slots.by_id.values(), key=lambda slot: slot.last_used)
+    slots = tuple((slot.id, slot.generation, slot.closed, named(slot.sent), named(slot.taken),
+                   named(slot.released), slot.pins, by_use.index(slot))  # (its use's rank)
+                  for slot in publisher.slots.by_id.values())
+    ledger_rows = tuple((ledger.seq, tuple((entry.slot.id, entry.generation, entry.seq)
+                                           for entry in ledger.inflight)) for ledger in ledgers)
+    counters = {key: value for key, value in publisher.counters.as_dict().items()
+                if not key.startswith('verdicts_')}
+    return slots, ledger_rows, counters
+
+
+def _run(native: bool, seed: int) -> list:
+    """One random run; every step's outcome and the state after it."""
+    publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
+    natively = [0]
+    if native:
+        linked = publisher._describe_linked
+
+        def counting(*args):
+            descriptor = linked(*args)
+            natively[0] += descriptor is not None
+            return descriptor
+        publisher._describe_linked = counting
+    else:
+        publisher._describe_linked = lambda *args: None
+    try:
+        assert subscriber.advertise() == subscriber.token
+        subscriber.expect(PUBLISHER_GID, os.getpid())
+        tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
+        rng = random.Random(seed)
+        # a slow reader of known history (its share fills), one of unknown history, and an
+        # endpoint of the publisher's own process
+        ledgers = [EndpointLedger(subscriber.token, 3), EndpointLedger(subscriber.token, None,
+                                                                       per_channel=False),
+                   EndpointLedger(publisher.token, 2)]
+        pins, sent, held, steps = [], [], [], []
+        for step in range(160):
+            if step == 140:  # the subscriber's process hangs up: it is gone, not served
+                subscriber.shutdown()
+            action = rng.choice(('frame', 'describe', 'describe', 'describe', 'take', 'release'))
+            outcome = None
+            if action == 'frame':
+                got = publisher.allocate(rng.choice((1000, 4096)))
+                if got is not None:
+                    view, pin = got
+                    view[:4] = len(pins).to_bytes(4, 'little')
+                    pins = (pins + [pin])[-3:]  # older frames' pins let go: slots reused
+                outcome = got is not None
+            elif action == 'describe' and pins:
+                which = rng.randrange(len(ledgers))
+                try:
+                    descriptor = publisher.describe(rng.choice(pins[-2:]), ledgers[which])
+                except EndpointGone:
+                    descriptor = 'gone'
+                if isinstance(descriptor, bytes):
+                    d = codec.unpack(descriptor)
+                    outcome = (which, d.segment_id, d.generation, d.size)
+                    sent.append((which, descriptor))
+                else:
+                    outcome = (which, descriptor)
+            elif action == 'take' and sent:
+                which, descriptor = sent.pop(rng.randrange(min(2, len(sent))))
+                pool = publisher if which == 2 else subscriber
+                try:
+                    view, hold = pool.open_descriptor(descriptor)
+                    outcome = bytes(view[:4])
+                    if rng.random() < 0.5:
+                        held.append((view, hold))
+                    del view, hold
+                except ValueError as exc:
+                    outcome = str(exc).split(':')[0]
+            elif action == 'release' and held:
+                del held[:rng.randint(1, len(held))]
+            gc.collect()
+            steps.append((action, outcome, _state(publisher, ledgers, tokens)))
+        del pins, sent, held
+        return steps, natively[0]
+    finally:
+        gc.collect()
+        publisher.shutdown()
+        subscriber.shutdown()
+
+
+def test_the_native_describe_gives_what_the_python_describe_gives():
+    saved = limits.current.as_dict()
+    limits.configure(**LIMITS)
+    try:
+        used, past_share = 0, 0
+        for seed in range(4):
+            native, natively = _run(True, seed)
+            python, _ = _run(False, seed)
+            for step, (a, b) in enumerate(zip(native, python)):
+                assert a == b, (seed, step)
+            used += natively
+            past_share += native[-1][2][2]['cpu_past_share']
+    finally:
+        limits.configure(**saved)
+    print(f'described natively: {used}; ledgers full: {past_share}')
+    assert used > 100  # the steady case ran natively, most of the time
+    assert past_share > 10  # ledgers found full once settled (the count put back)
+
+
+def _forged_describe(native: bool, forge: str):
+    """Two describes of one frame for another process (the segment handed over, then the
+    steady case), the state forged, one more describe: its outcome and the state after it."""
+    publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
+    if not native:
+        publisher._describe_linked = lambda *args: None
+    try:
+        assert subscriber.advertise() == subscriber.token
+        subscriber.expect(PUBLISHER_GID, os.getpid())
+        ledger = EndpointLedger(subscriber.token, 8)
+        view, pin = publisher.allocate(4096)
+        assert publisher.describe(pin, ledger) is not None  # handed over, accepted
+        assert publisher.describe(pin, ledger) is not None  # the steady case
+        link = publisher.links.by_token[subscriber.token]
+        slot = pin.slot
+        if forge == 'stale pin':
+            pin.generation += 1
+        elif forge == 'closed slot':
+            slot.closed = True
+        elif forge == 'segment refused':
+            link.verdicts[slot.id] = handover.Reply(slot.id, handover.ReplyKind.REFUSED, 0)
+        elif forge == 'process gone':
+            publisher.links.gone.add(subscriber.token)
+        elif forge == 'segment not handed over':
+            link.segments.discard(slot.id)
+        try:
+            got = publisher.describe(pin, ledger)
+            outcome = None if got is None else codec.unpack(got)._replace(nonce=0)
+        except EndpointGone:
+            outcome = 'gone'
+        tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
+        state = _state(publisher, [ledger], tokens)
+        if forge == 'stale pin':
+            pin.generation -= 1
+        slot.closed = False
+        publisher.links.gone.discard(subscriber.token)
+        return outcome, state
+    finally:
+        del view, pin
+        gc.collect()
+        publisher.shutdown()
+        subscriber.shutdown()
+
+
+@pytest.mark.parametrize('forge', ['stale pin', 'closed slot', 'segment refused',
+                                   'process gone', 'segment not handed over'])
+def test_what_the_native_describe_hands_back_the_python_describe_handles(forge):
+    """Each state the native steady case does not cover gives what the Python path alone
+    gives: a frame declined, a gone process's error, a second handover."""
+    native, python = _forged_describe(True, forge), _forged_describe(False, forge)
+    assert native == python
+    outcome, (_, _, counters) = native
+    assert outcome == ('gone' if forge == 'process gone' else None)
+    if forge == 'segment not handed over':  # handed over again, which its process refuses
+        assert counters['handovers_sent'] == 2 and counters['handovers_refused'] == 1
