@@ -282,6 +282,25 @@ def test_bench_bare_counts_the_python_opcodes_of_each_side_by_origin():
     assert rows['subscriber: generated message classes'][stock] > 0, completed.stdout
 
 
+def test_bench_wakeup_times_a_wakeup_with_stock_and_our_endpoints():
+    """README's ./dev bench wakeup, short: a row per round with both modes' figures, and what
+    the nodes hold in steady state: stock endpoints no guard condition or timer of ours, ours
+    one guard condition per node and one per subscription, and no timer."""
+    command = [str(ROOT / 'dev'), 'bench', 'wakeup'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench.wakeup']
+    completed = subprocess.run(command + ['--topics', '2', '--wakeups', '5', '--period', '0.05',
+                                          '--rounds', '1'],
+                               cwd=ROOT, capture_output=True, text=True, timeout=300,
+                               env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    stock, ours, ratio = rows['1']
+    assert all(float(v) > 0 for cell in (stock, ours) for v in cell.split(' / ')), rows
+    assert float(ratio) > 0, rows
+    assert ('stock rclpy: 0 guard conditions, 0 timers; rosidl_buffer_py: 4 guard conditions, '
+            '0 timers') in completed.stdout, completed.stdout
+
+
 def test_bench_hotpath_times_every_stage_of_every_transport():
     """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""

@@ -24,12 +24,6 @@ from launch_free_demos.runner import fastdds_files_of, fastdds_leftovers
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
-
-
-
-
-
-
 def _endpoints(kind, node, topic, callback, qos, **kwargs):
     """A publisher and a subscription, stock or ours, with the same arguments."""
     if kind == 'stock':
