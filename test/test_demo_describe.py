@@ -6,6 +6,7 @@ state the native call hands back to the Python path, forged one at a time."""
 import gc
 import os
 import random
+from typing import Tuple
 
 import pytest
 
@@ -45,8 +46,9 @@ def _state(publisher: Pool, ledgers, tokens) -> tuple:
     return slots, ledger_rows, counters
 
 
-def _run(native: bool, seed: int) -> list:
-    """One random run; every step's outcome and the state after it."""
+def _run(native: bool, seed: int) -> Tuple[list, int]:
+    """One random run: every step's outcome and the state after it, and how many describes
+    the native call made."""
     publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
     natively = [0]
     if native:
