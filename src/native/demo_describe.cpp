@@ -25,6 +25,7 @@ namespace
 using rbpy_glue::add_counter;
 using rbpy_glue::int_attr;
 using rbpy_glue::intern;
+using rbpy_glue::set_int_attr;
 
 PyObject * s_slot, * s_owner, * s_slots, * s_closed, * s_generation, * s_token, * s_links;
 PyObject * s_by_token, * s_id, * s_verdicts, * s_kind, * s_gone, * s_segments, * s_seq;
@@ -45,15 +46,6 @@ public:
 private:
   PyObject * obj_;
 };
-
-/// `obj.name = value`. 0, or -1 with an exception set.
-int set_int(PyObject * obj, PyObject * name, long long value)
-{
-  PyObject * number = PyLong_FromLongLong(value);
-  const int result = number ? PyObject_SetAttr(obj, name, number) : -1;
-  Py_XDECREF(number);
-  return result;
-}
 
 /// `mapping[key]` of a dict (a new reference); nullptr when absent (no exception) or on error
 /// (an exception set).
@@ -147,7 +139,7 @@ PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs
     return applies < 0 ? nullptr : Py_NewRef(Py_None);
   }
   const long long seq = int_attr(ledger, s_seq);
-  if ((seq == -1 && PyErr_Occurred()) || set_int(ledger, s_seq, seq + 1) < 0) {
+  if ((seq == -1 && PyErr_Occurred()) || set_int_attr(ledger, s_seq, seq + 1) < 0) {
     return nullptr;
   }
   Ref counters(PyObject_GetAttr(pool, s_counters));
@@ -155,7 +147,7 @@ PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs
   Ref full(settled ? PyObject_CallMethodNoArgs(ledger, s_full) : nullptr);
   const int is_full = full ? PyObject_IsTrue(full.get()) : -1;
   if (is_full != 0) {
-    if (is_full < 0 || set_int(ledger, s_seq, seq) < 0) {
+    if (is_full < 0 || set_int_attr(ledger, s_seq, seq) < 0) {
       return nullptr;
     }
     Py_RETURN_NONE;
@@ -166,7 +158,7 @@ PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs
   }
   timespec now;  // time.monotonic_ns()'s clock
   clock_gettime(CLOCK_MONOTONIC, &now);
-  if (set_int(slot.get(), s_last_used, now.tv_sec * 1000000000LL + now.tv_nsec) < 0 ||
+  if (set_int_attr(slot.get(), s_last_used, now.tv_sec * 1000000000LL + now.tv_nsec) < 0 ||
     add_counter(counters.get(), s_descriptors_created, 1) < 0)
   {
     return nullptr;

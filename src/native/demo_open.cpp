@@ -20,6 +20,8 @@ namespace
 
 using rbpy_glue::int_attr;
 using rbpy_glue::intern;
+using rbpy_glue::set_attr;
+using rbpy_glue::set_int_attr;
 
 PyObject * s_retired, * s_received, * s_refs, * s_conn, * s_view, * s_capacity, * s_fd, * s_map;
 PyObject * s_last_used, * s_taken;
@@ -119,14 +121,6 @@ bool header_of(PyObject * received, uint64_t * generation, uint64_t * offset, ui
   return ok;
 }
 
-/// `obj.name = value` (value: a new reference, consumed). 0, or -1 with an exception set.
-int set_attr(PyObject * obj, PyObject * name, PyObject * value)
-{
-  const int result = value ? PyObject_SetAttr(obj, name, value) : -1;
-  Py_XDECREF(value);
-  return result;
-}
-
 // open_mapped(prefix, read_lock, unlock, counters, raw, by_key, unacked, now)
 PyObject * open_mapped(PyObject *, PyObject * const * args, Py_ssize_t nargs)
 {
@@ -218,17 +212,17 @@ PyObject * open_mapped(PyObject *, PyObject * const * args, Py_ssize_t nargs)
   result = part && !PyErr_Occurred() ?
     Py_BuildValue("(OOKO)", part, mapping, static_cast<unsigned long long>(generation),
       conn != Py_None ? Py_True : Py_False) : nullptr;
-  if (result == nullptr || set_attr(mapping, s_refs, PyLong_FromLongLong(refs + 1)) < 0) {
+  if (result == nullptr || set_int_attr(mapping, s_refs, refs + 1) < 0) {
     Py_CLEAR(result);
     goto done;
   }
   locked = false;  // the hold owns the lock from here on
   if ((record != nullptr && PyList_Append(unacked, record) < 0) ||
     set_attr(mapping, s_last_used, Py_NewRef(now)) < 0 ||
-    set_attr(counters, s_taken, PyLong_FromLongLong(taken + 1)) < 0)
+    set_int_attr(counters, s_taken, taken + 1) < 0)
   {
     // (memory errors only) undo the hold, as the Python open's release would
-    set_attr(mapping, s_refs, PyLong_FromLongLong(refs));
+    set_int_attr(mapping, s_refs, refs);
     locked = refs == 0;
     Py_CLEAR(result);
   }

@@ -122,6 +122,21 @@ inline long long int_attr(PyObject * obj, PyObject * name)
   return result;
 }
 
+/// `obj.name = value`, consuming `value` (a new reference; nullptr: the exception its
+/// maker set is passed on). 0, or -1 with an exception set.
+inline int set_attr(PyObject * obj, PyObject * name, PyObject * value)
+{
+  const int result = value ? PyObject_SetAttr(obj, name, value) : -1;
+  Py_XDECREF(value);
+  return result;
+}
+
+/// `obj.name = value` for an int. 0, or -1 with an exception set.
+inline int set_int_attr(PyObject * obj, PyObject * name, long long value)
+{
+  return set_attr(obj, name, PyLong_FromLongLong(value));
+}
+
 /// `obj.name += delta` (an int attribute, a counter). 0, or -1 with an exception set.
 inline int add_counter(PyObject * obj, PyObject * name, long long delta)
 {
@@ -132,10 +147,7 @@ inline int add_counter(PyObject * obj, PyObject * name, long long delta)
   if (now == -1 && PyErr_Occurred()) {
     return -1;
   }
-  PyObject * value = PyLong_FromLongLong(now + delta);
-  const int result = value ? PyObject_SetAttr(obj, name, value) : -1;
-  Py_XDECREF(value);
-  return result;
+  return set_int_attr(obj, name, now + delta);
 }
 
 }  // namespace rbpy_glue
