@@ -23,7 +23,8 @@ from rosidl_buffer_py._native import endpoint_gid, get_user_data, set_user_data
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.events import DeadlineMonitor, finite
-from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
+from rosidl_buffer_py.on_demand import destroy_node_entities
+from rosidl_buffer_py.peers import PeerHandlers, PeerTable
 
 
 def buffer_aware(msg_type) -> bool:

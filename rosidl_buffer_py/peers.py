@@ -12,7 +12,7 @@ streams, counters) stays in the owner's records (:class:`PeerRecord`).
 """
 import threading
 import time
-from typing import (Any, Callable, Dict, Generic, Iterator, List, Mapping, NamedTuple,
+from typing import (Any, Callable, Dict, Generic, Iterator, Mapping, NamedTuple,
                     Optional, Protocol, Set, TypeVar)
 
 from rosidl_buffer_py import discovery, teardown
@@ -63,7 +63,8 @@ class PeerHandlers(NamedTuple):
     #: legacy endpoint). The owner calls :meth:`PeerTable.drop` when done with the channel.
     peer_gone: Callable[[bytes], None]
     #: ``()``: teardown, once, after every peer was dropped: free what else the endpoint holds
-    #: (its own timers and guard conditions: see :func:`destroy_node_entities`).
+    #: (its own timers and guard conditions: see
+    #: :func:`~rosidl_buffer_py.on_demand.destroy_node_entities`).
     release: Callable[[], None]
 
 
@@ -93,7 +94,7 @@ class PeerTable(Generic[R]):
         self.version = 0
         self._discovery = discovery.for_node(node)
         self.reannouncer = Reannouncer(node, callback_group, self, announce,
-                                       owner.channels_checked)
+                                       owner.channels_checked, logger)
 
     # the records ----------------------------------------------------------------------------
 
@@ -227,14 +228,3 @@ class PeerTable(Generic[R]):
             if ok:
                 compatible.add(name)
         return compatible
-
-
-def destroy_node_entities(node, entities: List[object], logger) -> None:
-    """Destroy the timers and guard conditions an endpoint created on its node (None entries
-    are skipped; a node destroyed first already destroyed them)."""
-    for entity in filter(None, entities):
-        try:
-            (node.destroy_timer if hasattr(entity, 'timer_period_ns')
-             else node.destroy_guard_condition)(entity)
-        except Exception as exc:  # the node was destroyed first
-            logger.debug(f'destroying {entity!r}: {exc}')

@@ -43,7 +43,7 @@ class Reannouncer:
     """
 
     def __init__(self, node, callback_group, peers, announce: Callable[[], None],
-                 checked: Callable[[], None]) -> None:
+                 checked: Callable[[], None], logger) -> None:
         self._peers = peers
         self._announce = announce
         #: called under the peers' lock after each look at the channels (see
@@ -56,7 +56,7 @@ class Reannouncer:
         self._retired = False
         #: the timer, running while some peer's channel is to be watched
         self.timer = OnDemandTimer(node, NEW_PEER_REANNOUNCE_SECONDS, self._on_timer,
-                                   callback_group)
+                                   callback_group, logger)
 
     def rearm(self) -> None:
         """A new peer's channel is to be watched (under the lock, on the executor's thread:

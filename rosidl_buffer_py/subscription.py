@@ -49,8 +49,8 @@ from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
 from rosidl_buffer_py.endpoint import (
     ChannelPeer, EndpointCore, advertise, advertised_backends, buffer_aware, split_deadline)
 from rosidl_buffer_py.message_support import enable_buffer_fields
-from rosidl_buffer_py.on_demand import OnDemandTimer
-from rosidl_buffer_py.peers import PeerHandlers, PeerTable, destroy_node_entities
+from rosidl_buffer_py.on_demand import OnDemandTimer, destroy_node_entities
+from rosidl_buffer_py.peers import PeerHandlers, PeerTable
 from rosidl_buffer_py.plain import PlainSubscription
 from rosidl_buffer_py.qos import history_metadata, incompatible_qos_once_per_peer
 from rosidl_buffer_py.registry import get_installed_backends, parse_acceptable_buffer_backends

@@ -188,7 +188,7 @@ def test_an_unmatched_channel_is_re_announced_and_a_matched_one_retires_the_time
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
     node = Node()
     t.reannouncer = reannounce.Reannouncer(node, None, t, owner.announce,
-                                           owner.channels_checked)
+                                           owner.channels_checked, None)
     gid = b'\x01' * 16
     t.on_peer(peer(gid, {'cpu': ''}, local=True))
     t[gid].created_at = now[0]
@@ -216,7 +216,7 @@ def test_a_new_peers_unmatched_channel_is_announced_soon_but_not_at_once(table, 
     now = [1000.0]
     monkeypatch.setattr(reannounce.time, 'monotonic', lambda: now[0])
     t.reannouncer = reannounce.Reannouncer(Node(), None, t, owner.announce,
-                                           owner.channels_checked)
+                                           owner.channels_checked, None)
     now[0] += reannounce.UNMATCHED_REANNOUNCE_SECONDS  # the endpoint is not brand new
     missed, seen = b'\x01' * 16, b'\x02' * 16
     for gid in (missed, seen):
