@@ -1,6 +1,7 @@
 """DemoBackend: the ``demo`` buffer backend plugin (entry point
 ``demo = demo_buffer_backend:DemoBackend``)."""
-from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
+import functools
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
 from rosidl_buffer_py.buffer import Buffer
@@ -87,6 +88,15 @@ class DemoBackend(BufferBackend):
     def peer_token(self, endpoint_info: EndpointInfo) -> Optional[str]:
         """The token a compatible peer advertised (None: unknown peer)."""
         return self._served.token(endpoint_info.gid)
+
+    def steady_describer(self, endpoint_info: EndpointInfo
+                         ) -> Optional[Callable[[Buffer], Optional[bytes]]]:
+        """The pool's native describe of the steady case (:meth:`.pool.Pool.describe_steady`)
+        with the peer's ledger resolved once; None for a peer not known to be compatible."""
+        ledger = self._served.ledger_of(endpoint_info)
+        if ledger is None:
+            return None
+        return functools.partial(lifecycle.get_pool().describe_steady, ledger)
 
     def create_descriptor_with_endpoint(self, buffer: Buffer,
                                         endpoint_info: EndpointInfo) -> Optional[bytes]:

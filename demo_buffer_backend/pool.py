@@ -100,6 +100,16 @@ class Pool:
             self.links.drain_all()  # acks and hang-ups free slots
             return self.slots.allocate(nbytes, self.links.gone)
 
+    def describe_steady(self, ledger: EndpointLedger, buffer: Any) -> Optional[bytes]:
+        """:meth:`describe`'s steady case alone (the native call), for a Buffer of any kind:
+        the descriptor, or None with nothing changed, where :meth:`describe` is to run (a
+        publisher's steady describer, see ``DemoBackend.steady_describer``)."""
+        pin = getattr(buffer, 'pin', None)  # (a pin of another pool is not current here)
+        if pin is None or self.closed:
+            return None
+        with self.guard:
+            return self._describe_linked(self, pin, ledger)
+
     def describe(self, pin: Pin, ledger: EndpointLedger) -> Optional[bytes]:
         """Record one more descriptor of ``pin``'s slot for the ledger's endpoint and return it,
         its segment handed over first if need be (and the subscriber's verdict on it awaited,

@@ -120,6 +120,21 @@ class BufferBackend(ABC):
         :class:`EndpointGone` when the peer's process is known to be gone: nothing is sent.
         """
 
+    def steady_describer(self, endpoint_info: EndpointInfo
+                         ) -> Optional[Callable[[Buffer], Optional[bytes]]]:
+        """Optional (not in upstream): a callable that describes Buffers for this peer on a
+        publisher's hot path, while its routes are steady, or None (the default: every message
+        asks :meth:`create_descriptor_with_endpoint`).
+
+        The callable returns a descriptor where that is what
+        :meth:`create_descriptor_with_endpoint` would return, having done the same; otherwise
+        None, *with nothing changed*: the publisher then asks
+        :meth:`create_descriptor_with_endpoint` for the same Buffer. It may be asked for any
+        Buffer. A publisher asks for a new one whenever the peer's advertisement or its routes
+        change; the callable may keep what it resolved for the peer until then.
+        """
+        return None
+
     @abstractmethod
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> Buffer:

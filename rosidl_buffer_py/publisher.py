@@ -24,7 +24,7 @@ import dataclasses
 import functools
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Set, Tuple, Union
+from typing import Callable, Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import rclpy.publisher
 from rclpy.duration import Duration
@@ -97,7 +97,7 @@ class _RouteView:
         self._signature = None
         self._read_at = self._trust_from = 0.0
 
-    def signature(self) -> tuple:
+    def signature(self, fresh: bool = False) -> tuple:
         """Matched counts of the main topic and of every channel.
 
         Read from DDS (one C call each, running DDS's code) only when they may have changed:
@@ -105,19 +105,25 @@ class _RouteView:
         process's discovery epoch (a read of memory), or when the peer table changes. After
         either moves they are read on every call for ``EPOCH_GRACE_SECONDS`` (Fast DDS pairs
         an endpoint right after the callback), and at least every ``routes.RECHECK_SECONDS``
-        whatever happens."""
+        whatever happens; ``fresh``: now (the table re-plans)."""
         now = time.monotonic()
         seen = (self._epoch[0], self._peers.version)
         if seen != self._seen:
             self._seen = seen
             self._trust_from = now + EPOCH_GRACE_SECONDS
-        elif now >= self._trust_from and now - self._read_at < routes.RECHECK_SECONDS:
+        elif not fresh and now >= self._trust_from and \
+                now - self._read_at < routes.RECHECK_SECONDS:
             return self._signature
         self._read_at = now
         self._signature = (self._main_count(),
                            tuple(-1 if peer.channel is None else peer.channel.matched_count()
                                  for peer in self._peers))
         return self._signature
+
+    def settled(self, now: float) -> bool:
+        # signature()'s test for answering from memory: nothing moved, no grace, no recheck
+        return ((self._epoch[0], self._peers.version) == self._seen and
+                self._trust_from <= now and now - self._read_at < routes.RECHECK_SECONDS)
 
     def matched_subscriptions(self) -> List[bytes]:
         return matched_subscription_gids(self._writer)
@@ -132,6 +138,20 @@ class _RouteView:
     def main_acknowledged(self) -> bool:
         # the main DataWriter alone (Publisher.wait_for_all_acked also waits for channels)
         return rclpy.publisher.Publisher.wait_for_all_acked(self._writer, _NO_WAIT)
+
+
+class _SteadyLane(NamedTuple):
+    """The writes of the route table's steady dispatch, prepared once (see
+    :meth:`Publisher._publish_steady`): each served subscription with its backend's steady
+    describer (:meth:`~rosidl_buffer_py.backend.BufferBackend.steady_describer`)."""
+
+    #: The table's steady dispatch it was prepared for (``RouteTable.steady``, by identity).
+    dispatch: routes.Dispatch
+    #: The peer table's version then (a peer's backends or ledger change with it).
+    version: int
+    #: The backend whose Buffers every describer describes.
+    backend: str
+    targets: Tuple[Tuple['_SubscriptionPeer', Callable[[Buffer], Optional[bytes]]], ...]
 
 
 class _Encoder:
@@ -263,6 +283,10 @@ class Publisher(rclpy.publisher.Publisher):
         self._peers_added = 0
         self._peers_removed = 0
         self._polled_at = 0.0
+        #: The steady dispatch's writes, prepared (None: none prepared, or not preparable)
+        self._lane: Optional[_SteadyLane] = None
+        #: The steady dispatch a lane was last prepared for, or found not preparable for
+        self._lane_tried: Optional[routes.Dispatch] = None
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
         #: joiners receive (as CPU bytes; their channels serve them from then on).
         self._table: routes.RouteTable[bytes] = routes.RouteTable(
@@ -354,6 +378,9 @@ class Publisher(rclpy.publisher.Publisher):
         (:meth:`~rosidl_buffer_py.routes.RouteTable.dispatch`); this method writes exactly
         that, every copy with the same source timestamp.
         """
+        lane = self._lane
+        if lane is not None and type(msg) is self.msg_type and self._publish_steady(lane, msg):
+            return
         if isinstance(msg, (bytes, bytearray, memoryview)):
             serialized = msg
         elif isinstance(msg, self.msg_type):
@@ -379,11 +406,81 @@ class Publisher(rclpy.publisher.Publisher):
             if dispatch.timer is not None:
                 self._arm_route_timer(dispatch.timer)
             self._write(encoder, timestamp, dispatch)
+            if dispatch is self._table.steady and dispatch is not self._lane_tried and \
+                    len(encoder.buffers) == 1:
+                self._lane_tried = dispatch
+                self._lane = self._prepare_lane(dispatch, encoder)
             if dispatch.main:
                 self._sent_main += 1
             elif self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
         self._core.activity()
+
+    def _publish_steady(self, lane: _SteadyLane, msg) -> bool:
+        """publish() while the routes are steady: the message goes where ``lane`` was prepared
+        for, each descriptor from its peer's steady describer; a peer whose describer declines
+        gets what :meth:`_write` gives it. False, having written nothing, when the route table
+        (:meth:`~rosidl_buffer_py.routes.RouteTable.dispatch_prepared`) or the peer table moved,
+        or the payload is not a Buffer. (publish() skips its discovery poll: a lane exists
+        only while the node is known to spin, see :meth:`_prepare_lane`.)"""
+        payload = getattr(msg, self._single)
+        if not isinstance(payload, Buffer):
+            return False
+        now = time.monotonic()
+        with self._lock:
+            if self._peers.closed or lane.version != self._peers.version:
+                return False
+            previous = self._last_timestamp
+            timestamp = self._next_timestamp()
+            if not self._table.dispatch_prepared(lane.dispatch, now, timestamp, self._view):
+                self._last_timestamp = previous  # the full path takes the next one
+                return False
+            declined = []
+            backend, program = lane.backend, self._described_program
+            for peer, describe in lane.targets:
+                try:
+                    descriptor = describe(payload)
+                except Exception:  # the full describe runs next, and logs what fails there
+                    descriptor = None
+                if descriptor is None:
+                    declined.append((peer.info.gid, None))
+                    continue
+                if not write_message(msg, timestamp, (peer.channel,), program,
+                                     (backend, descriptor)):
+                    peer.channel.publish(codec.encode(msg, (backend, descriptor)), timestamp)
+                peer.sent_descriptor += 1
+                peer.backend_in_use = backend
+            if declined:
+                self._write(_Encoder(msg, None, self._buffers_of(msg), self._single, program),
+                            timestamp, routes.Dispatch((), tuple(declined), False, (), None))
+            if self._manual_liveliness:
+                self.assert_liveliness()  # what a write on the main DataWriter would do
+        self._core.activity()
+        return True
+
+    def _prepare_lane(self, dispatch: routes.Dispatch, encoder: '_Encoder'
+                      ) -> Optional[_SteadyLane]:
+        """The steady lane for ``dispatch`` (the table's steady one), for messages like
+        ``encoder``'s: its one payload a Buffer of a backend that every served peer accepts and
+        that has a steady describer for each. None otherwise, and while the node is not known to
+        spin (publish() then polls discovery: the re-announcer's retirement lasts until a new
+        peer comes, which moves the peer table's version). Under the lock."""
+        if self._single is None or self._described_program is None or \
+                not dispatch.channel or not self._peers.reannouncer.retired:
+            return None
+        backend = encoder.buffers[0].buffer.backend_type
+        vendor = self._core.backends.get(backend)
+        if vendor is None:
+            return None
+        targets = []
+        for key, _ in dispatch.channel:
+            peer = self._peers.get(key)
+            describer = (vendor.steady_describer(peer.info)
+                         if peer is not None and backend in peer.compatible else None)
+            if describer is None:
+                return None
+            targets.append((peer, describer))
+        return _SteadyLane(dispatch, self._peers.version, backend, tuple(targets))
 
     def _write(self, encoder: '_Encoder', timestamp: int, dispatch: routes.Dispatch) -> None:
         """Write one message as ``dispatch`` says: on its routes' channels (after the route

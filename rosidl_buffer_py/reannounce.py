@@ -68,6 +68,12 @@ class Reannouncer:
         """Stop checking (the endpoint is torn down)."""
         self.timer.stop()
 
+    @property
+    def retired(self) -> bool:
+        """It retired its timer (every peer's channel matched, on a spinning executor): until
+        the next :meth:`rearm` (a new peer), :meth:`spinning` holds whatever the time."""
+        return self._retired
+
     def spinning(self, now: float) -> bool:
         """Whether an executor runs our node: then discovery wakes us by itself.
 

@@ -287,9 +287,15 @@ class RouteView(Protocol[K]):
     """What DDS says now, as the publisher reads it for :meth:`RouteTable.advance` and
     :meth:`RouteTable.dispatch` (each asked only when the table needs it)."""
 
-    def signature(self) -> Hashable:
+    def signature(self, fresh: bool = False) -> Hashable:
         """A cheap summary of what is matched (the main topic's and every channel's matched
-        counts): while it holds, so does the cached plan (until its ``recheck_at``)."""
+        counts): while it holds, so does the cached plan (until its ``recheck_at``). The view
+        may answer from memory while nothing suggests a change; ``fresh``: read DDS now (a
+        re-plan, so that the view's rechecks keep the plan's pace)."""
+
+    def settled(self, now: float) -> bool:
+        """:meth:`signature` would return its last answer now, without asking DDS (asked by
+        :meth:`RouteTable.dispatch_prepared` only)."""
 
     def matched_subscriptions(self) -> Iterable[K]:
         """Keys of the main topic's matched subscriptions, legacy ones included."""
@@ -364,20 +370,26 @@ class RouteTable(Generic[K]):
         #: (None: plan again; asking DDS for the matched subscriptions takes tens of
         #: microseconds).
         self._cached: Optional[_Cached] = None
+        #: The cached plan's steady dispatch (see ``_Cached.steady``), or None. A re-plan that
+        #: gives the same answer keeps this very object, so a publisher can prepare its writes
+        #: for it once and use them while ``steady is prepared`` (:meth:`dispatch_prepared`).
+        self.steady: Optional[Dispatch] = None
+        #: The cached plan's ``recheck_at``: the steady dispatch holds until then at most.
+        self.steady_until = 0.0
 
     def add(self, key: K, *, handshake: bool, depth: int = 0) -> Route:
         """A buffer-aware subscription was discovered: its route starts UNMATCHED."""
         route = Route(handshake=handshake and 0 < depth <= MAX_PROBE_DEPTH,
                       first_probes=depth + 1, last_main=self._last_main.pop(key, None))
         self.routes[key] = route
-        self._cached = None
+        self._drop_plan()
         return route
 
     def remove(self, key: K) -> None:
         """A subscription went away (or stopped being buffer-aware)."""
         self.routes.pop(key, None)
         self._last_main.pop(key, None)
-        self._cached = None
+        self._drop_plan()
 
     def gone(self, key: K) -> None:
         """``key``'s process is known to be gone (its backend said so before DDS): nothing
@@ -385,19 +397,19 @@ class RouteTable(Generic[K]):
         route = self.routes.get(key)
         if route is not None:
             route.gone()
-        self._cached = None
+        self._drop_plan()
 
     def invalidate(self) -> None:
         """Something the signature does not show changed (a subscription of the topic came,
         changed or went): the next message is planned again."""
-        self._cached = None
+        self._drop_plan()
 
     def advance(self, now: float, view: 'RouteView[K]',
                 signature: Optional[Hashable] = None) -> Advance:
         """Bring the routes up to date with DDS (matched channels, acknowledged probes and
         channel samples, time passed) and plan the next messages."""
         if signature is None:
-            signature = view.signature()
+            signature = view.signature(fresh=True)
         probes = []
         for key, route in self.routes.items():
             route.channel_matched(view.channel_matched(key), now)
@@ -407,7 +419,11 @@ class RouteTable(Generic[K]):
             if count:
                 probes.append((key, count))
         plan = self.plan(now, view.matched_subscriptions())
-        self._cached = _Cached(plan, signature, _steady_dispatch(plan, self.routes))
+        steady = _steady_dispatch(plan, self.routes)
+        if steady is not None and steady == self.steady:
+            steady = self.steady  # the same answer: writes prepared for it still serve
+        self._cached = _Cached(plan, signature, steady)
+        self.steady, self.steady_until = steady, plan.recheck_at
         return Advance(tuple(probes), plan.recheck_at - now < RECHECK_SECONDS)
 
     def dispatch(self, now: float, timestamp: int, view: 'RouteView[K]') -> Dispatch:
@@ -438,7 +454,7 @@ class RouteTable(Generic[K]):
                     deferred.append(key)
                     continue
                 fence = route.take_fence()._replace(delivered=delivered)
-                self._cached = None  # the route's state changed: plan the next message again
+                self._drop_plan()  # the route's state changed: plan the next message again
             else:
                 fence = None
             channel.append((key, fence))
@@ -449,9 +465,25 @@ class RouteTable(Generic[K]):
             withheld = tuple(key for key in withheld if key not in deferred)
             main_served += tuple(key for key in deferred if key in matched)
         if main and self.main_written(main_served, timestamp):
-            self._cached = None  # a route may serve from the next message on
+            self._drop_plan()  # a route may serve from the next message on
         self.last_published = timestamp
         return Dispatch(probes, tuple(channel), main, withheld, timer)
+
+    def dispatch_prepared(self, prepared: Dispatch, now: float, timestamp: int,
+                          view: 'RouteView[K]') -> bool:
+        """:meth:`dispatch`, for a publisher that prepared its writes for the steady dispatch
+        ``prepared``: True when that is the answer for message ``timestamp`` (dispatched: the
+        publisher writes exactly there), known without planning or asking DDS; False when
+        :meth:`dispatch` is to be asked (a transition, a re-plan due, the view unsettled)."""
+        if self.steady is not prepared or now >= self.steady_until or not view.settled(now):
+            return False
+        self.last_published = timestamp
+        return True
+
+    def _drop_plan(self) -> None:
+        """Plan the next message again (a route's state changed)."""
+        self._cached = None
+        self.steady = None
 
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's

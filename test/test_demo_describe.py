@@ -194,3 +194,59 @@ def test_what_the_native_describe_hands_back_the_python_describe_handles(forge):
         return
     assert native == python
     assert native[0] == ('gone' if forge == 'process gone' else None)
+
+
+class _Held:
+    """What a steady describer is handed: any Buffer; a DemoBuffer has its pool's pin."""
+
+    def __init__(self, pin=None) -> None:
+        self.pin = pin
+
+
+@pytest.mark.parametrize('forge', ['stale pin', 'closed slot', 'segment refused',
+                                   'process gone', 'segment not handed over'])
+def test_the_steady_describer_describes_the_steady_case_and_changes_nothing_else(forge):
+    """``Pool.describe_steady`` (a publisher's steady describer, see
+    ``DemoBackend.steady_describer``): the steady case's descriptor, recorded as describe()
+    records it; for anything else (each state forged, a Buffer without a pin, a closed pool)
+    None with nothing changed, so that describe() can run instead."""
+    publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
+    try:
+        assert subscriber.advertise() == subscriber.token
+        subscriber.expect(PUBLISHER_GID, os.getpid())
+        ledger = EndpointLedger(subscriber.token, 8)
+        view, pin = publisher.allocate(4096)
+        assert publisher.describe(pin, ledger) is not None  # handed over, accepted
+        tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
+        before = _state(publisher, [ledger], tokens)
+        steady = publisher.describe_steady(ledger, _Held(pin))
+        assert steady is not None and codec.unpack(steady).segment_id == pin.slot.id
+        assert ledger.seq == before[1][0][0] + 1
+        assert publisher.describe_steady(ledger, _Held()) is None
+        link = publisher.links.by_token[subscriber.token]
+        slot = pin.slot
+        if forge == 'stale pin':
+            pin.generation += 1
+        elif forge == 'closed slot':
+            slot.closed = True
+        elif forge == 'segment refused':
+            link.verdicts[slot.id] = handover.Reply(slot.id, handover.ReplyKind.REFUSED, 0)
+        elif forge == 'process gone':
+            publisher.links.gone.add(subscriber.token)
+        elif forge == 'segment not handed over':
+            link.segments.discard(slot.id)
+        forged = _state(publisher, [ledger], tokens)
+        assert publisher.describe_steady(ledger, _Held(pin)) is None
+        assert _state(publisher, [ledger], tokens) == forged
+        if forge == 'stale pin':
+            pin.generation -= 1
+        slot.closed = False
+        publisher.links.gone.discard(subscriber.token)
+        publisher.closed = True
+        assert publisher.describe_steady(ledger, _Held(pin)) is None
+        publisher.closed = False
+    finally:
+        del view, pin
+        gc.collect()
+        publisher.shutdown()
+        subscriber.shutdown()

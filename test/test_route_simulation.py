@@ -130,7 +130,7 @@ class SimView:
     def __init__(self, pub: 'Camera') -> None:
         self.pub = pub
 
-    def signature(self):
+    def signature(self, fresh=False):
         return (len(self.matched_subscriptions()),
                 tuple(int(self.channel_matched(k)) for k in self.pub.table.routes))
 

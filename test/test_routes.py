@@ -13,8 +13,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
     CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_DEFER_SECONDS, FENCE_TIMEOUT_SECONDS,
-    PROBE_INTERVAL_SECONDS, Dispatch, Fence, Incoming, Receiver, Route, RouteState, RouteTable,
-    Stream, StreamState, StreamTable, Verdict)
+    PROBE_INTERVAL_SECONDS, RECHECK_SECONDS, Dispatch, Fence, Incoming, Receiver, Route,
+    RouteState, RouteTable, Stream, StreamState, StreamTable, Verdict)
 
 S = RouteState
 
@@ -168,10 +168,16 @@ class FakeView:
     matched: List[str] = field(default_factory=list)
     main_acked: bool = True
     asked: List[str] = field(default_factory=list)
+    #: what settled() answers (the publisher's view: no discovery since its last reading)
+    calm: bool = True
 
-    def signature(self):
-        self.asked.append('signature')
+    def signature(self, fresh=False):
+        self.asked.append('fresh signature' if fresh else 'signature')
         return (tuple(self.matched), tuple(sorted(self.channels.items())))
+
+    def settled(self, now):
+        self.asked.append('settled')
+        return self.calm
 
     def matched_subscriptions(self):
         self.asked.append('matched')
@@ -253,6 +259,60 @@ def test_a_steady_plan_serves_every_message_with_one_dispatch_until_a_transition
     fenced = table.dispatch(0.0, 2, view)
     assert fenced.channel == (('a', Fence(1, delivered=True)),)
     assert table.dispatch(0.01, 3, view).channel == (('a', None),)
+
+
+def _steady_table():
+    table, view = RouteTable(), FakeView(matched=['a'], channels={'a': True})
+    table.add('a', handshake=False, depth=0).state = S.SERVING
+    table.dispatch(0.0, 1, view)
+    return table, view
+
+
+def test_a_replan_that_gives_the_same_steady_answer_keeps_it_and_a_transition_drops_it():
+    """``RouteTable.steady`` is the cached plan's steady dispatch, the same object across the
+    rechecks that re-plan to the same answer (a publisher's prepared writes serve on); any
+    transition drops it, and a new plan makes a new one."""
+    table, view = _steady_table()
+    steady = table.steady
+    assert steady == Dispatch((), (('a', None),), False, (), None)
+    assert table.steady_until == RECHECK_SECONDS
+    view.asked.clear()
+    table.dispatch(RECHECK_SECONDS, 2, view)  # re-planned (this one stops the route timer)
+    assert 'fresh signature' in view.asked  # a re-plan reads DDS, not the view's memory
+    assert table.steady is steady and table.steady_until == 2 * RECHECK_SECONDS
+    assert table.dispatch(RECHECK_SECONDS + 0.1, 3, view) is steady
+    table.invalidate()
+    assert table.steady is None
+    table.dispatch(1.0, 3, view)
+    assert table.steady == steady and table.steady is not steady  # prepared writes go
+    for transition in (RouteTable.invalidate, lambda t: t.gone('a'), lambda t: t.remove('a'),
+                       lambda t: t.add('b', handshake=False)):
+        table, view = _steady_table()
+        transition(table)
+        assert table.steady is None
+    table, view = _steady_table()
+    view.matched.append('legacy')  # a main-topic write per message: no steady answer
+    table.dispatch(0.1, 2, view)
+    assert table.steady is None
+
+
+def test_dispatch_prepared_answers_only_while_the_steady_dispatch_holds():
+    """What a publisher that prepared its writes for ``steady`` asks instead of dispatch():
+    yes (the message dispatched) while the table's steady answer is that very object, before
+    its recheck time, and the view is settled; no, with nothing changed, otherwise."""
+    table, view = _steady_table()
+    steady = table.steady
+    assert table.dispatch_prepared(steady, 0.1, 2, view)
+    assert table.last_published == 2
+    assert not table.dispatch_prepared(Dispatch(*steady), 0.1, 3, view)  # equal, not it
+    view.calm = False
+    assert not table.dispatch_prepared(steady, 0.1, 3, view)
+    view.calm = True
+    assert not table.dispatch_prepared(steady, RECHECK_SECONDS, 3, view)  # a recheck is due
+    assert table.last_published == 2
+    table.gone('a')
+    assert not table.dispatch_prepared(steady, 0.2, 3, view)
+    assert table.dispatch(0.2, 3, view).channel == () and table.last_published == 3
 
 
 def test_a_due_fence_waits_for_the_main_topics_acknowledgment_then_names_the_last_message():
@@ -558,7 +618,7 @@ class ModelView:
     def __init__(self, model: 'RouteProtocol') -> None:
         self.model = model
 
-    def signature(self):
+    def signature(self, fresh=False):
         return (1, (1 if self.model.channel_up else 0,))
 
     def matched_subscriptions(self):
