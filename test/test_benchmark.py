@@ -301,6 +301,21 @@ def test_bench_wakeup_times_a_wakeup_with_stock_and_our_endpoints():
             '0 timers') in completed.stdout, completed.stdout
 
 
+def test_bench_lane_times_publish_through_the_lane_and_the_full_path():
+    """README's ./dev bench lane, short: a row per round, stock rclpy's publish() and the demo
+    publisher's, most of its calls through its steady lane once its route serves."""
+    command = [str(ROOT / 'dev'), 'bench', 'lane'] if in_dev_venv() else \
+        [sys.executable, '-m', 'launch_free_demos.bench.lane']
+    completed = subprocess.run(command + ['--frames', '12', '--rate', '20', '--rounds', '1'],
+                               cwd=ROOT, capture_output=True, text=True, timeout=300,
+                               env=dict(os.environ))
+    assert completed.returncode == 0, completed.stdout + completed.stderr
+    rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
+    stock, lane, _ = rows['1']
+    assert float(stock.split()[0]) > 0, rows
+    assert int(lane.split()[1].strip('()')) > 0, rows  # (the first under a plan prepares it)
+
+
 def test_bench_hotpath_times_every_stage_of_every_transport():
     """README's ./dev bench hotpath, short: the latency split of each transport, and a median
     for every stage it times on each side (the functions it wraps still exist)."""

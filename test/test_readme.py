@@ -78,6 +78,7 @@ COVERAGE = {
     './dev bench bringup': 'test_bringup.py',             # small frames, 2 trials
     './dev bench record': 'test_record.py',               # 1 s of small frames
     './dev bench churn': 'test_benchmark.py',             # 4 s of 640x480, 2 busy processes
+    './dev bench lane': 'test_benchmark.py',              # 8 frames at 20 Hz, one round
     './dev bench wakeup': 'test_benchmark.py',            # 2 topics, 5 wake-ups, one round
     './dev bench wakeup --topics 8 --rounds 2': 'test_benchmark.py',  # the same, shorter
     # optional, never installed by ./dev setup or CI: test_packaging checks the file against the

@@ -14,6 +14,7 @@ BENCHMARKS = {
     'hotpath': ('hotpath', "one message's time, stage by stage, on both sides"),
     'bare': ('bare', 'our per-message Python: stock rclpy, the bare descriptor path, demo'),
     'churn': ('churn', 'subscribers coming and going: what the steady ones get, ours vs stock'),
+    'lane': ('lane', "a steady demo publisher's publish(), its lane and full path, vs stock"),
     'wakeup': ('wakeup', "one executor wake-up of a node with several topics, ours vs stock"),
     'cuda': ('cuda', 'GPU frames between processes: cuda backend vs D2H + stock + H2D (a GPU)'),
 }

@@ -1,0 +1,181 @@
+"""What one ``publish()`` costs a steady demo publisher, through its lane and through the full
+path, next to stock rclpy's ``publish()``.
+
+A publisher in this process sends ``--frames`` 1 KiB ``sensor_msgs/Image`` frames at ``--rate``
+Hz to a subscriber process: stock rclpy endpoints, then rosidl_buffer_py's with the demo backend
+(frames allocated in the pool before each publish), interleaved round by round, each once its
+route serves and discovery has settled (``publisher.EPOCH_GRACE_SECONDS``). Each
+``publish()`` is timed alone (``perf_counter_ns``), cold as a camera's frames find it. The
+demo publisher's calls are split by the path they took: the steady lane
+(``Publisher._publish_steady`` served it: the writes prepared for the route table's steady
+dispatch) or the full path (the first messages, and the re-plan the table makes every
+``routes.RECHECK_SECONDS``). A benchmark: it prints medians, it asserts nothing.
+``./dev bench lane [--frames 60] [--rate 10] [--rounds 2]``
+"""
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from typing import Dict, List, Optional
+
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile
+from sensor_msgs.msg import Image
+
+from launch_free_demos.bench.hotpath import mono8_frame
+from launch_free_demos.domains import claim_domain_ids
+from rosidl_buffer_py.publisher import EPOCH_GRACE_SECONDS
+
+MODES = ('stock rclpy', 'demo')
+TOPIC = '/bench/lane'
+WIDTH = 1024  #: one mono8 row: 1 KiB
+#: Calls left out (the first after bring-up).
+SKIP = 5
+QOS = QoSProfile(depth=10)
+#: The printed line that carries the publisher's timings to the bench.
+TIMES_LINE = 'publish times: '
+
+
+def _subscribe(mode: str, frames: int, rate: float) -> None:
+    rclpy.init()
+    try:
+        node = rclpy.create_node('lane_sub')
+        got: List[int] = []
+        if mode == 'demo':
+            import rosidl_buffer_py
+            rosidl_buffer_py.create_subscription(node, Image, TOPIC, lambda m: got.append(1),
+                                                 QOS, acceptable_buffer_backends='demo')
+        else:
+            node.create_subscription(Image, TOPIC, lambda m: got.append(1), QOS)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        deadline = time.monotonic() + frames / rate + 60.0
+        while len(got) < frames and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.1)
+    finally:
+        rclpy.try_shutdown()
+
+
+def _publish(mode: str, frames: int, rate: float) -> Dict[str, List[int]]:
+    """Each publish()'s ns, by path: 'stock rclpy', or 'lane' and 'full path'."""
+    subscriber = subprocess.Popen(_command('sub', mode, frames, rate))
+    rclpy.init()
+    times: Dict[str, List[int]] = {}
+    try:
+        node = rclpy.create_node('lane_pub')
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        served = [False]
+        if mode == 'demo':
+            import rosidl_buffer_py
+            from demo_buffer_backend import DemoBuffer
+            pub = rosidl_buffer_py.create_publisher(node, Image, TOPIC, QOS)
+            steady = pub._publish_steady
+
+            def through_lane(lane, msg) -> bool:
+                served[0] = steady(lane, msg)
+                return served[0]
+            pub._publish_steady = through_lane
+
+            def ready() -> bool:  # its route serves, its re-announcer retired
+                return any(peer.channel_serving for peer in pub.buffer_peers()) and \
+                    pub._peers.reannouncer.retired
+
+            def payload():
+                return DemoBuffer.allocate(WIDTH)
+        else:
+            pub = node.create_publisher(Image, TOPIC, QOS)
+
+            def ready() -> bool:
+                return pub.get_subscription_count() > 0
+
+            def payload():
+                return bytes(WIDTH)
+        deadline = time.monotonic() + 30.0
+        while not ready() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        # steady: past discovery's grace, in which the routes' view reads DDS on every message
+        settled = time.monotonic() + EPOCH_GRACE_SECONDS + 0.2
+        while time.monotonic() < settled:
+            executor.spin_once(timeout_sec=0.05)
+        for index in range(frames):
+            data = payload()
+            executor.spin_once(timeout_sec=0)
+            time.sleep(1.0 / rate)
+            msg = mono8_frame(WIDTH, time.time_ns(), data)
+            served[0] = False
+            start = time.perf_counter_ns()
+            pub.publish(msg)
+            elapsed = time.perf_counter_ns() - start
+            if index >= SKIP:
+                path = mode if mode != 'demo' else ('lane' if served[0] else 'full path')
+                times.setdefault(path, []).append(elapsed)
+            del data, msg
+        subscriber.wait(timeout=60.0)
+    finally:
+        if subscriber.poll() is None:
+            subscriber.kill()
+            subscriber.wait()
+        rclpy.try_shutdown()
+    return times
+
+
+def _command(role: str, mode: str, frames: int, rate: float) -> List[str]:
+    return [sys.executable, '-m', 'launch_free_demos.bench.lane', '--role', role, '--mode', mode,
+            '--frames', str(frames), '--rate', str(rate)]
+
+
+def _cell(samples: Optional[List[int]]) -> str:
+    if not samples:
+        return '-'
+    return f'{statistics.median(samples) / 1e3:.0f} ({len(samples)})'
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--frames', type=int, default=60)
+    parser.add_argument('--rate', type=float, default=10.0)
+    parser.add_argument('--rounds', type=int, default=2)
+    parser.add_argument('--role', choices=('bench', 'pub', 'sub'), default='bench',
+                        help=argparse.SUPPRESS)
+    parser.add_argument('--mode', choices=MODES, default='demo', help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.role == 'sub':
+        _subscribe(args.mode, args.frames, args.rate)
+        return 0
+    if args.role == 'pub':
+        print(TIMES_LINE + json.dumps(_publish(args.mode, args.frames, args.rate)), flush=True)
+        return 0
+    os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids(1)[0])  # the processes inherit it
+    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    rows = []
+    for index in range(args.rounds):
+        row: Dict[str, List[int]] = {}
+        for mode in MODES:
+            completed = subprocess.run(_command('pub', mode, args.frames, args.rate),
+                                       capture_output=True, text=True, timeout=300)
+            lines = [line for line in completed.stdout.splitlines()
+                     if line.startswith(TIMES_LINE)]
+            if completed.returncode != 0 or not lines:
+                print(completed.stdout + completed.stderr, file=sys.stderr)
+                return 1
+            row.update(json.loads(lines[-1][len(TIMES_LINE):]))
+        rows.append(row)
+        print(f'round {index + 1}: ' + ', '.join(f'{path} {_cell(samples)}'
+                                                  for path, samples in row.items()), flush=True)
+    print(f'\nOne 1 KiB frame at {args.rate:g} Hz, publisher and subscriber in two processes: '
+          'publish() alone, median µs (calls), per round.\n')
+    print('| round | stock rclpy | demo: steady lane | demo: full path |')
+    print('|---|---|---|---|')
+    for index, row in enumerate(rows):
+        print(f'| {index + 1} | {_cell(row.get("stock rclpy"))} | {_cell(row.get("lane"))} | '
+              f'{_cell(row.get("full path"))} |')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
