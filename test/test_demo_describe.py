@@ -137,6 +137,22 @@ def test_the_native_describe_gives_what_the_python_describe_gives():
     assert past_share > 10  # ledgers found full once settled (the count put back)
 
 
+def _forge(publisher: Pool, token: str, pin, forge: str) -> None:
+    """Make one state the native steady case does not cover, for ``pin``'s frame described to
+    the process of ``token`` (its segment handed over)."""
+    link, slot = publisher.links.by_token[token], pin.slot
+    if forge == 'stale pin':
+        pin.generation += 1
+    elif forge == 'closed slot':
+        slot.closed = True
+    elif forge == 'segment refused':
+        link.verdicts[slot.id] = handover.Reply(slot.id, handover.ReplyKind.REFUSED, 0)
+    elif forge == 'process gone':
+        publisher.links.gone.add(token)
+    elif forge == 'segment not handed over':
+        link.segments.discard(slot.id)
+
+
 def _forged_describe(native: bool, forge: str):
     """Two describes of one frame for another process (the segment handed over, then the
     steady case), the state forged, one more describe: its outcome and the state after it."""
@@ -150,18 +166,8 @@ def _forged_describe(native: bool, forge: str):
         view, pin = publisher.allocate(4096)
         assert publisher.describe(pin, ledger) is not None  # handed over, accepted
         assert publisher.describe(pin, ledger) is not None  # the steady case
-        link = publisher.links.by_token[subscriber.token]
         slot = pin.slot
-        if forge == 'stale pin':
-            pin.generation += 1
-        elif forge == 'closed slot':
-            slot.closed = True
-        elif forge == 'segment refused':
-            link.verdicts[slot.id] = handover.Reply(slot.id, handover.ReplyKind.REFUSED, 0)
-        elif forge == 'process gone':
-            publisher.links.gone.add(subscriber.token)
-        elif forge == 'segment not handed over':
-            link.segments.discard(slot.id)
+        _forge(publisher, subscriber.token, pin, forge)
         try:
             got = publisher.describe(pin, ledger)
             outcome = None if got is None else codec.unpack(got)._replace(nonce=0)
@@ -223,18 +229,8 @@ def test_the_steady_describer_describes_the_steady_case_and_changes_nothing_else
         assert steady is not None and codec.unpack(steady).segment_id == pin.slot.id
         assert ledger.seq == before[1][0][0] + 1
         assert publisher.describe_steady(ledger, _Held()) is None
-        link = publisher.links.by_token[subscriber.token]
         slot = pin.slot
-        if forge == 'stale pin':
-            pin.generation += 1
-        elif forge == 'closed slot':
-            slot.closed = True
-        elif forge == 'segment refused':
-            link.verdicts[slot.id] = handover.Reply(slot.id, handover.ReplyKind.REFUSED, 0)
-        elif forge == 'process gone':
-            publisher.links.gone.add(subscriber.token)
-        elif forge == 'segment not handed over':
-            link.segments.discard(slot.id)
+        _forge(publisher, subscriber.token, pin, forge)
         forged = _state(publisher, [ledger], tokens)
         assert publisher.describe_steady(ledger, _Held(pin)) is None
         assert _state(publisher, [ledger], tokens) == forged
