@@ -19,7 +19,7 @@ from harness.scenarios import SCENARIOS, SMALL
 from launch_free_demos.domains import fresh_domain
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import _dds, _native, advertisement, codec
-from rosidl_buffer_py import routes
+from rosidl_buffer_py import publisher, routes
 from rosidl_buffer_py.nodes.frames import check_frame
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)  # bursts fit
@@ -681,3 +681,74 @@ def test_a_quiet_publishers_channel_costs_no_take_per_message_of_another(context
     assert takes[quiet_gid] >= 1
     node.destroy_node()
 
+
+def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing(context):
+    """Once its routes are steady, publish() writes the descriptors it prepared for the
+    table's steady dispatch (``Publisher._publish_steady``); a new subscriber (another
+    process), a subscriber of its own process (whose descriptors the lane's describer
+    declines: the full path serves it) and the subscriber's exit each change the routes, and
+    every subscriber gets every frame once, in order, zero-copy where its share of the pool
+    allows. (Its readers keep 100 samples: a KEEP_LAST 10 reader that stalls for a fifth of a
+    second at 50 Hz loses frames, with stock endpoints too.)"""
+    topic = '/lane_image'
+    node = rclpy.create_node('lane_pub', context=context)
+    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+    lane_used = []
+    steady = pub._publish_steady
+
+    def counted(lane, msg):
+        served = steady(lane, msg)
+        lane_used.append(served)
+        return served
+    pub._publish_steady = counted
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    counter = 0
+
+    def publish(count: int) -> None:
+        nonlocal counter
+        for _ in range(count):
+            pub.publish(frame(counter, 'demo'))
+            counter += 1
+            executor.spin_once(timeout_sec=0.02)
+
+    def serving(count: int) -> bool:
+        peers = pub.buffer_peers()
+        if len(peers) != count or not all(p['channel_serving'] for p in peers) or \
+                pub._peers.reannouncer.timer.running:
+            return False
+        # discovery's grace: the routes' view reads DDS on every message for a while
+        settle_until = time.monotonic() + publisher.EPOCH_GRACE_SECONDS + 0.2
+        while time.monotonic() < settle_until:
+            executor.spin_once(timeout_sec=0.05)
+        return True
+
+    with Run() as run:
+        run.start('first', 'image_subscriber', **_sub_params(
+            topic, 60, acceptable_buffer_backends='demo', depth=100))
+        assert spin_until(executor, lambda: serving(1), timeout=30.0), run.diagnostics()
+        publish(20)
+        assert any(lane_used), lane_used  # (the first message under a plan prepares it)
+        run.start('second', 'image_subscriber', **_sub_params(
+            topic, 40, acceptable_buffer_backends='demo', depth=100))
+        assert spin_until(executor, lambda: serving(2), timeout=30.0), run.diagnostics()
+        assert pub._lane is None or pub._lane.dispatch is not pub._table.steady
+        mine = []
+        rosidl_buffer_py.create_subscription(
+            node, Image, topic, lambda m: mine.append(check_frame(m).counter), RELIABLE,
+            acceptable_buffer_backends='demo')
+        assert spin_until(executor, lambda: serving(3), timeout=30.0), run.diagnostics()
+        first_mine = counter
+        lane_used.clear()
+        publish(40 - (counter - 20))
+        assert any(lane_used), lane_used
+        assert run.wait(['first', 'second'], 60), run.diagnostics()
+        reports = {label: run.nodes[label].report for label in ('first', 'second')}
+    publish(3)  # its peers gone: the lane goes, the own-process subscriber still gets all
+    assert spin_until(executor, lambda: mine == list(range(first_mine, counter))), mine
+    for label, report in reports.items():
+        count = 60 if label == 'first' else 40  # (the second's first frame is the 21st)
+        assert report['distinct'] == report['received'] == count, (label, report)
+        assert report['duplicates'] == 0 and report['gaps'] == 60 - count, report
+        assert report['backends'].get('demo', 0) > 0, report
+    node.destroy_node()
