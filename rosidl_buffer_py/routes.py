@@ -822,21 +822,35 @@ class Receiver(Generic[C, T]):
                 sample = view.take_channel(channel)
                 if sample is None:
                     continue
-                found = self._channel_sample(view, channel, stream, sample, now)
+                found = self.channel_step(view, channel, stream, sample, now)
             self._next_channel = (self._next_channel + i + 1) % count
             return found
         view.channels_drained()
         return None
 
+    def only_channel_next(self, key: Hashable) -> Optional[Stream[T]]:
+        """For a subscription whose one channel is ``key``'s: that channel's stream when the
+        take order's next step is the channel's next sample (its stream holds nothing back, and
+        the rotation starts at it, as :meth:`step` leaves it with one channel), else None (ask
+        :meth:`step`). The caller then takes the sample and hands it to :meth:`channel_step`
+        (a subscription's steady delivery)."""
+        if self._next_channel:
+            return None
+        stream = self.streams.streams.get(key)
+        return stream if stream is not None and not stream.waiting else None
+
     @staticmethod
-    def _channel_sample(view: 'ReceiveView[C, T]', channel: C, stream: Stream[T], sample: T,
-                        now: float) -> Step[C, T]:
-        kind, fence = view.classify(channel, sample)
-        if kind is Incoming.FENCE:
-            stream.fenced(view.timestamp(sample), fence, now)
-            return Step(Outcome.FENCE, sample, channel)
-        if kind is Incoming.CONTROL:
-            return Step(Outcome.CONTROL, sample, channel)
+    def channel_step(view: 'ReceiveView[C, T]', channel: C, stream: Stream[T], sample: T,
+                     now: float, data: bool = False) -> Step[C, T]:
+        """The step of a sample taken from ``channel``, whose stream is ``stream``. ``data``:
+        the caller already classified it as :attr:`Incoming.DATA` (``view.classify`` would)."""
+        if not data:
+            kind, fence = view.classify(channel, sample)
+            if kind is Incoming.FENCE:
+                stream.fenced(view.timestamp(sample), fence, now)
+                return Step(Outcome.FENCE, sample, channel)
+            if kind is Incoming.CONTROL:
+                return Step(Outcome.CONTROL, sample, channel)
         verdict = stream.channel(view.timestamp(sample), sample, now)
         # (identity first: an Enum's hash is Python code, and most messages are delivered)
         return Step(Outcome.DELIVER if verdict is Verdict.DELIVER else _OUTCOME_OF[verdict],

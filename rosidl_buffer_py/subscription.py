@@ -319,7 +319,8 @@ class Subscription(rclpy.subscription.Subscription):
         each step did and decodes what it delivers."""
         with self._lock:
             while not self._peers.closed:
-                step = self._receiver.step(self._view, time.monotonic())
+                now = time.monotonic()
+                step = self._steady_step(now) or self._receiver.step(self._view, now)
                 if step is None:
                     return None
                 outcome, taken = step.outcome, step.sample
@@ -358,6 +359,32 @@ class Subscription(rclpy.subscription.Subscription):
                     self._say_copies(step.channel, on_channel=True)
                     return self._delivered(msg, taken)
             return None
+
+    def _steady_step(self, now: float) -> Optional[routes.Step]:
+        """The next step when the take order is simply the one channel's next sample
+        (:meth:`routes.Receiver.only_channel_next`) and a descriptor message is there: taken
+        and decoded in C, known as data without the view's classification (what
+        ``_ReceiveView.classify`` says of a descriptor message from its publisher's
+        participant). Anything else taken goes to the classification; None, having taken
+        nothing, where :meth:`routes.Receiver.step` is to run. Under the lock."""
+        channels = self._channels
+        if len(channels) != 1:
+            return None
+        peer = channels[0]
+        if peer.departed is not None or not peer.descriptors_possible or \
+                self._reading is None or not peer.channel.pending:
+            return None
+        stream = self._receiver.only_channel_next(peer.info.gid)
+        if stream is None:
+            return None
+        taken = peer.channel.take_described(*self._reading.args)
+        if taken is None:
+            return None
+        sample = _Taken(*taken)
+        return self._receiver.channel_step(
+            self._view, peer, stream, sample, now,
+            data=sample.described is not None and
+            sample.publisher_gid[:_GUID_PREFIX] == peer.info.gid[:_GUID_PREFIX])
 
     def _say_copies(self, peer: Optional[_PublisherPeer], on_channel: bool) -> None:
         """Say once per publisher, in the node's log, that its messages arrive as CPU copies

@@ -303,7 +303,8 @@ def test_bench_wakeup_times_a_wakeup_with_stock_and_our_endpoints():
 
 def test_bench_lane_times_publish_through_the_lane_and_the_full_path():
     """README's ./dev bench lane, short: a row per round, stock rclpy's publish() and the demo
-    publisher's, most of its calls through its steady lane once its route serves."""
+    publisher's, most of its calls through its steady lane once its route serves, and the
+    demo subscription's deliveries, through its steady step."""
     command = [str(ROOT / 'dev'), 'bench', 'lane'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.lane']
     completed = subprocess.run(command + ['--frames', '12', '--rate', '20', '--rounds', '1'],
@@ -311,9 +312,10 @@ def test_bench_lane_times_publish_through_the_lane_and_the_full_path():
                                env=dict(os.environ))
     assert completed.returncode == 0, completed.stdout + completed.stderr
     rows = {row[0]: row[1:] for row in table_rows(completed.stdout)}
-    stock, lane, _ = rows['1']
+    stock, lane, _, steady_step, _ = rows['1']
     assert float(stock.split()[0]) > 0, rows
     assert int(lane.split()[1].strip('()')) > 0, rows  # (the first under a plan prepares it)
+    assert int(steady_step.split()[1].strip('()')) > 0, rows
 
 
 def test_bench_hotpath_times_every_stage_of_every_transport():

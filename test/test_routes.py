@@ -567,6 +567,70 @@ def test_receiver_gives_probes_and_rejected_samples_no_delivery():
     assert [s[0] for s in steps] == ['control', 'deliver']
 
 
+def _steady_first_steps(readers: _Readers, receiver: Receiver, now: float) -> List[tuple]:
+    """What a subscription with one channel does (``Subscription._steady_step``): the channel's
+    next sample taken and handed to ``channel_step`` while ``only_channel_next`` allows it, a
+    data sample marked as such; ``step`` otherwise."""
+    steps = []
+    while True:
+        step = None
+        keys = readers.channels()
+        stream = receiver.only_channel_next(keys[0]) if len(keys) == 1 else None
+        if stream is not None:
+            sample = readers.take_channel(keys[0])
+            if sample is not None:
+                step = receiver.channel_step(readers, keys[0], stream, sample, now,
+                                             data=sample[0] == 'data')
+        step = step or receiver.step(readers, now)
+        if step is None:
+            return steps
+        steps.append((step.outcome.value, step.sample, step.channel, step.released))
+
+
+def test_the_one_channel_shortcut_takes_and_delivers_what_step_does():
+    """Random arrivals on one channel (data, duplicates, probes, fences) and on the main topic
+    (its copies and another publisher's), time passing (fences given up): a receiver driven
+    through ``only_channel_next`` and ``channel_step`` gives the steps, takes and stream
+    states that ``step`` alone gives; a second channel ends the shortcut, and once it is gone
+    the rotation goes on where ``step`` left it."""
+    import random
+    for seed in range(400):
+        rng = random.Random(seed)
+        runs = []
+        for shortcut in (False, True):
+            rng.seed(seed)
+            readers, receiver = _Readers({'a': []}, []), Receiver(StreamTable())
+            trace, now, n = [], 0.0, 0
+            for _ in range(rng.randint(5, 40)):
+                kind = rng.choice(('data', 'data', 'data', 'old', 'probe', 'fence', 'main',
+                                   'other', 'time', 'take', 'take', 'second', 'gone'))
+                if kind in ('data', 'old'):
+                    n += kind == 'data'
+                    readers.queues['a'].append(('data', n if kind == 'data' else n - 2))
+                elif kind == 'probe':
+                    readers.queues['a'].append(('probe', 0))
+                elif kind == 'fence':
+                    n += 1
+                    readers.queues['a'].append(('fence', n + 1, n))
+                elif kind == 'main':
+                    readers.main.append(('a', n))
+                elif kind == 'other':
+                    readers.main.append(('x', rng.randint(1, 9)))
+                elif kind == 'time':
+                    now += rng.choice((0.01, FENCE_TIMEOUT_SECONDS))
+                elif kind == 'second' and 'b' not in readers.queues:
+                    readers.queues['b'] = collections.deque([('data', n), ('data', n + 1)])
+                elif kind == 'gone':  # the second publisher's channel goes
+                    readers.queues.pop('b', None)
+                else:
+                    drive = _steady_first_steps if shortcut else _steps
+                    trace.append(drive(readers, receiver, now))
+            stream = receiver.streams.streams.get('a')
+            runs.append((trace, readers.taken, stream and (
+                stream.state, stream.last, stream.fence, list(stream.waiting))))
+        assert runs[0] == runs[1], seed
+
+
 def test_control_messages_round_trip_and_are_told_from_messages():
     for message in (control.PROBE, Fence(0), Fence(2 ** 64 - 1), Fence(123456789),
                     Fence(7, delivered=True)):

@@ -688,7 +688,8 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
     process), a subscriber of its own process (whose descriptors the lane's describer
     declines: the full path serves it) and the subscriber's exit each change the routes, and
     every subscriber gets every frame once, in order, zero-copy where its share of the pool
-    allows. (Its readers keep 100 samples: a KEEP_LAST 10 reader that stalls for a fifth of a
+    allows. The subscription of its own process, with one channel, takes its descriptor
+    messages through ``Subscription._steady_step``. (Its readers keep 100 samples: a KEEP_LAST 10 reader that stalls for a fifth of a
     second at 50 Hz loses frames, with stock endpoints too.)"""
     topic = '/lane_image'
     node = rclpy.create_node('lane_pub', context=context)
@@ -733,10 +734,17 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
             topic, 40, acceptable_buffer_backends='demo', depth=100))
         assert spin_until(executor, lambda: serving(2), timeout=30.0), run.diagnostics()
         assert pub._lane is None or pub._lane.dispatch is not pub._table.steady
-        mine = []
-        rosidl_buffer_py.create_subscription(
+        mine, shortcut = [], []
+        own = rosidl_buffer_py.create_subscription(
             node, Image, topic, lambda m: mine.append(check_frame(m).counter), RELIABLE,
             acceptable_buffer_backends='demo')
+        steady_step = own._steady_step
+
+        def counted_step(now):  # its one channel's descriptor messages, taken directly
+            step = steady_step(now)
+            shortcut.append(step is not None)
+            return step
+        own._steady_step = counted_step
         assert spin_until(executor, lambda: serving(3), timeout=30.0), run.diagnostics()
         first_mine = counter
         lane_used.clear()
@@ -746,6 +754,7 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
         reports = {label: run.nodes[label].report for label in ('first', 'second')}
     publish(3)  # its peers gone: the lane goes, the own-process subscriber still gets all
     assert spin_until(executor, lambda: mine == list(range(first_mine, counter))), mine
+    assert any(shortcut), shortcut
     for label, report in reports.items():
         count = 60 if label == 'first' else 40  # (the second's first frame is the 21st)
         assert report['distinct'] == report['received'] == count, (label, report)

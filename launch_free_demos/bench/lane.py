@@ -1,5 +1,6 @@
 """What one ``publish()`` costs a steady demo publisher, through its lane and through the full
-path, next to stock rclpy's ``publish()``.
+path, next to stock rclpy's ``publish()``; and what a demo subscription's delivery costs,
+through its steady step and otherwise.
 
 A publisher in this process sends ``--frames`` 1 KiB ``sensor_msgs/Image`` frames at ``--rate``
 Hz to a subscriber process: stock rclpy endpoints, then rosidl_buffer_py's with the demo backend
@@ -9,7 +10,11 @@ route serves and discovery has settled (``publisher.EPOCH_GRACE_SECONDS``). Each
 demo publisher's calls are split by the path they took: the steady lane
 (``Publisher._publish_steady`` served it: the writes prepared for the route table's steady
 dispatch) or the full path (the first messages, and the re-plan the table makes every
-``routes.RECHECK_SECONDS``). A benchmark: it prints medians, it asserts nothing.
+``routes.RECHECK_SECONDS``). The demo subscriber process times each delivery, from its channel
+guard's callback to the start of the user's callback, split by whether
+``Subscription._steady_step`` took the sample (the one channel's descriptor message, taken
+without the route protocol's general step). A benchmark: it prints medians, it asserts
+nothing.
 ``./dev bench lane [--frames 60] [--rate 10] [--rounds 2]``
 """
 import argparse
@@ -36,19 +41,42 @@ WIDTH = 1024  #: one mono8 row: 1 KiB
 #: Calls left out (the first after bring-up).
 SKIP = 5
 QOS = QoSProfile(depth=10)
-#: The printed line that carries the publisher's timings to the bench.
+#: The printed lines that carry the publisher's and the subscriber's timings to the bench.
 TIMES_LINE = 'publish times: '
+DELIVERY_LINE = 'delivery times: '
 
 
 def _subscribe(mode: str, frames: int, rate: float) -> None:
+    """Receives; a demo subscription times each delivery (its channel guard's callback to the
+    user's callback) by the way the sample was taken, and prints them."""
     rclpy.init()
     try:
         node = rclpy.create_node('lane_sub')
         got: List[int] = []
+        times: Dict[str, List[int]] = {}
         if mode == 'demo':
             import rosidl_buffer_py
-            rosidl_buffer_py.create_subscription(node, Image, TOPIC, lambda m: got.append(1),
-                                                 QOS, acceptable_buffer_backends='demo')
+            entered, steady = [0], [False]
+
+            def on_frame(msg) -> None:
+                if len(got) >= SKIP:
+                    path = 'steady step' if steady[0] else 'other'
+                    times.setdefault(path, []).append(time.perf_counter_ns() - entered[0])
+                got.append(1)
+            sub = rosidl_buffer_py.create_subscription(node, Image, TOPIC, on_frame, QOS,
+                                                       acceptable_buffer_backends='demo')
+            deliver, steady_step = sub._deliver_available, sub._steady_step
+
+            def timed_delivery() -> None:
+                entered[0], steady[0] = time.perf_counter_ns(), False
+                deliver()
+
+            def seen_step(now):
+                step = steady_step(now)
+                steady[0] = steady[0] or step is not None
+                return step
+            sub._steady_step = seen_step
+            sub._channel_guard.callback = timed_delivery  # (the guard calls what it was given)
         else:
             node.create_subscription(Image, TOPIC, lambda m: got.append(1), QOS)
         executor = SingleThreadedExecutor()
@@ -56,6 +84,8 @@ def _subscribe(mode: str, frames: int, rate: float) -> None:
         deadline = time.monotonic() + frames / rate + 60.0
         while len(got) < frames and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.1)
+        if times:
+            print(DELIVERY_LINE + json.dumps(times), flush=True)
     finally:
         rclpy.try_shutdown()
 
@@ -164,16 +194,22 @@ def main(argv=None) -> int:
                 print(completed.stdout + completed.stderr, file=sys.stderr)
                 return 1
             row.update(json.loads(lines[-1][len(TIMES_LINE):]))
+            row.update({f'delivery: {path}': samples for line in completed.stdout.splitlines()
+                        if line.startswith(DELIVERY_LINE)
+                        for path, samples in json.loads(line[len(DELIVERY_LINE):]).items()})
         rows.append(row)
         print(f'round {index + 1}: ' + ', '.join(f'{path} {_cell(samples)}'
                                                   for path, samples in row.items()), flush=True)
     print(f'\nOne 1 KiB frame at {args.rate:g} Hz, publisher and subscriber in two processes: '
-          'publish() alone, median µs (calls), per round.\n')
-    print('| round | stock rclpy | demo: steady lane | demo: full path |')
-    print('|---|---|---|---|')
+          'publish() alone, and the demo subscription\'s delivery (its channel guard\'s '
+          'callback to the start of the user\'s), median µs (calls), per round.\n')
+    print('| round | stock rclpy publish() | demo publish(): steady lane | demo publish(): full '
+          'path | demo delivery: steady step | demo delivery: other |')
+    print('|---|---|---|---|---|---|')
     for index, row in enumerate(rows):
         print(f'| {index + 1} | {_cell(row.get("stock rclpy"))} | {_cell(row.get("lane"))} | '
-              f'{_cell(row.get("full path"))} |')
+              f'{_cell(row.get("full path"))} | {_cell(row.get("delivery: steady step"))} | '
+              f'{_cell(row.get("delivery: other"))} |')
     return 0
 
 
