@@ -88,6 +88,8 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
         stages.wrap(rclpy.publisher.Publisher, 'publish', 'publish()')
         return
     stages.wrap(publisher.Publisher, 'publish', 'publish()')
+    stages.wrap(publisher.Publisher, '_publish_steady',
+                '  steady lane (its prepared writes; declined calls too)')
     stages.wrap(publisher.Publisher, '_write', '  writes (descriptor or CPU message)')
     stages.wrap(routes.RouteTable, 'dispatch', '  route dispatch (plan cached while current)')
     if transport == 'demo':
@@ -102,6 +104,8 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
         return  # rclpy's take and conversion are one C call
     # (the channel's guard condition holds the bound _deliver_available: _next is timed)
     stages.wrap(subscription.Subscription, '_next', 'delivery path: take to message')
+    stages.wrap(subscription.Subscription, '_steady_step',
+                '  steady step (the one channel\'s take, decoded in C; empty ones too)')
     stages.wrap(subscription._PublisherPeer, 'take',
                 '  channel takes (empty ones too; descriptor messages decoded in them)')
     if transport == 'demo':
