@@ -107,13 +107,12 @@ class _RouteView:
         an endpoint right after the callback), and at least every ``routes.RECHECK_SECONDS``
         whatever happens; ``fresh``: now (the table re-plans)."""
         now = time.monotonic()
+        if not fresh and self.settled(now):
+            return self._signature
         seen = (self._epoch[0], self._peers.version)
         if seen != self._seen:
             self._seen = seen
             self._trust_from = now + EPOCH_GRACE_SECONDS
-        elif not fresh and now >= self._trust_from and \
-                now - self._read_at < routes.RECHECK_SECONDS:
-            return self._signature
         self._read_at = now
         self._signature = (self._main_count(),
                            tuple(-1 if peer.channel is None else peer.channel.matched_count()
@@ -121,7 +120,7 @@ class _RouteView:
         return self._signature
 
     def settled(self, now: float) -> bool:
-        # signature()'s test for answering from memory: nothing moved, no grace, no recheck
+        # whether signature() answers from memory: nothing moved, no grace, no recheck due
         return ((self._epoch[0], self._peers.version) == self._seen and
                 self._trust_from <= now and now - self._read_at < routes.RECHECK_SECONDS)
 

@@ -370,26 +370,34 @@ class RouteTable(Generic[K]):
         #: (None: plan again; asking DDS for the matched subscriptions takes tens of
         #: microseconds).
         self._cached: Optional[_Cached] = None
-        #: The cached plan's steady dispatch (see ``_Cached.steady``), or None. A re-plan that
-        #: gives the same answer keeps this very object, so a publisher can prepare its writes
-        #: for it once and use them while ``steady is prepared`` (:meth:`dispatch_prepared`).
-        self.steady: Optional[Dispatch] = None
-        #: The cached plan's ``recheck_at``: the steady dispatch holds until then at most.
-        self.steady_until = 0.0
+
+    @property
+    def steady(self) -> Optional[Dispatch]:
+        """The cached plan's steady dispatch (see ``_Cached.steady``), or None. A re-plan that
+        gives the same answer keeps this very object, so a publisher can prepare its writes
+        for it once and use them while it is the one (:meth:`dispatch_prepared`)."""
+        cached = self._cached
+        return None if cached is None else cached.steady
+
+    @property
+    def steady_until(self) -> float:
+        """The cached plan's ``recheck_at``: the steady dispatch holds until then at most."""
+        cached = self._cached
+        return 0.0 if cached is None else cached.plan.recheck_at
 
     def add(self, key: K, *, handshake: bool, depth: int = 0) -> Route:
         """A buffer-aware subscription was discovered: its route starts UNMATCHED."""
         route = Route(handshake=handshake and 0 < depth <= MAX_PROBE_DEPTH,
                       first_probes=depth + 1, last_main=self._last_main.pop(key, None))
         self.routes[key] = route
-        self._drop_plan()
+        self._cached = None
         return route
 
     def remove(self, key: K) -> None:
         """A subscription went away (or stopped being buffer-aware)."""
         self.routes.pop(key, None)
         self._last_main.pop(key, None)
-        self._drop_plan()
+        self._cached = None
 
     def gone(self, key: K) -> None:
         """``key``'s process is known to be gone (its backend said so before DDS): nothing
@@ -397,12 +405,12 @@ class RouteTable(Generic[K]):
         route = self.routes.get(key)
         if route is not None:
             route.gone()
-        self._drop_plan()
+        self._cached = None
 
     def invalidate(self) -> None:
         """Something the signature does not show changed (a subscription of the topic came,
         changed or went): the next message is planned again."""
-        self._drop_plan()
+        self._cached = None
 
     def advance(self, now: float, view: 'RouteView[K]',
                 signature: Optional[Hashable] = None) -> Advance:
@@ -419,11 +427,10 @@ class RouteTable(Generic[K]):
             if count:
                 probes.append((key, count))
         plan = self.plan(now, view.matched_subscriptions())
-        steady = _steady_dispatch(plan, self.routes)
-        if steady is not None and steady == self.steady:
-            steady = self.steady  # the same answer: writes prepared for it still serve
+        steady, before = _steady_dispatch(plan, self.routes), self.steady
+        if steady is not None and steady == before:
+            steady = before  # the same answer: writes prepared for it still serve
         self._cached = _Cached(plan, signature, steady)
-        self.steady, self.steady_until = steady, plan.recheck_at
         return Advance(tuple(probes), plan.recheck_at - now < RECHECK_SECONDS)
 
     def dispatch(self, now: float, timestamp: int, view: 'RouteView[K]') -> Dispatch:
@@ -454,7 +461,7 @@ class RouteTable(Generic[K]):
                     deferred.append(key)
                     continue
                 fence = route.take_fence()._replace(delivered=delivered)
-                self._drop_plan()  # the route's state changed: plan the next message again
+                self._cached = None  # the route's state changed: plan the next message again
             else:
                 fence = None
             channel.append((key, fence))
@@ -465,7 +472,7 @@ class RouteTable(Generic[K]):
             withheld = tuple(key for key in withheld if key not in deferred)
             main_served += tuple(key for key in deferred if key in matched)
         if main and self.main_written(main_served, timestamp):
-            self._drop_plan()  # a route may serve from the next message on
+            self._cached = None  # a route may serve from the next message on
         self.last_published = timestamp
         return Dispatch(probes, tuple(channel), main, withheld, timer)
 
@@ -475,15 +482,12 @@ class RouteTable(Generic[K]):
         ``prepared``: True when that is the answer for message ``timestamp`` (dispatched: the
         publisher writes exactly there), known without planning or asking DDS; False when
         :meth:`dispatch` is to be asked (a transition, a re-plan due, the view unsettled)."""
-        if self.steady is not prepared or now >= self.steady_until or not view.settled(now):
+        cached = self._cached
+        if cached is None or cached.steady is not prepared or now >= cached.plan.recheck_at \
+                or not view.settled(now):
             return False
         self.last_published = timestamp
         return True
-
-    def _drop_plan(self) -> None:
-        """Plan the next message again (a route's state changed)."""
-        self._cached = None
-        self.steady = None
 
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's
@@ -837,7 +841,7 @@ class Receiver(Generic[C, T]):
         if self._next_channel:
             return None
         stream = self.streams.streams.get(key)
-        return stream if stream is not None and not stream.waiting else None
+        return stream if stream is not None and not stream.holding else None
 
     @staticmethod
     def channel_step(view: 'ReceiveView[C, T]', channel: C, stream: Stream[T], sample: T,

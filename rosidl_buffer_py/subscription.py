@@ -117,6 +117,12 @@ class _PublisherPeer(ChannelPeer):
         return bool(self.departed) if self.departed is not None else self.channel.pending
 
 
+def _of_its_participant(peer: _PublisherPeer, taken: _Taken) -> bool:
+    """The sample was written by the publisher's participant, which creates its channel's
+    writer (any process can create a writer on any topic)."""
+    return taken.publisher_gid[:_GUID_PREFIX] == peer.info.gid[:_GUID_PREFIX]
+
+
 class _ReceiveView:
     """A subscription's DDS readers as :class:`routes.Receiver` asks about them
     (:class:`routes.ReceiveView`): its channels (:class:`_PublisherPeer`) and its main-topic
@@ -138,9 +144,7 @@ class _ReceiveView:
         return peer.take(self._sub._reading) if peer.pending else None
 
     def classify(self, peer: _PublisherPeer, taken: _Taken):
-        if taken.publisher_gid[:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
-            # the channel's writer is created by the publisher's participant: anyone else on
-            # its topic is an impostor (any process can create a writer on any topic)
+        if not _of_its_participant(peer, taken):  # an impostor on its channel's topic
             self._sub._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
                                      f'{peer.info.gid_hex}\'s participant')
             return routes.Incoming.CONTROL, None
@@ -377,14 +381,12 @@ class Subscription(rclpy.subscription.Subscription):
         stream = self._receiver.only_channel_next(peer.info.gid)
         if stream is None:
             return None
-        taken = peer.channel.take_described(*self._reading.args)
-        if taken is None:
+        sample = peer.take(self._reading)
+        if sample is None:
             return None
-        sample = _Taken(*taken)
         return self._receiver.channel_step(
             self._view, peer, stream, sample, now,
-            data=sample.described is not None and
-            sample.publisher_gid[:_GUID_PREFIX] == peer.info.gid[:_GUID_PREFIX])
+            data=sample.described is not None and _of_its_participant(peer, sample))
 
     def _say_copies(self, peer: Optional[_PublisherPeer], on_channel: bool) -> None:
         """Say once per publisher, in the node's log, that its messages arrive as CPU copies

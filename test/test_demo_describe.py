@@ -153,20 +153,35 @@ def _forge(publisher: Pool, token: str, pin, forge: str) -> None:
         link.segments.discard(slot.id)
 
 
+def _unforge(publisher: Pool, token: str, pin, forge: str) -> None:
+    """Undo what :func:`_forge` made that would outlive the test (the pools' shutdown)."""
+    if forge == 'stale pin':
+        pin.generation -= 1
+    pin.slot.closed = False
+    publisher.links.gone.discard(token)
+
+
+def _handed_over(publisher: Pool, subscriber: Pool):
+    """One frame of ``publisher`` described for ``subscriber``'s process, its segment handed
+    over and accepted: (the endpoint's ledger, the frame's view, its pin)."""
+    assert subscriber.advertise() == subscriber.token
+    subscriber.expect(PUBLISHER_GID, os.getpid())
+    ledger = EndpointLedger(subscriber.token, 8)
+    view, pin = publisher.allocate(4096)
+    assert publisher.describe(pin, ledger) is not None
+    return ledger, view, pin
+
+
 def _forged_describe(native: bool, forge: str):
     """Two describes of one frame for another process (the segment handed over, then the
     steady case), the state forged, one more describe: its outcome and the state after it."""
     publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
     if not native:
         publisher._describe_linked = lambda *args: None
+    view = pin = None
     try:
-        assert subscriber.advertise() == subscriber.token
-        subscriber.expect(PUBLISHER_GID, os.getpid())
-        ledger = EndpointLedger(subscriber.token, 8)
-        view, pin = publisher.allocate(4096)
-        assert publisher.describe(pin, ledger) is not None  # handed over, accepted
+        ledger, view, pin = _handed_over(publisher, subscriber)
         assert publisher.describe(pin, ledger) is not None  # the steady case
-        slot = pin.slot
         _forge(publisher, subscriber.token, pin, forge)
         try:
             got = publisher.describe(pin, ledger)
@@ -175,10 +190,7 @@ def _forged_describe(native: bool, forge: str):
             outcome = 'gone'
         tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
         state = _state(publisher, [ledger], tokens)
-        if forge == 'stale pin':
-            pin.generation -= 1
-        slot.closed = False
-        publisher.links.gone.discard(subscriber.token)
+        _unforge(publisher, subscriber.token, pin, forge)
         return outcome, state
     finally:
         del view, pin
@@ -217,27 +229,20 @@ def test_the_steady_describer_describes_the_steady_case_and_changes_nothing_else
     records it; for anything else (each state forged, a Buffer without a pin, a closed pool)
     None with nothing changed, so that describe() can run instead."""
     publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
+    view = pin = None
     try:
-        assert subscriber.advertise() == subscriber.token
-        subscriber.expect(PUBLISHER_GID, os.getpid())
-        ledger = EndpointLedger(subscriber.token, 8)
-        view, pin = publisher.allocate(4096)
-        assert publisher.describe(pin, ledger) is not None  # handed over, accepted
+        ledger, view, pin = _handed_over(publisher, subscriber)
         tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
         before = _state(publisher, [ledger], tokens)
         steady = publisher.describe_steady(ledger, _Held(pin))
         assert steady is not None and codec.unpack(steady).segment_id == pin.slot.id
         assert ledger.seq == before[1][0][0] + 1
         assert publisher.describe_steady(ledger, _Held()) is None
-        slot = pin.slot
         _forge(publisher, subscriber.token, pin, forge)
         forged = _state(publisher, [ledger], tokens)
         assert publisher.describe_steady(ledger, _Held(pin)) is None
         assert _state(publisher, [ledger], tokens) == forged
-        if forge == 'stale pin':
-            pin.generation -= 1
-        slot.closed = False
-        publisher.links.gone.discard(subscriber.token)
+        _unforge(publisher, subscriber.token, pin, forge)
         publisher.closed = True
         assert publisher.describe_steady(ledger, _Held(pin)) is None
         publisher.closed = False
