@@ -62,7 +62,9 @@ COVERAGE = {
     './dev bench transport': 'here',                      # with fewer frames and payloads
     './dev bench transport --payloads "1 KiB" --frames 60 --rate 5 --rounds 8': 'here',  # fewer
     './dev bench transport --payloads "1 KiB" "3840x2160 rgb8" --frames 30 --rate 10 '
-    '--rounds 3': 'here',                                 # fewer frames, one round
+    '--rounds 3': 'here',                                 # as its --attribution run
+    './dev bench transport --payloads "1 KiB" "3840x2160 rgb8" --frames 30 --rate 10 '
+    '--rounds 3 --attribution': 'here',                   # fewer frames, one round
     './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
     './dev bench bare': 'test_benchmark.py',              # 8 frames, one round
     './dev bench bare --opcodes': 'test_benchmark.py',    # 8 frames
@@ -319,8 +321,10 @@ def test_dev_bench_prints_the_table():
     assert bench.returncode == 0, bench.stderr[-2000:]
     assert '| 3840x2160 rgb8 | 24,883,200 |' in bench.stdout
     # the documented rounds commands, with fewer frames and rounds (./dev bench transport
-    # alone is the same code with every payload, one round)
-    commands = [c for c in COVERAGE if c.startswith('./dev bench transport --')]
+    # alone is the same code with every payload, one round; a command whose --attribution
+    # run is documented too runs as that one)
+    commands = [c for c in COVERAGE if c.startswith('./dev bench transport --')
+                and c + ' --attribution' not in COVERAGE]
     assert len(commands) == 2, commands
     for command in commands:
         transport = run(re.sub(r'--frames \d+', '--frames 4',
@@ -329,6 +333,11 @@ def test_dev_bench_prints_the_table():
         assert '| 1 KiB |' in transport.stdout, transport.stdout
     assert '| 3840x2160 rgb8 |' in transport.stdout and \
         'demo 3840x2160 / stock 1 KiB p50 per round' in transport.stdout, transport.stdout
+    for variant in ('1 KiB: demo, channels on SHM / demo (on UDP) p50 per round',
+                    '3840x2160 rgb8: demo, channels on SHM / demo (on UDP) p50 per round',
+                    '1 KiB: stock rclpy, 4K fill before / stock rclpy p50 per round',
+                    'demo 3840x2160 / stock 1 KiB with a 4K fill before p50 per round'):
+        assert variant in transport.stdout, transport.stdout
 
 
 @dev_only

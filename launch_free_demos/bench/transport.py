@@ -6,15 +6,23 @@ verifies every frame's checksum. Prints a markdown table of medians and p90s and
 project targets. With ``--rounds N`` every payload is measured N times, payloads and transports
 interleaved round by round, and each cell is the median over the rounds (run-to-run noise on a
 shared machine is larger than the differences at small payloads). With 1 KiB and 3840x2160
-both measured, it prints a 4K demo frame's p50 against stock's 1 KiB message, per round. A
-benchmark: it prints, it asserts nothing. ``./dev bench transport``.
+both measured, it prints a 4K demo frame's p50 against stock's 1 KiB message, per round.
+
+``--attribution`` adds two variants to each round, which say what of that ratio is not this
+package's per-message work: the demo backend with its channels on Fast DDS's shared memory
+instead of UDP (``ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT=participant``; design.md says why channels
+listen on UDP), and stock rclpy's 1 KiB message from a publisher that fills and checksums a 4K
+frame's bytes of other memory before each frame (``scratch_bytes``), as a 4K frame's publisher
+does before its stamp: the same small message on the caches a big frame leaves. A benchmark: it
+prints, it asserts nothing. ``./dev bench transport``.
 """
 import argparse
 import os
 import statistics
 import sys
+from typing import Dict, NamedTuple, Optional
 
-from launch_free_demos.runner import Run
+from launch_free_demos.runner import NodeProcess, Run
 
 PAYLOADS = [  # label, width, height, encoding
     ('1 KiB', 1024, 1, 'mono8'),
@@ -27,10 +35,27 @@ TRANSPORTS = {  # label: (publisher executable, backend, subscriber executable, 
     'rosidl_buffer_py cpu': ('image_publisher', 'cpu', 'image_subscriber', 'cpu'),
     'rosidl_buffer_py demo': ('image_publisher', 'demo', 'image_subscriber', 'demo'),
 }
+FOUR_K = 3840 * 2160 * 3  #: bytes of a 3840x2160 rgb8 frame
+
+
+class Variant(NamedTuple):
+    """A transport of :data:`TRANSPORTS` measured another way (``--attribution``)."""
+
+    transport: str  #: the key of :data:`TRANSPORTS` it varies
+    env: Dict[str, str]  #: for both processes
+    publisher: Dict[str, object]  #: more image_publisher parameters
+    payload: Optional[str] = None  #: the one payload it is measured with (None: every one)
+
+
+VARIANTS = {
+    'demo, channels on SHM': Variant(
+        'rosidl_buffer_py demo', {'ROSIDL_BUFFER_PY_CHANNEL_TRANSPORT': 'participant'}, {}),
+    'stock rclpy, 4K fill before': Variant('stock rclpy', {}, {'scratch_bytes': FOUR_K}, '1 KiB'),
+}
 
 
 def measure(transport: str, width: int, height: int, encoding: str, frames: int,
-            rate: float) -> dict:
+            rate: float, variant: Optional[Variant] = None) -> dict:
     pub_exe, backend, sub_exe, accept = TRANSPORTS[transport]
     topic = '/bench/image'
     # the subscriber's timeout covers discovery, the frames and the publisher's linger
@@ -40,9 +65,12 @@ def measure(transport: str, width: int, height: int, encoding: str, frames: int,
     if accept is not None:
         sub_params['acceptable_buffer_backends'] = accept
         pub_params.update(backend=backend, wait_for_buffer_peers=1)
+    env = variant.env if variant is not None else {}
+    if variant is not None:
+        pub_params.update(variant.publisher)
     with Run() as run:
-        run.start('bench_sub', sub_exe, **sub_params)
-        run.start('bench_pub', pub_exe, **pub_params)
+        run.add(NodeProcess('bench_sub', sub_exe, sub_params, env=env))
+        run.add(NodeProcess('bench_pub', pub_exe, pub_params, env=env))
         run.wait(timeout=frames / rate + 150.0)
         run.stop_all()
         report = run.nodes['bench_sub'].report
@@ -64,6 +92,8 @@ def main(argv=None) -> int:
     parser.add_argument('--rounds', type=int, default=1,
                         help='measure each payload this many times, transports interleaved; '
                              'cells are medians over the rounds')
+    parser.add_argument('--attribution', action='store_true',
+                        help='also measure ' + ', '.join(VARIANTS) + ' (see above)')
     args = parser.parse_args(argv)
     if args.rounds < 1:
         parser.error(f'--rounds must be at least 1, got {args.rounds}')
@@ -76,8 +106,13 @@ def main(argv=None) -> int:
         for label, width, height, encoding in PAYLOADS:
             if label not in args.payloads:
                 continue
-            for transport in TRANSPORTS:
-                report = measure(transport, width, height, encoding, args.frames, args.rate)
+            measured = [(transport, None) for transport in TRANSPORTS]
+            if args.attribution:
+                measured += [(name, variant) for name, variant in VARIANTS.items()
+                             if variant.payload in (None, label)]
+            for transport, variant in measured:
+                report = measure(variant.transport if variant else transport, width, height,
+                                 encoding, args.frames, args.rate, variant)
                 rounds.setdefault((label, transport), []).append(report['latency_ms'])
                 if report['distinct'] != args.frames:
                     lost.append(f'{label}, {transport}, round {index + 1}: '
@@ -126,7 +161,30 @@ def main(argv=None) -> int:
         print('demo 3840x2160 / stock 1 KiB p50 per round: '
               + ', '.join(f'{r:.2f}' for r in ratios)
               + f' (median {statistics.median(ratios):.2f})')
+    if args.attribution:
+        print_attribution(rounds)
     return 0
+
+
+def print_attribution(rounds: Dict[tuple, list]) -> None:
+    """The variants' p50 against what they vary, per round (``--attribution``)."""
+    def per_round(what: str, over: tuple, under: tuple) -> None:
+        if over in rounds and under in rounds:
+            ratios = [o['p50'] / u['p50'] for o, u in zip(rounds[over], rounds[under])]
+            print(f'{what} p50 per round: ' + ', '.join(f'{r:.2f}' for r in ratios)
+                  + f' (median {statistics.median(ratios):.2f})')
+
+    print('\nAttribution:')
+    for label, *_ in PAYLOADS:
+        per_round(f'{label}: demo, channels on SHM / demo (on UDP)',
+                  (label, 'demo, channels on SHM'), (label, 'rosidl_buffer_py demo'))
+    per_round('1 KiB: stock rclpy, 4K fill before / stock rclpy',
+              ('1 KiB', 'stock rclpy, 4K fill before'), ('1 KiB', 'stock rclpy'))
+    filled = ('1 KiB', 'stock rclpy, 4K fill before')
+    per_round('demo 3840x2160 / stock 1 KiB with a 4K fill before',
+              ('3840x2160 rgb8', 'rosidl_buffer_py demo'), filled)
+    per_round('demo 3840x2160, channels on SHM / stock 1 KiB with a 4K fill before',
+              ('3840x2160 rgb8', 'demo, channels on SHM'), filled)
 
 
 if __name__ == '__main__':

@@ -5,6 +5,7 @@ Each frame carries its counter in its first bytes and a CRC32 in ``header.frame_
 (``image_publisher --help`` prints them).
 """
 import time
+import zlib
 
 import numpy
 import rclpy
@@ -55,6 +56,9 @@ PARAMETERS = (
           'backend cpu'),
     Param('report_period_sec', 5.0, 'log a summary line this often while publishing; 0 = '
           'never', minimum=0),
+    Param('scratch_bytes', 0, 'before each frame, fill this many bytes of other memory and '
+          "checksum them, as a frame's own fill does (benchmarks: a small frame on caches a "
+          'big one would leave)', minimum=0),
 )
 
 
@@ -103,6 +107,9 @@ class ImagePublisher(Node):
             rosidl_buffer_py.create_publisher(self, Image, p['topic'], qos)
         template = allocate_image_msg(p['height'], p['width'], p['encoding'])
         self.pixels = pattern(len(template.data))
+        #: ``scratch_bytes``: its pattern and the memory filled from it before each frame
+        scratch = p['scratch_bytes']
+        self.scratch = (pattern(scratch), numpy.empty(scratch, numpy.uint8)) if scratch else None
         #: the backend of ``fill`` from_cpu, found as any backend is (None for cpu)
         self.backend = None if p['backend'] == 'cpu' else rosidl_buffer_py.get_backend(
             p['backend'])
@@ -111,6 +118,10 @@ class ImagePublisher(Node):
 
     def make_frame(self, counter: int) -> Image:
         p = self.params
+        if self.scratch is not None:  # what a big frame's fill and checksum do to the caches
+            source, memory = self.scratch
+            memory[...] = source
+            zlib.crc32(memory)
         if p['backend'] != 'cpu' and p['fill'] == 'from_cpu':
             # a camera frame in ordinary memory, copied into the backend at publish time; the
             # message gets no CPU payload of its own (freeing one after the stamp costs
