@@ -98,6 +98,18 @@ class DemoBackend(BufferBackend):
             return None
         return functools.partial(lifecycle.get_pool().describe_steady, ledger)
 
+    def steady_opener(self, endpoint_info: EndpointInfo
+                      ) -> Optional[Callable[[bytes], Optional[Buffer]]]:
+        """The pool's native open of the steady case (:meth:`.pool.Pool.open_steady`), its
+        view and hold made a DemoBuffer, without the general open's Python frames."""
+        open_steady = lifecycle.get_pool().open_steady
+        received = DemoBuffer.received
+
+        def opener(descriptor: bytes) -> Optional[DemoBuffer]:
+            opened = open_steady(descriptor)
+            return None if opened is None else received(*opened)
+        return opener
+
     def create_descriptor_with_endpoint(self, buffer: Buffer,
                                         endpoint_info: EndpointInfo) -> Optional[bytes]:
         """A descriptor for this peer, or None (CPU bytes for it): unknown or incompatible peer,

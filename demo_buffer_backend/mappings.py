@@ -318,6 +318,15 @@ class Mappings:
         native call (``_native.open_mapped``, the same checks and steps as :meth:`open`: every
         line of it would run on cold caches); anything else, and a take when the inbox is due
         for a sweep, by :meth:`open`, which receives what was handed over or says why not."""
+        opened = self.take_steady(raw)
+        if opened is not None:
+            return opened
+        return self.open(codec.unpack(raw, self.medium.descriptor_magic))
+
+    def take_steady(self, raw) -> Optional[Tuple[memoryview, Hold]]:
+        """:meth:`take`'s native open alone: the view and its hold, or None, having opened
+        nothing (what was taken before is acknowledged either way, as :meth:`open` does
+        first), where :meth:`open` is to run."""
         if self.unacked:  # what was taken before this (a view still held)
             self.acknowledge()
         if self.reading:
@@ -330,7 +339,7 @@ class Mappings:
                 if not acknowledged_later:
                     self._acknowledge_own(mapping.key, generation)
                 return view, Hold(self, mapping, generation)
-        return self.open(codec.unpack(raw, self.medium.descriptor_magic))
+        return None
 
     def open(self, d: codec.Descriptor) -> Tuple[memoryview, Hold]:
         """A read-only view of the bytes ``d`` names and the hold that protects it;

@@ -298,6 +298,13 @@ class Pool:
                                            f'rejected a {self.medium.name} descriptor: {exc}')
                 raise
 
+    def open_steady(self, raw) -> Optional[Tuple[memoryview, Hold]]:
+        """:meth:`open_descriptor`'s steady case alone (:meth:`.mappings.Mappings.take_steady`):
+        the view and its hold, or None, having opened nothing, where :meth:`open_descriptor` is
+        to run (a subscription's steady opener, see ``DemoBackend.steady_opener``)."""
+        with self.guard:
+            return None if self.closed else self.mappings.take_steady(raw)
+
     def sweep(self) -> None:
         """Drain the listener and close segments nobody can use any more."""
         with self.guard:

@@ -135,6 +135,20 @@ class BufferBackend(ABC):
         """
         return None
 
+    def steady_opener(self, endpoint_info: EndpointInfo
+                      ) -> Optional[Callable[[bytes], Optional[Buffer]]]:
+        """Optional (not in upstream): a callable that opens this publisher's descriptors on a
+        subscription's hot path, or None (the default: every descriptor goes to
+        :meth:`from_descriptor_with_endpoint`).
+
+        The callable returns the Buffer that :meth:`from_descriptor_with_endpoint` would
+        return, having done the same; otherwise None, having opened nothing: the subscription
+        then asks :meth:`from_descriptor_with_endpoint` for the same descriptor, which opens it
+        or says why not (as it does when the callable raises). A subscription asks once per
+        publisher and keeps the callable while the publisher is known.
+        """
+        return None
+
     @abstractmethod
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> Buffer:

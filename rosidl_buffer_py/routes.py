@@ -612,6 +612,16 @@ class Stream(Generic[T]):
         self.last = timestamp
         return Verdict.DELIVER
 
+    def channel_steady(self, timestamp: int) -> bool:
+        """:meth:`channel`'s common case alone: a newer copy on the channel that the stream
+        is on (CHANNEL, nothing queued) is recorded, and True says to deliver it. False, with
+        nothing changed, for anything else: ask :meth:`channel`."""
+        if self.state is StreamState.CHANNEL and timestamp > self.last and \
+                self.switch is not None and not self.waiting:
+            self.last = timestamp
+            return True
+        return False
+
     def release(self, now: float, main_drained: bool = True) -> Optional[T]:
         """The next queued channel message that may be delivered now, or None. Ends WAITING once
         the fenced message was delivered; at once when the main topic has nothing left to take

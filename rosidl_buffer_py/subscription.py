@@ -28,7 +28,7 @@ Messages of legacy publishers arrive on the main topic only, as with stock.
 """
 import collections
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Deque, Dict, List, NamedTuple, Optional, Set, Tuple, Union
 
 import rclpy.subscription
@@ -43,6 +43,7 @@ from rosidl_buffer_py import rclpy_seams_7_1 as seams
 from rosidl_buffer_py._native import (
     discard_untaken, endpoint_gid, peek_untaken, take_message_with_gid, take_serialized_with_gid)
 from rosidl_buffer_py.backend import EndpointInfo, EndpointKind
+from rosidl_buffer_py.buffer import Buffer
 from rosidl_buffer_py.channel import channel_topic
 from rosidl_buffer_py.cpu_backend import CPU_BACKEND
 from rosidl_buffer_py.diagnostics import PublisherPeer, SubscriptionStatistics
@@ -70,6 +71,13 @@ C_DESERIALIZE_MAX_BYTES = 64 * 1024
 REJECTION_LOG_SECONDS = 5.0
 #: A GID is the DDS GUID: a 12-byte participant prefix, then the 4-byte entity id.
 _GUID_PREFIX = 12
+
+
+class _Ready(NamedTuple):
+    """A message the steady step delivers as it is, with its message info."""
+
+    msg: object
+    info: dict
 
 
 class _Taken(NamedTuple):
@@ -102,6 +110,10 @@ class _PublisherPeer(ChannelPeer):
     copies_said: bool = False
     #: What its channel had delivered to our reader when the publisher went away.
     departed: Optional[Deque[_Taken]] = None
+    #: Per backend of its descriptors: that backend's steady opener for it, or None
+    #: (``BufferBackend.steady_opener``), asked at its first descriptor.
+    openers: Dict[str, Optional[Callable[[bytes], Optional[Buffer]]]] = field(
+        default_factory=dict)
 
     def take(self, reading: Optional[codec.DescriptorReading]) -> Optional[_Taken]:
         """The next sample of its channel (raw CDR bytes), or None. With ``reading``, for a
@@ -327,6 +339,8 @@ class Subscription(rclpy.subscription.Subscription):
                 step = self._steady_step(now) or self._receiver.step(self._view, now)
                 if step is None:
                     return None
+                if step.__class__ is _Ready:
+                    return step
                 outcome, taken = step.outcome, step.sample
                 if step.channel is None:  # the main topic: delivered, or a duplicate dropped
                     self._counts['from_main_topic'] += 1
@@ -364,13 +378,18 @@ class Subscription(rclpy.subscription.Subscription):
                     return self._delivered(msg, taken)
             return None
 
-    def _steady_step(self, now: float) -> Optional[routes.Step]:
+    def _steady_step(self, now: float) -> Union[None, _Ready, routes.Step]:
         """The next step when the take order is simply the one channel's next sample
         (:meth:`routes.Receiver.only_channel_next`) and a descriptor message is there: taken
         and decoded in C, known as data without the view's classification (what
         ``_ReceiveView.classify`` says of a descriptor message from its publisher's
         participant). Anything else taken goes to the classification; None, having taken
-        nothing, where :meth:`routes.Receiver.step` is to run. Under the lock."""
+        nothing, where :meth:`routes.Receiver.step` is to run. Under the lock.
+
+        The common case is delivered here, ready (:class:`_Ready`): a descriptor message that
+        the stream delivers as it is (:meth:`routes.Stream.channel_steady`) and that its
+        backend's steady opener opens. That is what the step and :meth:`_decode` would make of
+        it, without their Python frames and the objects between them."""
         channels = self._channels
         if len(channels) != 1:
             return None
@@ -381,12 +400,40 @@ class Subscription(rclpy.subscription.Subscription):
         stream = self._receiver.only_channel_next(peer.info.gid)
         if stream is None:
             return None
-        sample = peer.take(self._reading)
-        if sample is None:
+        taken = peer.channel.take_described(*self._reading.args)
+        if taken is None:
             return None
-        return self._receiver.channel_step(
-            self._view, peer, stream, sample, now,
-            data=sample.described is not None and _of_its_participant(peer, sample))
+        described, info = taken[3], taken[2]
+        if described is None or taken[1][:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
+            return self._receiver.channel_step(self._view, peer, stream, _Taken(*taken), now)
+        if not stream.channel_steady(info['source_timestamp']):
+            return self._receiver.channel_step(self._view, peer, stream, _Taken(*taken), now,
+                                               data=True)
+        msg, backend, descriptor = described
+        openers = peer.openers
+        opener = openers[backend] if backend in openers else self._opener(peer, backend)
+        try:
+            buffer = None if opener is None else opener(descriptor)
+        except Exception:  # noqa: BLE001 (bytes from the network: the general path says why)
+            buffer = None
+        if buffer is None:  # delivered by the general path, which opens it or says why not
+            return routes.Step(Outcome.DELIVER, _Taken(*taken), peer)
+        setattr(msg, self._reading.field, buffer)
+        peer.received_descriptor += 1
+        peer.backend_in_use = backend
+        counts = self._counts
+        counts['from_channels'] += 1
+        counts['delivered'] += 1
+        self._core.activity()
+        return _Ready(msg, info)
+
+    def _opener(self, peer: _PublisherPeer, backend: str
+                ) -> Optional[Callable[[bytes], Optional[Buffer]]]:
+        """The steady opener of ``backend`` (one we accept) for ``peer``, asked once."""
+        known = self._core.backends.get(backend)
+        opener = peer.openers[backend] = None if known is None else known.steady_opener(
+            peer.info)
+        return opener
 
     def _say_copies(self, peer: Optional[_PublisherPeer], on_channel: bool) -> None:
         """Say once per publisher, in the node's log, that its messages arrive as CPU copies

@@ -427,10 +427,9 @@ def _forge(good, **changes):
     return descriptor.pack(d)
 
 
-def test_malformed_descriptors_raise_value_error(backend):
-    ep = _endpoint()
-    buf = DemoBuffer.from_cpu(b'm' * 6000)
-    good = backend.create_descriptor_with_endpoint(buf, ep)
+def _malformed(good: bytes) -> dict:
+    """Malformed and forged forms of the descriptor ``good``, by label (some may still
+    name its bytes: a bit flip in a field that does not matter)."""
     d = descriptor.unpack(good)
     bad = {
         'not bytes': 12345,
@@ -460,6 +459,14 @@ def test_malformed_descriptors_raise_value_error(backend):
         corrupted = bytearray(good)
         corrupted[rng.randrange(len(good))] ^= 1 << rng.randrange(8)
         bad[f'bit flip {i}'] = bytes(corrupted)
+    return bad
+
+
+def test_malformed_descriptors_raise_value_error(backend):
+    ep = _endpoint()
+    buf = DemoBuffer.from_cpu(b'm' * 6000)
+    good = backend.create_descriptor_with_endpoint(buf, ep)
+    bad = _malformed(good)
     rejected = 0
     for label, raw in bad.items():
         if isinstance(raw, bytes) and raw == good:
@@ -477,6 +484,40 @@ def test_malformed_descriptors_raise_value_error(backend):
     assert stats['views_held'] == 0  # no hold leaked by a rejection
     ok = backend.from_descriptor_with_endpoint(good, ep)  # still fine afterwards
     assert bytes(memoryview(ok)) == b'm' * 6000
+
+
+def test_the_steady_opener_opens_what_the_general_open_opens_or_opens_nothing(backend):
+    """``DemoBackend.steady_opener`` (a subscription's hot path) gives the DemoBuffer that
+    ``from_descriptor_with_endpoint`` gives; for anything it does not open it returns None
+    having opened, held and rejected nothing, and the general open then says why."""
+    ep = _endpoint()
+    opener = backend.steady_opener(ep)
+    buf = DemoBuffer.from_cpu(b'm' * 6000)
+    good = backend.create_descriptor_with_endpoint(buf, ep)
+    general = backend.from_descriptor_with_endpoint(good, ep)
+    taken = demo_buffer_backend.stats()['taken']
+    steady = opener(good)
+    assert isinstance(steady, DemoBuffer) and demo_buffer_backend.stats()['taken'] == taken + 1
+    assert (steady.segment, steady.generation, steady.readonly, bytes(memoryview(steady))) == \
+        (general.segment, general.generation, general.readonly, bytes(memoryview(general)))
+    assert steady.hold.mapping is general.hold.mapping and steady.pin is None
+    del steady, general
+    declined = 0
+    for label, raw in _malformed(good).items():
+        before = demo_buffer_backend.stats()
+        got = opener(raw)
+        if got is not None:  # a bit flip that still names exactly the same bytes
+            assert label.startswith('bit flip') and bytes(memoryview(got)) == b'm' * 6000, label
+            del got
+            continue
+        declined += 1
+        after = demo_buffer_backend.stats()
+        assert {k: after[k] for k in ('taken', 'rejected', 'views_held', 'stale')} == \
+            {k: before[k] for k in ('taken', 'rejected', 'views_held', 'stale')}, label
+        if isinstance(raw, bytes):
+            with pytest.raises(ValueError):
+                backend.from_descriptor_with_endpoint(raw, ep)
+    assert declined > 300
 
 
 def test_stale_generation_after_reuse_is_rejected(backend):

@@ -3,7 +3,7 @@ both state machines from a table, then a model-based test of the invariants over
 interleavings of publishes, matches, acknowledgments, losses, slow and dead subscribers."""
 import collections
 from dataclasses import dataclass, field
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -13,8 +13,8 @@ from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, 
 from rosidl_buffer_py import control
 from rosidl_buffer_py.routes import (
     CHANNEL_SETTLE_SECONDS, CONFIRM_INTERVAL_SECONDS, FENCE_DEFER_SECONDS, FENCE_TIMEOUT_SECONDS,
-    PROBE_INTERVAL_SECONDS, RECHECK_SECONDS, Dispatch, Fence, Incoming, Receiver, Route,
-    RouteState, RouteTable, Stream, StreamState, StreamTable, Verdict)
+    PROBE_INTERVAL_SECONDS, RECHECK_SECONDS, Dispatch, Fence, Incoming, Outcome, Receiver,
+    Route, RouteState, RouteTable, Step, Stream, StreamState, StreamTable, Verdict)
 
 S = RouteState
 
@@ -567,10 +567,12 @@ def test_receiver_gives_probes_and_rejected_samples_no_delivery():
     assert [s[0] for s in steps] == ['control', 'deliver']
 
 
-def _steady_first_steps(readers: _Readers, receiver: Receiver, now: float) -> List[tuple]:
+def _steady_first_steps(readers: _Readers, receiver: Receiver, now: float,
+                        counts: Optional[collections.Counter] = None) -> List[tuple]:
     """What a subscription with one channel does (``Subscription._steady_step``): the channel's
-    next sample taken and handed to ``channel_step`` while ``only_channel_next`` allows it, a
-    data sample marked as such; ``step`` otherwise."""
+    next sample taken while ``only_channel_next`` allows it; a data sample that
+    ``Stream.channel_steady`` takes is delivered as it is, anything else handed to
+    ``channel_step``, a data sample marked as such; ``step`` otherwise."""
     steps = []
     while True:
         step = None
@@ -579,8 +581,13 @@ def _steady_first_steps(readers: _Readers, receiver: Receiver, now: float) -> Li
         if stream is not None:
             sample = readers.take_channel(keys[0])
             if sample is not None:
-                step = receiver.channel_step(readers, keys[0], stream, sample, now,
-                                             data=sample[0] == 'data')
+                if sample[0] == 'data' and stream.channel_steady(readers.timestamp(sample)):
+                    step = Step(Outcome.DELIVER, sample, keys[0])
+                    if counts is not None:
+                        counts['channel_steady'] += 1
+                else:
+                    step = receiver.channel_step(readers, keys[0], stream, sample, now,
+                                                 data=sample[0] == 'data')
         step = step or receiver.step(readers, now)
         if step is None:
             return steps
@@ -594,6 +601,7 @@ def test_the_one_channel_shortcut_takes_and_delivers_what_step_does():
     states that ``step`` alone gives; a second channel ends the shortcut, and once it is gone
     the rotation goes on where ``step`` left it."""
     import random
+    shortcuts = collections.Counter()
     for seed in range(400):
         rng = random.Random(seed)
         runs = []
@@ -623,12 +631,31 @@ def test_the_one_channel_shortcut_takes_and_delivers_what_step_does():
                 elif kind == 'gone':  # the second publisher's channel goes
                     readers.queues.pop('b', None)
                 else:
-                    drive = _steady_first_steps if shortcut else _steps
-                    trace.append(drive(readers, receiver, now))
+                    trace.append(_steady_first_steps(readers, receiver, now, shortcuts)
+                                 if shortcut else _steps(readers, receiver, now))
             stream = receiver.streams.streams.get('a')
             runs.append((trace, readers.taken, stream and (
                 stream.state, stream.last, stream.fence, list(stream.waiting))))
         assert runs[0] == runs[1], seed
+    assert shortcuts['channel_steady'] > 100, shortcuts  # the common case, taken often
+
+
+def test_channel_steady_takes_a_newer_copy_on_the_channel_and_nothing_else():
+    """``Stream.channel_steady`` delivers what ``channel`` would deliver with nothing else to
+    do: a newer copy while the stream is on the channel. Anything else changes nothing."""
+    stream = Stream()
+    assert not stream.channel_steady(5) and stream.state is StreamState.MAIN
+    assert stream.channel(5, 'five', 0.0) is Verdict.DELIVER  # the switch, without a fence
+    assert stream.state is StreamState.CHANNEL and stream.last == 5
+    assert stream.channel_steady(6) and stream.last == 6
+    for old in (6, 4):
+        assert not stream.channel_steady(old) and stream.last == 6
+    stream.waiting.append((9, 'nine'))
+    assert not stream.channel_steady(7) and stream.last == 6
+    stream.waiting.clear()
+    stream.fenced(8, Fence(7), 0.0)  # waits for main-topic message 7
+    assert stream.state is StreamState.WAITING
+    assert not stream.channel_steady(8) and stream.last == 6 and not stream.waiting
 
 
 def test_control_messages_round_trip_and_are_told_from_messages():
