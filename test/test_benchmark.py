@@ -334,8 +334,8 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
         assert len(rows[what]) == 3 and all(float(c.split()[0]) > 0 for c in rows[what]), \
             completed.stdout
     # every message of ours runs these; the cpu path's have no backend
-    always = ['delivery path: take to message', 'backend open (demo pool)',
-              'of it: segment checks and hold lock']
+    always = ['delivery path: take to message',
+              'native open, either path: segment checks and hold lock']
     # a demo message goes one way of each pair (a steady lane or step, or the general path)
     either = [('writes (descriptor or CPU message)',
                'steady lane (its prepared writes; declined calls too)'),

@@ -109,9 +109,12 @@ def _subscriber_stages(stages: Stages, transport: str) -> None:
     stages.wrap(subscription._PublisherPeer, 'take',
                 '  channel takes (empty ones too; descriptor messages decoded in them)')
     if transport == 'demo':
+        # (a steady step opens through the backend's steady opener, the general path through
+        # from_descriptor_with_endpoint: both run the pool's native open, timed alone)
         stages.wrap(demo_backend.DemoBackend, 'from_descriptor_with_endpoint',
-                    '  backend open (demo pool)')
-        stages.wrap(mappings.Mappings, 'take', '    of it: segment checks and hold lock')
+                    '  backend open, general path (demo pool)')
+        stages.wrap(mappings.Mappings, 'take_steady',
+                    '  native open, either path: segment checks and hold lock')
     stages.wrap(subscription.Subscription, '_call', 'the callback (this benchmark\'s)')
 
 
