@@ -74,6 +74,9 @@ class PublisherStatistics(_Record):
     peers_added: int
     peers_removed: int
     peers: List[SubscriptionPeer]
+    #: messages published through the steady lane (the writes prepared for steady routes,
+    #: docs/design.md); the others took the full path
+    published_on_lane: int = 0
 
 
 @dataclass(frozen=True)
@@ -95,3 +98,6 @@ class SubscriptionStatistics(_Record):
     #: messages queued meanwhile): the waits that have not ended yet
     waiting_for_fence: int = 0
     peers: List[PublisherPeer] = field(default_factory=list)
+    #: of ``from_channels``: delivered by the steady step, opened by the backend's steady
+    #: opener (docs/design.md); the others took the general path
+    delivered_steady: int = 0

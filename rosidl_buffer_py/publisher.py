@@ -284,6 +284,7 @@ class Publisher(rclpy.publisher.Publisher):
         self._polled_at = 0.0
         #: The steady dispatch's writes, prepared (None: none prepared, or not preparable)
         self._lane: Optional[_SteadyLane] = None
+        self._on_lane = 0  #: messages published through it
         #: The steady dispatch a lane was last prepared for, or found not preparable for
         self._lane_tried: Optional[routes.Dispatch] = None
         #: TRANSIENT_LOCAL: every message goes to the main DataWriter, whose history late
@@ -434,6 +435,7 @@ class Publisher(rclpy.publisher.Publisher):
             if not self._table.dispatch_prepared(lane.dispatch, now, timestamp, self._view):
                 self._last_timestamp = previous  # the full path takes the next one
                 return False
+            self._on_lane += 1
             declined = []
             backend, program = lane.backend, self._described_program
             for peer, describe in lane.targets:
@@ -613,7 +615,7 @@ class Publisher(rclpy.publisher.Publisher):
                 main_topic_withheld=self._withheld, main_topic_doubled=self._doubled,
                 cpu_copies_to_buffer_capable_peers=self._cpu_to_capable,
                 peers_added=self._peers_added, peers_removed=self._peers_removed,
-                peers=self.buffer_peers())
+                peers=self.buffer_peers(), published_on_lane=self._on_lane)
 
     # internals ------------------------------------------------------------------------------
 

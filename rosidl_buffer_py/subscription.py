@@ -324,7 +324,8 @@ class Subscription(rclpy.subscription.Subscription):
                     'delivered', 'from_channels', 'from_main_topic', 'duplicates_dropped',
                     'rejected', 'fences')},
                 fence_timeouts=fence_timeouts, fenced_lost=fenced_lost,
-                waiting_for_fence=self._streams.waiting(), peers=self.buffer_peers())
+                waiting_for_fence=self._streams.waiting(), peers=self.buffer_peers(),
+                delivered_steady=self._counts['delivered_steady'])
 
     # the delivery path ----------------------------------------------------------------------
 
@@ -424,6 +425,7 @@ class Subscription(rclpy.subscription.Subscription):
         counts = self._counts
         counts['from_channels'] += 1
         counts['delivered'] += 1
+        counts['delivered_steady'] += 1
         self._core.activity()
         return _Ready(msg, info)
 
