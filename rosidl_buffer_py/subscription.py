@@ -129,10 +129,10 @@ class _PublisherPeer(ChannelPeer):
         return bool(self.departed) if self.departed is not None else self.channel.pending
 
 
-def _of_its_participant(peer: _PublisherPeer, taken: _Taken) -> bool:
-    """The sample was written by the publisher's participant, which creates its channel's
-    writer (any process can create a writer on any topic)."""
-    return taken.publisher_gid[:_GUID_PREFIX] == peer.info.gid[:_GUID_PREFIX]
+def _of_its_participant(peer: _PublisherPeer, writer_gid: bytes) -> bool:
+    """A sample of the writer ``writer_gid`` was written by the publisher's participant, which
+    creates its channel's writer (any process can create a writer on any topic)."""
+    return writer_gid[:_GUID_PREFIX] == peer.info.gid[:_GUID_PREFIX]
 
 
 class _ReceiveView:
@@ -156,7 +156,7 @@ class _ReceiveView:
         return peer.take(self._sub._reading) if peer.pending else None
 
     def classify(self, peer: _PublisherPeer, taken: _Taken):
-        if not _of_its_participant(peer, taken):  # an impostor on its channel's topic
+        if not _of_its_participant(peer, taken.publisher_gid):  # an impostor on its topic
             self._sub._reject(taken, f'the channel {peer.channel_topic} is not of publisher '
                                      f'{peer.info.gid_hex}\'s participant')
             return routes.Incoming.CONTROL, None
@@ -404,8 +404,8 @@ class Subscription(rclpy.subscription.Subscription):
         taken = peer.channel.take_described(*self._reading.args)
         if taken is None:
             return None
-        described, info = taken[3], taken[2]
-        if described is None or taken[1][:_GUID_PREFIX] != peer.info.gid[:_GUID_PREFIX]:
+        _, writer, info, described = taken  # (what _Taken names)
+        if described is None or not _of_its_participant(peer, writer):
             return self._receiver.channel_step(self._view, peer, stream, _Taken(*taken), now)
         if not stream.channel_steady(info['source_timestamp']):
             return self._receiver.channel_step(self._view, peer, stream, _Taken(*taken), now,
