@@ -7,6 +7,7 @@ test``) the same module runs with the interpreter under test, as ``./dev`` would
 """
 import contextlib
 import os
+import re
 import subprocess
 import sys
 import time
@@ -324,7 +325,8 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
     message's through its steady lane or step where it took them."""
     command = [str(ROOT / 'dev'), 'bench', 'hotpath'] if in_dev_venv() else \
         [sys.executable, '-m', 'launch_free_demos.bench.hotpath']
-    completed = subprocess.run(command + ['--frames', '8', '--rate', '20'], cwd=ROOT,
+    completed = subprocess.run(command + ['--frames', '8', '--rate', '20', '--rounds', '2'],
+                               cwd=ROOT,
                                capture_output=True, text=True, timeout=300,
                                env=dict(os.environ))
     assert completed.returncode == 0, completed.stdout + completed.stderr
@@ -350,6 +352,9 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
         assert stock == '' and float(cpu.split()[0]) > 0, (general, completed.stdout)
         assert demo or rows.get(steady, ('', '', ''))[2], (general, completed.stdout)
     assert 'after 50 ms idle' in completed.stdout
+    for transport in ('cpu', 'demo'):  # two rounds, interleaved: a ratio for each
+        assert re.search(rf'^{transport} / stock rclpy total per round: [\d.]+, [\d.]+ '
+                         rf'\(median [\d.]+\)$', completed.stdout, re.M), completed.stdout
 
 
 @pytest.mark.parametrize('peer', PEERS, ids=[t.peer_module for t in PEERS])

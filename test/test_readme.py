@@ -66,6 +66,7 @@ COVERAGE = {
     './dev bench transport --payloads "1 KiB" "3840x2160 rgb8" --frames 30 --rate 10 '
     '--rounds 3 --attribution': 'here',                   # fewer frames, one round
     './dev bench hotpath': 'test_benchmark.py',           # 8 frames at 20 Hz
+    './dev bench hotpath --rounds 5': 'test_benchmark.py',  # two rounds of 8 frames
     './dev bench bare': 'test_benchmark.py',              # 8 frames, one round
     './dev bench bare --opcodes': 'test_benchmark.py',    # 8 frames
     './dev bench mixed': 'test_benchmark.py',             # small frames, fewer of them

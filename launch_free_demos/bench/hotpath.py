@@ -16,7 +16,12 @@ microsecond each). Prints:
 - one native call of the publish path timed back to back and after ``--rate``'s idle time: the
   factor by which this machine's cold caches multiply everything above.
 
-A benchmark: it prints and asserts nothing. ``./dev bench hotpath [--frames 60] [--rate 10]``
+With ``--rounds N`` the transports run N times, interleaved round by round: the latency cells
+are medians over the rounds, the stages' means are over all of them, and the totals' ratios to
+stock's are printed round by round (issue #30's hotpath target: demo / stock at most 1.15).
+
+A benchmark: it prints and asserts nothing.
+``./dev bench hotpath [--frames 60] [--rate 10] [--rounds 1]``
 """
 import argparse
 import functools
@@ -254,33 +259,57 @@ def main(argv=None) -> int:
     parser.add_argument('--rate', type=float, default=10.0)
     parser.add_argument('--bytes', type=int, default=1024, dest='nbytes',
                         help='payload size (a mono8 image one row high)')
+    parser.add_argument('--rounds', type=int, default=1,
+                        help='run every transport this many times, interleaved; latency cells '
+                             'are medians over the rounds')
     args = parser.parse_args(argv)
     if args.frames <= SKIP:
         parser.error(f'--frames must be more than {SKIP}, got {args.frames}')
+    if args.rounds < 1:
+        parser.error(f'--rounds must be at least 1, got {args.rounds}')
     os.environ['ROS_DOMAIN_ID'] = str(claim_domain_ids(1)[0])
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    splits, stage_rows = {}, {}
-    for transport in TRANSPORTS:
-        pub_stages, sub_stages = Stages(), Stages()
-        run_publisher_here(transport, args.nbytes, args.frames, args.rate, pub_stages)
-        split = run_subscriber_here(transport, args.nbytes, args.frames, args.rate, sub_stages)
-        if len(split) <= SKIP:
-            print(f'{transport}: only {len(split)} frames arrived', file=sys.stderr)
-            return 1
-        splits[transport] = [statistics.median(s[i] for s in split[SKIP:]) / 1e3
-                             for i in (0, 1)]
-        stage_rows[transport] = (pub_stages.per_message_us(args.frames),
-                                 sub_stages.per_message_us(
-                                     len(split) - min(STAGES_FROM, args.frames // 2)))
-        print(f'{transport}: {len(split)} frames', file=sys.stderr, flush=True)
+    # per transport: its stages over every round, the messages they were timed over, and per
+    # round the medians of (stamp -> reception, reception -> callback) in µs
+    pub_stages = {t: Stages() for t in TRANSPORTS}
+    sub_stages = {t: Stages() for t in TRANSPORTS}
+    timed = {t: [0, 0] for t in TRANSPORTS}
+    rounds: Dict[str, List[List[float]]] = {t: [] for t in TRANSPORTS}
+    for index in range(args.rounds):
+        for transport in TRANSPORTS:
+            run_publisher_here(transport, args.nbytes, args.frames, args.rate,
+                               pub_stages[transport])
+            split = run_subscriber_here(transport, args.nbytes, args.frames, args.rate,
+                                        sub_stages[transport])
+            if len(split) <= SKIP:
+                print(f'{transport}: only {len(split)} frames arrived', file=sys.stderr)
+                return 1
+            rounds[transport].append([statistics.median(s[i] for s in split[SKIP:]) / 1e3
+                                      for i in (0, 1)])
+            timed[transport][0] += args.frames
+            timed[transport][1] += len(split) - min(STAGES_FROM, args.frames // 2)
+            print(f'{transport}: {len(split)} frames (round {index + 1}/{args.rounds})',
+                  file=sys.stderr, flush=True)
+    splits = {t: [statistics.median(r[i] for r in rounds[t]) for i in (0, 1)]
+              for t in TRANSPORTS}
+    stage_rows = {t: (pub_stages[t].per_message_us(timed[t][0]),
+                      sub_stages[t].per_message_us(timed[t][1])) for t in TRANSPORTS}
+    over = f', medians over {args.rounds} interleaved rounds' if args.rounds > 1 else ''
     print(f'\nOne {args.nbytes}-byte frame at {args.rate:g} Hz, publisher and subscriber in '
-          f'two processes; medians of {args.frames - SKIP} frames, in µs.\n')
+          f'two processes; medians of {args.frames - SKIP} frames{over}, in µs.\n')
     print('| | ' + ' | '.join(TRANSPORTS) + ' |')
     print('|---' * (len(TRANSPORTS) + 1) + '|')
     for i, what in enumerate(('stamp -> reception (publisher, DDS)',
                               'reception -> callback (subscriber)')):
         print(f'| {what} | ' + ' | '.join(f'{splits[t][i]:.0f}' for t in TRANSPORTS) + ' |')
     print('| total | ' + ' | '.join(f'{sum(splits[t]):.0f}' for t in TRANSPORTS) + ' |')
+    print()
+    for transport in TRANSPORTS[1:]:  # the totals against stock's, round by round
+        ratios = [sum(ours) / sum(stock)
+                  for ours, stock in zip(rounds[transport], rounds[TRANSPORTS[0]])]
+        print(f'{transport} / {TRANSPORTS[0]} total per round: '
+              + ', '.join(f'{r:.2f}' for r in ratios)
+              + f' (median {statistics.median(ratios):.2f})')
     for side, index in (('publisher', 0), ('subscriber', 1)):
         labels = list(dict.fromkeys(label for t in reversed(TRANSPORTS)  # demo's: all of them
                                     for label in stage_rows[t][index]))
