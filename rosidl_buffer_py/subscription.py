@@ -74,7 +74,7 @@ _GUID_PREFIX = 12
 
 
 class _Ready(NamedTuple):
-    """A message the steady step delivers as it is, with its message info."""
+    """A message to deliver, with its message info (what :meth:`Subscription._next` gives)."""
 
     msg: object
     info: dict
@@ -329,7 +329,7 @@ class Subscription(rclpy.subscription.Subscription):
 
     # the delivery path ----------------------------------------------------------------------
 
-    def _next(self) -> Optional[Tuple[object, dict]]:
+    def _next(self) -> Optional[_Ready]:
         """The next message to deliver, with its message info, or None when none is left.
 
         The take order is the route protocol's (:class:`routes.Receiver`); this counts what
@@ -355,7 +355,7 @@ class Subscription(rclpy.subscription.Subscription):
                     self._say_copies(peer, on_channel=False)
                     if self._streams.any_holding:
                         self._wake()  # it may open a fence: the channel guard delivers the rest
-                    return self._delivered(msg, taken)
+                    return self._delivered(msg, taken.info)
                 if outcome is Outcome.FENCE:
                     self._counts['fences'] += 1
                     self._logger.debug(
@@ -376,7 +376,7 @@ class Subscription(rclpy.subscription.Subscription):
                 msg = self._decode(taken, step.channel)
                 if msg is not None:
                     self._say_copies(step.channel, on_channel=True)
-                    return self._delivered(msg, taken)
+                    return self._delivered(msg, taken.info)
             return None
 
     def _steady_step(self, now: float) -> Union[None, _Ready, routes.Step]:
@@ -422,12 +422,9 @@ class Subscription(rclpy.subscription.Subscription):
         setattr(msg, self._reading.field, buffer)
         peer.received_descriptor += 1
         peer.backend_in_use = backend
-        counts = self._counts
-        counts['from_channels'] += 1
-        counts['delivered'] += 1
-        counts['delivered_steady'] += 1
-        self._core.activity()
-        return _Ready(msg, info)
+        self._counts['from_channels'] += 1
+        self._counts['delivered_steady'] += 1
+        return self._delivered(msg, info)
 
     def _opener(self, peer: _PublisherPeer, backend: str
                 ) -> Optional[Callable[[bytes], Optional[Buffer]]]:
@@ -462,10 +459,10 @@ class Subscription(rclpy.subscription.Subscription):
                   f'messages on {self._topic_name} from publisher {peer.info.gid_hex} arrive as '
                   f'CPU copies, not zero-copy: {why}', Subscription._say_copies)
 
-    def _delivered(self, msg, taken: _Taken) -> Tuple[object, dict]:
+    def _delivered(self, msg, info: dict) -> _Ready:
         self._counts['delivered'] += 1
         self._core.activity()
-        return msg, taken.info
+        return _Ready(msg, info)
 
     def _deliver_available(self) -> None:
         """Channel data woke us: deliver what is deliverable (at most ``MAX_BATCH``).
