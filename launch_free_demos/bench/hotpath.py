@@ -40,6 +40,7 @@ from sensor_msgs.msg import Image
 
 import rosidl_buffer_py
 from demo_buffer_backend import DemoBuffer, backend as demo_backend, links, mappings
+from launch_free_demos.bench.stats import per_round_line
 from launch_free_demos.domains import claim_domain_ids
 from launch_free_demos.runner import Run
 from rosidl_buffer_py import codec, publisher, routes, subscription
@@ -307,9 +308,7 @@ def main(argv=None) -> int:
     for transport in TRANSPORTS[1:]:  # the totals against stock's, round by round
         ratios = [sum(ours) / sum(stock)
                   for ours, stock in zip(rounds[transport], rounds[TRANSPORTS[0]])]
-        print(f'{transport} / {TRANSPORTS[0]} total per round: '
-              + ', '.join(f'{r:.2f}' for r in ratios)
-              + f' (median {statistics.median(ratios):.2f})')
+        print(per_round_line(f'{transport} / {TRANSPORTS[0]} total', ratios))
     for side, index in (('publisher', 0), ('subscriber', 1)):
         labels = list(dict.fromkeys(label for t in reversed(TRANSPORTS)  # demo's: all of them
                                     for label in stage_rows[t][index]))

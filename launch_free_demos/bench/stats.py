@@ -3,6 +3,7 @@
 A percentile is numpy's (linear interpolation between the two nearest ranks); ``max`` is the
 100th. The nodes' reports (``latency_ms``) give the same quantiles, computed by the nodes.
 """
+import statistics
 from typing import Dict, Iterable, Optional, Sequence, Tuple
 
 import numpy
@@ -24,3 +25,9 @@ def percentiles(values: Sequence[float], quantiles: Sequence[Tuple[str, float]] 
     return {name: float(numpy.percentile(data, percent)) if digits is None
             else round(float(numpy.percentile(data, percent)), digits)
             for name, percent in quantiles}
+
+
+def per_round_line(what: str, ratios: Sequence[float]) -> str:
+    """``what``'s ratio in each interleaved round and their median, as one printed line."""
+    return (f'{what} per round: ' + ', '.join(f'{r:.2f}' for r in ratios)
+            + f' (median {statistics.median(ratios):.2f})')

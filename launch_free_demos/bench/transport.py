@@ -22,6 +22,7 @@ import statistics
 import sys
 from typing import Dict, NamedTuple, Optional
 
+from launch_free_demos.bench.stats import per_round_line
 from launch_free_demos.runner import NodeProcess, Run
 
 PAYLOADS = [  # label, width, height, encoding
@@ -142,9 +143,7 @@ def main(argv=None) -> int:
         if args.rounds > 1:
             ratios = [c['p50'] / s['p50'] for c, s in zip(
                 rounds[(label, 'rosidl_buffer_py cpu')], rounds[(label, 'stock rclpy')])]
-            per_round.append(f'{label}: CPU path / stock p50 per round: '
-                             + ', '.join(f'{r:.2f}' for r in ratios)
-                             + f' (median {statistics.median(ratios):.2f})')
+            per_round.append(per_round_line(f'{label}: CPU path / stock p50', ratios))
     if per_round:
         print('\n' + '\n'.join(per_round))
     if lost:
@@ -158,9 +157,7 @@ def main(argv=None) -> int:
         # target: at most 1.0), round by round
         ratios = [b['p50'] / s['p50'] for b, s in zip(rounds[big],
                                                       rounds[('1 KiB', 'stock rclpy')])]
-        print('demo 3840x2160 / stock 1 KiB p50 per round: '
-              + ', '.join(f'{r:.2f}' for r in ratios)
-              + f' (median {statistics.median(ratios):.2f})')
+        print(per_round_line('demo 3840x2160 / stock 1 KiB p50', ratios))
     if args.attribution:
         print_attribution(rounds)
     return 0
@@ -170,17 +167,15 @@ def print_attribution(rounds: Dict[tuple, list]) -> None:
     """The variants' p50 against what they vary, per round (``--attribution``)."""
     def per_round(what: str, over: tuple, under: tuple) -> None:
         if over in rounds and under in rounds:
-            ratios = [o['p50'] / u['p50'] for o, u in zip(rounds[over], rounds[under])]
-            print(f'{what} p50 per round: ' + ', '.join(f'{r:.2f}' for r in ratios)
-                  + f' (median {statistics.median(ratios):.2f})')
+            print(per_round_line(f'{what} p50', [o['p50'] / u['p50'] for o, u in zip(
+                rounds[over], rounds[under])]))
 
+    filled = ('1 KiB', 'stock rclpy, 4K fill before')
     print('\nAttribution:')
     for label, *_ in PAYLOADS:
         per_round(f'{label}: demo, channels on SHM / demo (on UDP)',
                   (label, 'demo, channels on SHM'), (label, 'rosidl_buffer_py demo'))
-    per_round('1 KiB: stock rclpy, 4K fill before / stock rclpy',
-              ('1 KiB', 'stock rclpy, 4K fill before'), ('1 KiB', 'stock rclpy'))
-    filled = ('1 KiB', 'stock rclpy, 4K fill before')
+    per_round('1 KiB: stock rclpy, 4K fill before / stock rclpy', filled, ('1 KiB', 'stock rclpy'))
     per_round('demo 3840x2160 / stock 1 KiB with a 4K fill before',
               ('3840x2160 rgb8', 'rosidl_buffer_py demo'), filled)
     per_round('demo 3840x2160, channels on SHM / stock 1 KiB with a 4K fill before',
