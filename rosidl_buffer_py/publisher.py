@@ -400,29 +400,38 @@ class Publisher(rclpy.publisher.Publisher):
                 raise RuntimeError(f'publisher of {self._topic_name} was destroyed')
             previous = self._last_timestamp
             timestamp = self._next_timestamp()
-            dispatch = self._table.dispatch(time.monotonic(), timestamp, self._view)
-            if dispatch.probes:
-                self._write_probes(dispatch.probes, previous or timestamp - 1)
-            if dispatch.timer is not None:
-                self._arm_route_timer(dispatch.timer)
-            self._write(encoder, timestamp, dispatch)
-            if dispatch is self._table.steady and dispatch is not self._lane_tried and \
-                    len(encoder.buffers) == 1:
-                self._lane_tried = dispatch
-                self._lane = self._prepare_lane(dispatch, encoder)
-            if dispatch.main:
-                self._sent_main += 1
-            elif self._manual_liveliness:
-                self.assert_liveliness()  # what a write on the main DataWriter would do
+            self._write_dispatched(encoder, previous, timestamp,
+                                   self._table.dispatch(time.monotonic(), timestamp, self._view))
         self._core.activity()
+
+    def _write_dispatched(self, encoder: '_Encoder', previous: int, timestamp: int,
+                          dispatch: routes.Dispatch) -> None:
+        """Write message ``timestamp`` (``previous``: the one before it, 0 for none) as the
+        route table's ``dispatch`` says, its probes and route timer included, and prepare the
+        steady lane when that is the table's steady answer. Under the lock."""
+        if dispatch.probes:
+            self._write_probes(dispatch.probes, previous or timestamp - 1)
+        if dispatch.timer is not None:
+            self._arm_route_timer(dispatch.timer)
+        self._write(encoder, timestamp, dispatch)
+        if dispatch is self._table.steady and dispatch is not self._lane_tried and \
+                len(encoder.buffers) == 1:
+            self._lane_tried = dispatch
+            self._lane = self._prepare_lane(dispatch, encoder)
+        if dispatch.main:
+            self._sent_main += 1
+        elif self._manual_liveliness:
+            self.assert_liveliness()  # what a write on the main DataWriter would do
 
     def _publish_steady(self, lane: _SteadyLane, msg) -> bool:
         """publish() while the routes are steady: the message goes where ``lane`` was prepared
         for, each descriptor from its peer's steady describer; a peer whose describer declines
-        gets what :meth:`_write` gives it. False, having written nothing, when the route table
-        (:meth:`~rosidl_buffer_py.routes.RouteTable.dispatch_prepared`) or the peer table moved,
-        or the payload is not a Buffer. (publish() skips its discovery poll: a lane exists
-        only while the node is known to spin, see :meth:`_prepare_lane`.)"""
+        gets what :meth:`_write` gives it. When the route table answers otherwise
+        (:meth:`~rosidl_buffer_py.routes.RouteTable.dispatch_prepared`: a transition, or a
+        re-plan to another answer), the message is written as that answer says, as publish()
+        writes it. False, having written nothing, when the peer table moved or the payload is
+        not a Buffer. (publish() skips its discovery poll: a lane exists only while the node
+        is known to spin, see :meth:`_prepare_lane`.)"""
         payload = getattr(msg, self._single)
         if not isinstance(payload, Buffer):
             return False
@@ -432,32 +441,40 @@ class Publisher(rclpy.publisher.Publisher):
                 return False
             previous = self._last_timestamp
             timestamp = self._next_timestamp()
-            if not self._table.dispatch_prepared(lane.dispatch, now, timestamp, self._view):
-                self._last_timestamp = previous  # the full path takes the next one
-                return False
-            self._on_lane += 1
-            declined = []
-            backend, program = lane.backend, self._described_program
-            for peer, describe in lane.targets:
-                try:
-                    descriptor = describe(payload)
-                except Exception:  # the full describe runs next, and logs what fails there
-                    descriptor = None
-                if descriptor is None:
-                    declined.append((peer.info.gid, None))
-                    continue
-                if not write_message(msg, timestamp, (peer.channel,), program,
-                                     (backend, descriptor)):
-                    peer.channel.publish(codec.encode(msg, (backend, descriptor)), timestamp)
-                peer.sent_descriptor += 1
-                peer.backend_in_use = backend
-            if declined:
-                self._write(_Encoder(msg, None, self._buffers_of(msg), self._single, program),
-                            timestamp, routes.Dispatch((), tuple(declined), False, (), None))
-            if self._manual_liveliness:
-                self.assert_liveliness()  # what a write on the main DataWriter would do
+            dispatch = self._table.dispatch_prepared(lane.dispatch, now, timestamp, self._view)
+            if dispatch is lane.dispatch:
+                self._write_lane(lane, msg, payload, timestamp)
+            else:
+                self._write_dispatched(
+                    _Encoder(msg, None, self._buffers_of(msg), self._single,
+                             self._described_program), previous, timestamp, dispatch)
         self._core.activity()
         return True
+
+    def _write_lane(self, lane: _SteadyLane, msg, payload: Buffer, timestamp: int) -> None:
+        """Write message ``timestamp`` through ``lane``, its payload ``payload``. Under the
+        lock."""
+        self._on_lane += 1
+        declined = []
+        backend, program = lane.backend, self._described_program
+        for peer, describe in lane.targets:
+            try:
+                descriptor = describe(payload)
+            except Exception:  # the full describe runs next, and logs what fails there
+                descriptor = None
+            if descriptor is None:
+                declined.append((peer.info.gid, None))
+                continue
+            if not write_message(msg, timestamp, (peer.channel,), program,
+                                 (backend, descriptor)):
+                peer.channel.publish(codec.encode(msg, (backend, descriptor)), timestamp)
+            peer.sent_descriptor += 1
+            peer.backend_in_use = backend
+        if declined:
+            self._write(_Encoder(msg, None, self._buffers_of(msg), self._single, program),
+                        timestamp, routes.Dispatch((), tuple(declined), False, (), None))
+        if self._manual_liveliness:
+            self.assert_liveliness()  # what a write on the main DataWriter would do
 
     def _prepare_lane(self, dispatch: routes.Dispatch, encoder: '_Encoder'
                       ) -> Optional[_SteadyLane]:

@@ -441,8 +441,15 @@ class RouteTable(Generic[K]):
         cached = self._cached
         probes, timer = (), None
         if cached is None or now >= cached.plan.recheck_at or view.signature() != cached.signature:
+            before = None if cached is None else cached.steady
             probes, timer = self.advance(now, view)
             cached = self._cached
+            if before is not None and cached.steady is before and not probes and not timer:
+                # a re-plan that kept the steady answer (the periodic recheck, a discovery that
+                # changed nothing here): that object, which a publisher's prepared writes serve
+                # (the route timer was stopped by the dispatch that first answered it)
+                self.last_published = timestamp
+                return before
         elif cached.steady is not None:
             self.last_published = timestamp
             return cached.steady
@@ -477,17 +484,18 @@ class RouteTable(Generic[K]):
         return Dispatch(probes, tuple(channel), main, withheld, timer)
 
     def dispatch_prepared(self, prepared: Dispatch, now: float, timestamp: int,
-                          view: 'RouteView[K]') -> bool:
+                          view: 'RouteView[K]') -> Dispatch:
         """:meth:`dispatch`, for a publisher that prepared its writes for the steady dispatch
-        ``prepared``: True when that is the answer for message ``timestamp`` (dispatched: the
-        publisher writes exactly there), known without planning or asking DDS; False when
-        :meth:`dispatch` is to be asked (a transition, a re-plan due, the view unsettled)."""
+        ``prepared``: that very object, known without planning or asking DDS, while it is the
+        table's steady answer, its recheck time has not come and the view is settled; else
+        what :meth:`dispatch` answers (``prepared`` again after a re-plan to the same answer).
+        Either way message ``timestamp`` is dispatched: the publisher writes exactly that."""
         cached = self._cached
-        if cached is None or cached.steady is not prepared or now >= cached.plan.recheck_at \
-                or not view.settled(now):
-            return False
-        self.last_published = timestamp
-        return True
+        if cached is not None and cached.steady is prepared and now < cached.plan.recheck_at \
+                and view.settled(now):
+            self.last_published = timestamp
+            return prepared
+        return self.dispatch(now, timestamp, view)
 
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's

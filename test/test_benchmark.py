@@ -340,7 +340,7 @@ def test_bench_hotpath_times_every_stage_of_every_transport():
               'native open, either path: segment checks and hold lock']
     # a demo message goes one way of each pair (a steady lane or step, or the general path)
     either = [('writes (descriptor or CPU message)',
-               'steady lane (its prepared writes; declined calls too)'),
+               'steady lane (its prepared writes; declined calls and re-plans too)'),
               ('channel takes (empty ones too; descriptor messages decoded in them)',
                "steady step (the one channel's take, decoded in C; empty ones too)")]
     for stage in always:

@@ -296,23 +296,46 @@ def test_a_replan_that_gives_the_same_steady_answer_keeps_it_and_a_transition_dr
     assert table.steady is None
 
 
-def test_dispatch_prepared_answers_only_while_the_steady_dispatch_holds():
+def test_dispatch_prepared_answers_the_prepared_object_while_the_steady_dispatch_holds():
     """What a publisher that prepared its writes for ``steady`` asks instead of dispatch():
-    yes (the message dispatched) while the table's steady answer is that very object, before
-    its recheck time, and the view is settled; no, with nothing changed, otherwise."""
+    that very object, without a re-plan or a signature, while it is the table's steady answer,
+    before its recheck time, with the view settled; what dispatch() answers otherwise, which is
+    ``steady`` again when the view's reading or the re-plan finds nothing changed."""
     table, view = _steady_table()
     steady = table.steady
-    assert table.dispatch_prepared(steady, 0.1, 2, view)
-    assert table.last_published == 2
-    assert not table.dispatch_prepared(Dispatch(*steady), 0.1, 3, view)  # equal, not it
-    view.calm = False
-    assert not table.dispatch_prepared(steady, 0.1, 3, view)
-    view.calm = True
-    assert not table.dispatch_prepared(steady, RECHECK_SECONDS, 3, view)  # a recheck is due
-    assert table.last_published == 2
+    view.asked.clear()
+    assert table.dispatch_prepared(steady, 0.1, 2, view) is steady
+    assert table.last_published == 2 and view.asked == ['settled']
+    other = Dispatch(*steady)  # equal, not it: dispatch() answers, with the table's object
+    assert table.dispatch_prepared(other, 0.1, 3, view) is steady
+    view.calm, view.asked = False, []
+    assert table.dispatch_prepared(steady, 0.1, 4, view) is steady  # the view read, same counts
+    assert view.asked == ['settled', 'signature'] and table.last_published == 4
+    view.calm, view.asked = True, []
+    assert table.dispatch_prepared(steady, RECHECK_SECONDS, 5, view) is steady  # re-planned
+    assert 'fresh signature' in view.asked and table.steady_until == 2 * RECHECK_SECONDS
+    assert table.last_published == 5
+    view.matched.append('legacy')  # found by the next recheck: a main-topic write per message
+    moved = table.dispatch_prepared(steady, 2 * RECHECK_SECONDS, 6, view)
+    assert moved is not steady and moved.main and moved.channel == (('a', None),)
+    assert table.steady is None and table.last_published == 6
+    table, view = _steady_table()
+    steady = table.steady
     table.gone('a')
-    assert not table.dispatch_prepared(steady, 0.2, 3, view)
-    assert table.dispatch(0.2, 3, view).channel == () and table.last_published == 3
+    gone = table.dispatch_prepared(steady, 0.2, 3, view)
+    assert gone is not steady and gone.channel == () and table.last_published == 3
+
+
+def test_a_replan_to_the_steady_answer_is_that_object_unless_it_writes_probes_or_needs_the_timer():
+    """dispatch() after a re-plan answers the steady object itself (the publisher's prepared
+    writes serve) only when the re-plan asks for nothing more: no probes, no route timer."""
+    table, view = _steady_table()
+    steady = table.steady
+    assert table.dispatch(RECHECK_SECONDS, 2, view) is steady
+    table.routes['a'].tick = lambda now: None
+    table.routes['a'].next_tick = lambda now: now + 0.01  # some route wants the timer
+    replanned = table.dispatch(2 * RECHECK_SECONDS, 3, view)
+    assert replanned == steady._replace(timer=True) and replanned is not steady
 
 
 def test_a_due_fence_waits_for_the_main_topics_acknowledgment_then_names_the_last_message():
@@ -708,9 +731,15 @@ class ModelView:
 
     def __init__(self, model: 'RouteProtocol') -> None:
         self.model = model
+        self.read = None  #: the signature last read
 
     def signature(self, fresh=False):
-        return (1, (1 if self.model.channel_up else 0,))
+        self.read = (1, (1 if self.model.channel_up else 0,))
+        return self.read
+
+    def settled(self, now):
+        # the real view is unsettled after a discovery, which any change of the counts follows
+        return self.read == (1, (1 if self.model.channel_up else 0,))
 
     def matched_subscriptions(self):
         return ['s']
@@ -730,8 +759,8 @@ class RouteProtocol(RuleBasedStateMachine):
     """A publisher's RouteTable and a subscription's Stream connected by two modelled links;
     random publishes, matches, acknowledgments, takes, time and death. The publisher side is
     driven through the entry points the real publisher uses (``RouteTable.dispatch`` per
-    message, ``RouteTable.advance`` on its route timer), and writes what they answer, in
-    their order."""
+    message, ``RouteTable.dispatch_prepared`` once it has a steady answer to prepare for,
+    ``RouteTable.advance`` on its route timer), and writes what they answer, in their order."""
 
     #: the QoS depth (RELIABLE KEEP_LAST 5: routes probe), and how much a link holds
     DEPTH = 5
@@ -754,6 +783,8 @@ class RouteProtocol(RuleBasedStateMachine):
         #: the main topic's readers acknowledged every sample (the writer knows it)
         self.main_acked = False
         self.timer_armed = False
+        #: the steady dispatch the publisher prepared its writes for (``Publisher._lane``)
+        self.lane = None
         self.published: List[int] = []
         self.delivered: List[int] = []
         self.queued_at: Dict[int, float] = {}
@@ -787,7 +818,12 @@ class RouteProtocol(RuleBasedStateMachine):
         self.timestamp += 1
         ts = self.timestamp
         self.published.append(ts)
-        dispatch = self.table.dispatch(self.now, ts, self.view)
+        if self.lane is not None:
+            dispatch = self.table.dispatch_prepared(self.lane, self.now, ts, self.view)
+        else:
+            dispatch = self.table.dispatch(self.now, ts, self.view)
+        if dispatch is self.table.steady:
+            self.lane = dispatch
         self._write_probes(dispatch.probes, previous or ts - 1)
         if dispatch.timer is not None:
             self.timer_armed = dispatch.timer

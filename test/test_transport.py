@@ -701,12 +701,13 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
     executor.add_node(node)
     counter = 0
 
-    def publish(count: int) -> None:
+    def publish(count: int, pause: float = 0.0) -> None:
         nonlocal counter
         for _ in range(count):
             pub.publish(frame(counter, 'demo'))
             counter += 1
             executor.spin_once(timeout_sec=0.02)
+            time.sleep(pause)
 
     def serving(count: int) -> bool:
         peers = pub.buffer_peers()
@@ -723,9 +724,16 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
         run.start('first', 'image_subscriber', **_sub_params(
             topic, 60, acceptable_buffer_backends='demo', depth=100))
         assert spin_until(executor, lambda: serving(1), timeout=30.0), run.diagnostics()
-        publish(20)
-        # (the first message under a plan prepares it)
-        assert 0 < pub.statistics().published_on_lane < 20, pub.statistics()
+        # the route confirms (its channel samples acknowledged, the main-topic copies end),
+        # and the first message under that plan prepares the lane
+        while pub.statistics().published_on_lane == 0 and counter < 10:
+            publish(1)
+        on_lane, left, started = pub.statistics().published_on_lane, 20 - counter, time.monotonic()
+        assert on_lane == 1, pub.statistics()
+        publish(left, pause=1.5 / left)
+        assert time.monotonic() - started > 2 * routes.RECHECK_SECONDS
+        # the periodic re-plans keep the table's steady answer, and their messages the lane
+        assert pub.statistics().published_on_lane == on_lane + left, pub.statistics()
         run.start('second', 'image_subscriber', **_sub_params(
             topic, 40, acceptable_buffer_backends='demo', depth=100))
         assert spin_until(executor, lambda: serving(2), timeout=30.0), run.diagnostics()

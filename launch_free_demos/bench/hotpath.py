@@ -95,7 +95,7 @@ def _publisher_stages(stages: Stages, transport: str) -> None:
         return
     stages.wrap(publisher.Publisher, 'publish', 'publish()')
     stages.wrap(publisher.Publisher, '_publish_steady',
-                '  steady lane (its prepared writes; declined calls too)')
+                '  steady lane (its prepared writes; declined calls and re-plans too)')
     stages.wrap(publisher.Publisher, '_write', '  writes (descriptor or CPU message)')
     stages.wrap(routes.RouteTable, 'dispatch', '  route dispatch (plan cached while current)')
     if transport == 'demo':

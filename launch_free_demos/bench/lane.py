@@ -7,10 +7,10 @@ Hz to a subscriber process: stock rclpy endpoints, then rosidl_buffer_py's with 
 (frames allocated in the pool before each publish), interleaved round by round, each once its
 route serves and discovery has settled (``publisher.EPOCH_GRACE_SECONDS``). Each
 ``publish()`` is timed alone (``perf_counter_ns``), cold as a camera's frames find it. The
-demo publisher's calls are split by the path they took: the steady lane
-(``Publisher._publish_steady`` served it: the writes prepared for the route table's steady
-dispatch) or the full path (the first messages, and the re-plan the table makes every
-``routes.RECHECK_SECONDS``). The demo subscriber process times each delivery, from its channel
+demo publisher's calls are split by the path they took: the steady lane (its count,
+``statistics().published_on_lane``, moved: the writes prepared for the route table's steady
+dispatch, the periodic re-plan's messages included when it gives the same answer) or the full
+path. The demo subscriber process times each delivery, from its channel
 guard's callback to the start of the user's callback, split by whether
 ``Subscription._steady_step`` took the sample (the one channel's descriptor message, taken
 without the route protocol's general step). A benchmark: it prints medians, it asserts
@@ -99,17 +99,10 @@ def _publish(mode: str, frames: int, rate: float) -> Dict[str, List[int]]:
         node = rclpy.create_node('lane_pub')
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        served = [False]
         if mode == 'demo':
             import rosidl_buffer_py
             from demo_buffer_backend import DemoBuffer
             pub = rosidl_buffer_py.create_publisher(node, Image, TOPIC, QOS)
-            steady = pub._publish_steady
-
-            def through_lane(lane, msg) -> bool:
-                served[0] = steady(lane, msg)
-                return served[0]
-            pub._publish_steady = through_lane
 
             def ready() -> bool:  # its route serves, its re-announcer retired
                 return any(peer.channel_serving for peer in pub.buffer_peers()) and \
@@ -117,6 +110,9 @@ def _publish(mode: str, frames: int, rate: float) -> Dict[str, List[int]]:
 
             def payload():
                 return DemoBuffer.allocate(WIDTH)
+
+            def on_lane_count() -> int:  # statistics().published_on_lane, without its lock
+                return pub._on_lane
         else:
             pub = node.create_publisher(Image, TOPIC, QOS)
 
@@ -125,6 +121,9 @@ def _publish(mode: str, frames: int, rate: float) -> Dict[str, List[int]]:
 
             def payload():
                 return bytes(WIDTH)
+
+            def on_lane_count() -> int:
+                return 0
         deadline = time.monotonic() + 30.0
         while not ready() and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
@@ -137,12 +136,13 @@ def _publish(mode: str, frames: int, rate: float) -> Dict[str, List[int]]:
             executor.spin_once(timeout_sec=0)
             time.sleep(1.0 / rate)
             msg = mono8_frame(WIDTH, time.time_ns(), data)
-            served[0] = False
+            on_lane = on_lane_count()
             start = time.perf_counter_ns()
             pub.publish(msg)
             elapsed = time.perf_counter_ns() - start
             if index >= SKIP:
-                path = mode if mode != 'demo' else ('lane' if served[0] else 'full path')
+                path = mode if mode != 'demo' else (
+                    'lane' if on_lane_count() > on_lane else 'full path')
                 times.setdefault(path, []).append(elapsed)
             del data, msg
         subscriber.wait(timeout=60.0)
