@@ -1,6 +1,5 @@
 """DemoBackend: the ``demo`` buffer backend plugin (entry point
 ``demo = demo_buffer_backend:DemoBackend``)."""
-import functools
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from rosidl_buffer_py.backend import BufferBackend, EndpointInfo, EndpointKind
@@ -91,12 +90,12 @@ class DemoBackend(BufferBackend):
 
     def steady_describer(self, endpoint_info: EndpointInfo
                          ) -> Optional[Callable[[Buffer], Optional[bytes]]]:
-        """The pool's native describe of the steady case (:meth:`.pool.Pool.describe_steady`)
+        """The pool's native describe of the steady case (:meth:`.pool.Pool.steady_describer`)
         with the peer's ledger resolved once; None for a peer not known to be compatible."""
         ledger = self._served.ledger_of(endpoint_info)
         if ledger is None:
             return None
-        return functools.partial(lifecycle.get_pool().describe_steady, ledger)
+        return lifecycle.get_pool().steady_describer(ledger)
 
     def steady_opener(self, endpoint_info: EndpointInfo
                       ) -> Optional[Callable[[bytes], Optional[Buffer]]]:

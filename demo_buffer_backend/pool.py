@@ -29,7 +29,7 @@ import os
 import time
 from typing import Any, Callable, Optional, Tuple
 
-from rosidl_buffer_py._native import describe_linked
+from rosidl_buffer_py._native import describe_linked, describe_steady
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits, memory
@@ -100,15 +100,13 @@ class Pool:
             self.links.drain_all()  # acks and hang-ups free slots
             return self.slots.allocate(nbytes, self.links.gone)
 
-    def describe_steady(self, ledger: EndpointLedger, buffer: Any) -> Optional[bytes]:
-        """:meth:`describe`'s steady case alone (the native call), for a Buffer of any kind:
-        the descriptor, or None with nothing changed, where :meth:`describe` is to run (a
-        publisher's steady describer, see ``DemoBackend.steady_describer``)."""
-        pin = getattr(buffer, 'pin', None)  # (a pin of another pool is not current here)
-        if pin is None or self.closed:
-            return None
-        with self.guard:
-            return self._describe_linked(self, pin, ledger)
+    def steady_describer(self, ledger: EndpointLedger) -> Callable[[Any], Optional[bytes]]:
+        """:meth:`describe`'s steady case alone, for the ledger's endpoint and a Buffer of any
+        kind: the descriptor, or None with nothing changed, where :meth:`describe` is to run (a
+        publisher's steady describer, see ``DemoBackend.steady_describer``). One native call
+        (``_native.describe_steady``: ``describe_linked`` for the Buffer's pin under the
+        guard), with no Python frame of its own: it runs for every message on a lane."""
+        return functools.partial(describe_steady, ReplyKind.ACCEPTED, self, ledger)
 
     def describe(self, pin: Pin, ledger: EndpointLedger) -> Optional[bytes]:
         """Record one more descriptor of ``pin``'s slot for the ledger's endpoint and return it,

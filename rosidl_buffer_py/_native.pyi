@@ -309,6 +309,13 @@ def describe_linked(accepted: int, pool: Any, pin: Any, ledger: Any) -> Optional
     with nothing changed, for anything else."""
 
 
+def describe_steady(accepted: int, pool: Any, ledger: Any, buffer: Any) -> Optional[bytes]:
+    """:func:`describe_linked` for ``buffer``'s pin under ``pool.guard``, taken and let go as
+    ``with pool.guard:`` does (a publisher's steady describer, see
+    :meth:`demo_buffer_backend.pool.Pool.steady_describer`); None for a Buffer without a pin
+    and for a closed pool."""
+
+
 def open_mapped(prefix: bytes, read_lock: bytes, unlock: bytes, counters: Any, raw: Any,
                 by_key: Dict[Any, Any], unacked: List[Any], now: float
                 ) -> Optional[Tuple[memoryview, Any, int, bool]]:

@@ -10,10 +10,12 @@ from typing import Tuple
 
 import pytest
 
+from rosidl_buffer_py import _native
 from rosidl_buffer_py.backend import EndpointGone
 
 from demo_buffer_backend import descriptor as codec
 from demo_buffer_backend import handover, limits
+from demo_buffer_backend.handover import ReplyKind
 from demo_buffer_backend.ledgers import EndpointLedger
 from demo_buffer_backend.pool import Pool
 
@@ -224,28 +226,60 @@ class _Held:
 @pytest.mark.parametrize('forge', ['stale pin', 'closed slot', 'segment refused',
                                    'process gone', 'segment not handed over'])
 def test_the_steady_describer_describes_the_steady_case_and_changes_nothing_else(forge):
-    """``Pool.describe_steady`` (a publisher's steady describer, see
-    ``DemoBackend.steady_describer``): the steady case's descriptor, recorded as describe()
-    records it; for anything else (each state forged, a Buffer without a pin, a closed pool)
-    None with nothing changed, so that describe() can run instead."""
+    """``Pool.steady_describer`` (a publisher's steady describer, see
+    ``DemoBackend.steady_describer``; ``_native.describe_steady``): the steady case's
+    descriptor, recorded as describe() records it; for anything else (each state forged, a
+    Buffer without a pin, a closed pool) None with nothing changed, so that describe() can run
+    instead. The guard is free after every call, and releases queued meanwhile have run."""
+    publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
+    view = pin = None
+    try:
+        ledger, view, pin = _handed_over(publisher, subscriber)
+        describe = publisher.steady_describer(ledger)
+        tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
+        before = _state(publisher, [ledger], tokens)
+        ran = []
+        publisher.guard.pending.append((ran.append, 'queued'))  # as a collection queues one
+        steady = describe(_Held(pin))
+        assert steady is not None and codec.unpack(steady).segment_id == pin.slot.id
+        assert ledger.seq == before[1][0][0] + 1
+        assert ran == ['queued'] and not publisher.guard.pending
+        assert not publisher.guard.lock.locked()
+        assert describe(_Held()) is None and describe(object()) is None
+        _forge(publisher, subscriber.token, pin, forge)
+        forged = _state(publisher, [ledger], tokens)
+        assert describe(_Held(pin)) is None
+        assert _state(publisher, [ledger], tokens) == forged
+        assert not publisher.guard.lock.locked()
+        _unforge(publisher, subscriber.token, pin, forge)
+        publisher.closed = True
+        assert describe(_Held(pin)) is None
+        publisher.closed = False
+    finally:
+        del view, pin
+        gc.collect()
+        publisher.shutdown()
+        subscriber.shutdown()
+
+
+def test_the_steady_describer_describes_what_describe_linked_describes_and_lets_go_on_errors():
+    """The same pin and ledger state give ``describe_linked`` (under the guard, as
+    ``Pool.describe`` calls it) and the steady describer the same descriptor and the same
+    ledger; an error inside (a ledger of another type) propagates with the guard let go."""
     publisher, subscriber = Pool(handover.new_token()), Pool(handover.new_token())
     view = pin = None
     try:
         ledger, view, pin = _handed_over(publisher, subscriber)
         tokens = {subscriber.token: 'subscriber', publisher.token: 'publisher'}
-        before = _state(publisher, [ledger], tokens)
-        steady = publisher.describe_steady(ledger, _Held(pin))
-        assert steady is not None and codec.unpack(steady).segment_id == pin.slot.id
-        assert ledger.seq == before[1][0][0] + 1
-        assert publisher.describe_steady(ledger, _Held()) is None
-        _forge(publisher, subscriber.token, pin, forge)
-        forged = _state(publisher, [ledger], tokens)
-        assert publisher.describe_steady(ledger, _Held(pin)) is None
-        assert _state(publisher, [ledger], tokens) == forged
-        _unforge(publisher, subscriber.token, pin, forge)
-        publisher.closed = True
-        assert publisher.describe_steady(ledger, _Held(pin)) is None
-        publisher.closed = False
+        with publisher.guard:
+            linked = _native.describe_linked(ReplyKind.ACCEPTED, publisher, pin, ledger)
+        after_linked = _state(publisher, [ledger], tokens)
+        steady = publisher.steady_describer(ledger)(_Held(pin))
+        assert steady == linked
+        assert _state(publisher, [ledger], tokens)[1][0][0] == after_linked[1][0][0] + 1
+        with pytest.raises(AttributeError):
+            publisher.steady_describer(object())(_Held(pin))
+        assert not publisher.guard.lock.locked()
     finally:
         del view, pin
         gc.collect()

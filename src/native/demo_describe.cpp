@@ -1,5 +1,7 @@
 // describe_linked: a demo publisher's descriptor of a frame, for a subscriber process that
-// has mapped the frame's segment, in one native call.
+// has mapped the frame's segment, in one native call; describe_steady: the same under the
+// pool's guard, for a Buffer (a publisher's steady describer, with no Python frame between
+// its lane and this code).
 //
 // demo_buffer_backend.pool.Pool.describe runs for every descriptor a publisher sends, on cold
 // caches at camera rates, where each Python line costs ten to thirty times its warm cost. This
@@ -31,6 +33,7 @@ PyObject * s_slot, * s_owner, * s_slots, * s_closed, * s_generation, * s_token, 
 PyObject * s_by_token, * s_id, * s_verdicts, * s_kind, * s_gone, * s_segments, * s_seq;
 PyObject * s_counters, * s_settle, * s_full, * s_record, * s_last_used;
 PyObject * s_descriptors_created, * s_packed;
+PyObject * s_pin, * s_guard, * s_lock, * s_acquire, * s_release, * s_pending, * s_drain;
 
 /// A new reference (or nullptr), released at the end of its scope.
 class Ref
@@ -121,18 +124,10 @@ int steady(long long accepted, PyObject * pool, PyObject * pin, PyObject * ledge
   return segments ? PySequence_Contains(segments.get(), id.get()) : -1;
 }
 
-// describe_linked(accepted, pool, pin, ledger)
-PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs)
+/// The steady case's descriptor of `pin` for `ledger` (a new reference), None where the Python
+/// path is to run, or nullptr with an exception set. The caller holds the pool's guard.
+PyObject * described(long long accepted, PyObject * pool, PyObject * pin, PyObject * ledger)
 {
-  if (nargs != 4) {
-    PyErr_Format(PyExc_TypeError, "describe_linked takes 4 arguments, got %zd", nargs);
-    return nullptr;
-  }
-  PyObject * pool = args[1], * pin = args[2], * ledger = args[3];
-  const long long accepted = PyLong_AsLongLong(args[0]);
-  if (accepted == -1 && PyErr_Occurred()) {
-    return nullptr;
-  }
   Ref slot(PyObject_GetAttr(pin, s_slot));
   const int applies = slot ? steady(accepted, pool, pin, ledger, slot.get()) : -1;
   if (applies <= 0) {
@@ -166,6 +161,80 @@ PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs
   return PyObject_GetAttr(pin, s_packed);
 }
 
+/// `accepted` from the first of `nargs` arguments, which must be `expected`; -1 with an
+/// exception set on error.
+long long accepted_of(
+  const char * name, PyObject * const * args, Py_ssize_t nargs, Py_ssize_t expected)
+{
+  if (nargs != expected) {
+    PyErr_Format(PyExc_TypeError, "%s takes %zd arguments, got %zd", name, expected, nargs);
+    return -1;
+  }
+  return PyLong_AsLongLong(args[0]);
+}
+
+// describe_linked(accepted, pool, pin, ledger)
+PyObject * describe_linked(PyObject *, PyObject * const * args, Py_ssize_t nargs)
+{
+  const long long accepted = accepted_of("describe_linked", args, nargs, 4);
+  if (accepted == -1 && PyErr_Occurred()) {
+    return nullptr;
+  }
+  return described(accepted, args[1], args[2], args[3]);
+}
+
+/// Let go of the guard as `Guard.__exit__` does (its lock released, then the releases queued
+/// meanwhile run): `result` when that succeeds, else nullptr with its exception set (`result`
+/// dropped). An exception already set stays set, as the one `result` == nullptr carries.
+PyObject * let_go(PyObject * guard, PyObject * lock, PyObject * result)
+{
+  PyObject * type, * value, * traceback;
+  PyErr_Fetch(&type, &value, &traceback);
+  Ref released(PyObject_CallMethodNoArgs(lock, s_release));
+  Ref pending(released ? PyObject_GetAttr(guard, s_pending) : nullptr);
+  const int queued = pending ? PyObject_IsTrue(pending.get()) : -1;
+  Ref drained(queued > 0 ? PyObject_CallMethodNoArgs(guard, s_drain) : nullptr);
+  if (queued < 0 || (queued > 0 && !drained)) {  // (what `with` raises: the exit's error)
+    Py_XDECREF(type);
+    Py_XDECREF(value);
+    Py_XDECREF(traceback);
+    Py_XDECREF(result);
+    return nullptr;
+  }
+  PyErr_Restore(type, value, traceback);
+  return result;
+}
+
+// describe_steady(accepted, pool, ledger, buffer)
+PyObject * describe_steady(PyObject *, PyObject * const * args, Py_ssize_t nargs)
+{
+  const long long accepted = accepted_of("describe_steady", args, nargs, 4);
+  if (accepted == -1 && PyErr_Occurred()) {
+    return nullptr;
+  }
+  PyObject * pool = args[1], * ledger = args[2], * buffer = args[3];
+  Ref pin(PyObject_GetAttr(buffer, s_pin));  // (a Buffer of another kind has none)
+  if (!pin) {
+    if (!PyErr_ExceptionMatches(PyExc_AttributeError)) {
+      return nullptr;
+    }
+    PyErr_Clear();
+    Py_RETURN_NONE;
+  }
+  Ref closed(PyObject_GetAttr(pool, s_closed));
+  const int is_closed = closed ? PyObject_IsTrue(closed.get()) : -1;
+  if (is_closed != 0 || pin.get() == Py_None) {
+    return is_closed < 0 ? nullptr : Py_NewRef(Py_None);
+  }
+  Ref guard(PyObject_GetAttr(pool, s_guard));
+  Ref lock(guard ? PyObject_GetAttr(guard.get(), s_lock) : nullptr);
+  Ref acquired(lock ? PyObject_CallMethodNoArgs(lock.get(), s_acquire) : nullptr);
+  if (!acquired) {
+    return nullptr;
+  }
+  return let_go(guard.get(), lock.get(), described(accepted, pool, pin.get(), ledger));
+}
+
 PyMethodDef describe_functions[] = {
   {"describe_linked", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(
       describe_linked)), METH_FASTCALL,
@@ -174,6 +243,12 @@ PyMethodDef describe_functions[] = {
     "kind of a mapped segment: the pin's packed "
     "descriptor, recorded in the ledger; None, with nothing changed, where the Python path "
     "is to run."},
+  {"describe_steady", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(
+      describe_steady)), METH_FASTCALL,
+    "describe_steady(accepted, pool, ledger, buffer) -> bytes | None\n--\n\n"
+    "A publisher's steady describer (Pool.steady_describer): describe_linked for the "
+    "Buffer's pin under the pool's guard, taken and let go as `with pool.guard:` does; None "
+    "for a Buffer without a pin and for a closed pool."},
   RBPY_METHODS_END,
 };
 
@@ -188,7 +263,9 @@ int add_demo_describe(PyObject * module)
     {&s_gone, "gone"}, {&s_segments, "segments"}, {&s_seq, "seq"}, {&s_counters, "counters"},
     {&s_settle, "settle"}, {&s_full, "full"}, {&s_record, "record"},
     {&s_last_used, "last_used"}, {&s_descriptors_created, "descriptors_created"},
-    {&s_packed, "packed"},
+    {&s_packed, "packed"}, {&s_pin, "pin"}, {&s_guard, "guard"}, {&s_lock, "lock"},
+    {&s_acquire, "acquire"}, {&s_release, "release"}, {&s_pending, "pending"},
+    {&s_drain, "drain"},
   };
   for (const auto & name : names) {
     if (!intern(name.first, name.second)) {

@@ -9,7 +9,8 @@
 //   recv_records - a SOCK_SEQPACKET socket's queued records, read without raising.
 //   LedgerCore - the demo backend's ledger rules, run on every descriptor described (#30).
 //   open_mapped - a demo descriptor's view opened, for every descriptor taken (#30).
-//   describe_linked - a demo descriptor described, for every descriptor sent (#30).
+//   describe_linked, describe_steady - a demo descriptor described, for every descriptor sent
+//                 (#30).
 #include "buffer_base.hpp"
 #include "dds_common.hpp"
 #include "demo_describe.hpp"
