@@ -442,39 +442,36 @@ class Publisher(rclpy.publisher.Publisher):
             previous = self._last_timestamp
             timestamp = self._next_timestamp()
             dispatch = self._table.dispatch_prepared(lane.dispatch, now, timestamp, self._view)
-            if dispatch is lane.dispatch:
-                self._write_lane(lane, msg, payload, timestamp)
-            else:
+            if dispatch is not lane.dispatch:
                 self._write_dispatched(
                     _Encoder(msg, None, self._buffers_of(msg), self._single,
                              self._described_program), previous, timestamp, dispatch)
+                self._core.activity()
+                return True
+            # the lane's writes, inline (a method call more costs every message a cold frame)
+            self._on_lane += 1
+            declined = []
+            backend, program = lane.backend, self._described_program
+            for peer, describe in lane.targets:
+                try:
+                    descriptor = describe(payload)
+                except Exception:  # the full describe runs next, and logs what fails there
+                    descriptor = None
+                if descriptor is None:
+                    declined.append((peer.info.gid, None))
+                    continue
+                if not write_message(msg, timestamp, (peer.channel,), program,
+                                     (backend, descriptor)):
+                    peer.channel.publish(codec.encode(msg, (backend, descriptor)), timestamp)
+                peer.sent_descriptor += 1
+                peer.backend_in_use = backend
+            if declined:
+                self._write(_Encoder(msg, None, self._buffers_of(msg), self._single, program),
+                            timestamp, routes.Dispatch((), tuple(declined), False, (), None))
+            if self._manual_liveliness:
+                self.assert_liveliness()  # what a write on the main DataWriter would do
         self._core.activity()
         return True
-
-    def _write_lane(self, lane: _SteadyLane, msg, payload: Buffer, timestamp: int) -> None:
-        """Write message ``timestamp`` through ``lane``, its payload ``payload``. Under the
-        lock."""
-        self._on_lane += 1
-        declined = []
-        backend, program = lane.backend, self._described_program
-        for peer, describe in lane.targets:
-            try:
-                descriptor = describe(payload)
-            except Exception:  # the full describe runs next, and logs what fails there
-                descriptor = None
-            if descriptor is None:
-                declined.append((peer.info.gid, None))
-                continue
-            if not write_message(msg, timestamp, (peer.channel,), program,
-                                 (backend, descriptor)):
-                peer.channel.publish(codec.encode(msg, (backend, descriptor)), timestamp)
-            peer.sent_descriptor += 1
-            peer.backend_in_use = backend
-        if declined:
-            self._write(_Encoder(msg, None, self._buffers_of(msg), self._single, program),
-                        timestamp, routes.Dispatch((), tuple(declined), False, (), None))
-        if self._manual_liveliness:
-            self.assert_liveliness()  # what a write on the main DataWriter would do
 
     def _prepare_lane(self, dispatch: routes.Dispatch, encoder: '_Encoder'
                       ) -> Optional[_SteadyLane]:
