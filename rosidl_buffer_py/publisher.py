@@ -107,7 +107,7 @@ class _RouteView:
         an endpoint right after the callback), and at least every ``routes.RECHECK_SECONDS``
         whatever happens; ``fresh``: now (the table re-plans)."""
         now = time.monotonic()
-        if not fresh and self.settled(now):
+        if not fresh and self.settled(now) and now - self._read_at < routes.RECHECK_SECONDS:
             return self._signature
         seen = (self._epoch[0], self._peers.version)
         if seen != self._seen:
@@ -120,9 +120,9 @@ class _RouteView:
         return self._signature
 
     def settled(self, now: float) -> bool:
-        # whether signature() answers from memory: nothing moved, no grace, no recheck due
-        return ((self._epoch[0], self._peers.version) == self._seen and
-                self._trust_from <= now and now - self._read_at < routes.RECHECK_SECONDS)
+        # nothing moved since the last reading and no grace (signature() re-reads on its own
+        # every RECHECK_SECONDS too: the route table's re-plans read fresh at that pace)
+        return (self._epoch[0], self._peers.version) == self._seen and self._trust_from <= now
 
     def matched_subscriptions(self) -> List[bytes]:
         return matched_subscription_gids(self._writer)
@@ -470,6 +470,8 @@ class Publisher(rclpy.publisher.Publisher):
                             timestamp, routes.Dispatch((), tuple(declined), False, (), None))
             if self._manual_liveliness:
                 self.assert_liveliness()  # what a write on the main DataWriter would do
+            if self._table.replan_due:  # the periodic re-plan, after this message's writes
+                self._advance()
         self._core.activity()
         return True
 

@@ -9,10 +9,13 @@ withhold there, deliver, queue, drop).
 The publisher asks its :class:`RouteTable` one question per message, :meth:`RouteTable.dispatch`
 ("what do I write, where, and what do I withhold"), answering the table's questions about DDS
 through a :class:`RouteView`, and writes what the answer says in its order: probes, then per
-channel the route fence (if any) and the message, then the main topic. Between messages, a timer
-calls :meth:`RouteTable.advance` while a route is being brought up. The table owns the order of
-the steps and its cached plan; the route model test (``test/test_routes.py``) drives the same
-two entry points.
+channel the route fence (if any) and the message, then the main topic. A publisher that
+prepared its writes for the table's steady answer asks :meth:`RouteTable.dispatch_prepared`
+instead, and calls :meth:`RouteTable.advance` right after the message's writes when the table
+says a periodic re-plan is due (:attr:`RouteTable.replan_due`). Between messages, a timer calls
+:meth:`RouteTable.advance` while a route is being brought up. The table owns the order of the
+steps and its cached plan; the route model test (``test/test_routes.py``) drives the same entry
+points.
 
 Publisher side: one :class:`Route` per buffer-aware subscription, the route of its private
 channel, and one :class:`RouteTable` per publisher::
@@ -281,6 +284,9 @@ class Plan(NamedTuple):
     main_served: Tuple[Hashable, ...]
     #: Recompute at the latest then.
     recheck_at: float
+    #: ``recheck_at`` is the periodic recheck alone (``RECHECK_SECONDS`` after planning; no
+    #: route has a timed transition before it).
+    periodic: bool = True
 
 
 class RouteView(Protocol[K]):
@@ -294,8 +300,10 @@ class RouteView(Protocol[K]):
         re-plan, so that the view's rechecks keep the plan's pace)."""
 
     def settled(self, now: float) -> bool:
-        """:meth:`signature` would return its last answer now, without asking DDS (asked by
-        :meth:`RouteTable.dispatch_prepared` only)."""
+        """Nothing that may move :meth:`signature` happened since it was last read (no
+        discovery, no grace after one), the view's own periodic re-read aside: the table
+        re-plans, reading it fresh, at least every ``RECHECK_SECONDS``. Asked by
+        :meth:`RouteTable.dispatch_prepared` only."""
 
     def matched_subscriptions(self) -> Iterable[K]:
         """Keys of the main topic's matched subscriptions, legacy ones included."""
@@ -370,6 +378,9 @@ class RouteTable(Generic[K]):
         #: (None: plan again; asking DDS for the matched subscriptions takes tens of
         #: microseconds).
         self._cached: Optional[_Cached] = None
+        #: :meth:`dispatch_prepared` answered past the plan's periodic recheck: the publisher
+        #: calls :meth:`advance` once that message is written (cleared by :meth:`advance`).
+        self.replan_due = False
 
     @property
     def steady(self) -> Optional[Dispatch]:
@@ -418,6 +429,7 @@ class RouteTable(Generic[K]):
         channel samples, time passed) and plan the next messages."""
         if signature is None:
             signature = view.signature(fresh=True)
+        self.replan_due = False
         probes = []
         for key, route in self.routes.items():
             route.channel_matched(view.channel_matched(key), now)
@@ -487,21 +499,31 @@ class RouteTable(Generic[K]):
                           view: 'RouteView[K]') -> Dispatch:
         """:meth:`dispatch`, for a publisher that prepared its writes for the steady dispatch
         ``prepared``: that very object, known without planning or asking DDS, while it is the
-        table's steady answer, its recheck time has not come and the view is settled; else
-        what :meth:`dispatch` answers (``prepared`` again after a re-plan to the same answer).
-        Either way message ``timestamp`` is dispatched: the publisher writes exactly that."""
+        table's steady answer and the view is settled; else what :meth:`dispatch` answers
+        (``prepared`` again after a re-plan to the same answer). Either way message
+        ``timestamp`` is dispatched: the publisher writes exactly that.
+
+        Past the plan's periodic recheck (no timed transition due), the answer is still
+        ``prepared`` and :attr:`replan_due` is set: the publisher re-plans (:meth:`advance`)
+        right after writing this message, not before, so that the re-plan's reads of DDS
+        (about 140 µs on cold caches) do not delay a message whose route nothing moved (the
+        view would be unsettled if discovery had said anything). The next message goes by
+        the new plan."""
         cached = self._cached
-        if cached is not None and cached.steady is prepared and now < cached.plan.recheck_at \
-                and view.settled(now):
-            self.last_published = timestamp
-            return prepared
-        return self.dispatch(now, timestamp, view)
+        if cached is None or cached.steady is not prepared or not view.settled(now):
+            return self.dispatch(now, timestamp, view)
+        if now >= cached.plan.recheck_at:
+            if not cached.plan.periodic:
+                return self.dispatch(now, timestamp, view)
+            self.replan_due = True
+        self.last_published = timestamp
+        return prepared
 
     def plan(self, now: float, matched: Iterable[K]) -> Plan:
         """Decide the routes of the next messages; ``matched`` are the keys of the main topic's
         matched subscriptions (legacy ones included). Timed transitions happen here."""
         channel, withheld, gone = [], [], set()
-        recheck_at = now + RECHECK_SECONDS
+        recheck_at, periodic = now + RECHECK_SECONDS, True
         for key, route in self.routes.items():
             route.tick(now)
             if route.on_channel:
@@ -515,12 +537,12 @@ class RouteTable(Generic[K]):
                 gone.add(key)
                 withheld.append(key)  # its reader may be matched until DDS's lease ends
             at = route.next_tick(now)
-            if at is not None:
-                recheck_at = min(recheck_at, at)
+            if at is not None and at < recheck_at:
+                recheck_at, periodic = at, False
         skipped = gone.union(channel)
         main_served = tuple(key for key in matched if key not in skipped)
         return Plan(tuple(channel), bool(main_served) or self.main_always, tuple(withheld),
-                    main_served, recheck_at)
+                    main_served, recheck_at, periodic)
 
     def main_written(self, keys: Iterable[K], timestamp: int) -> bool:
         """The main topic carried message ``timestamp`` for these subscriptions (those its plan

@@ -2,7 +2,9 @@
 
 The model test (``test_routes.py``) explores states; this explores *orderings*: a camera
 publisher (the real :class:`~rosidl_buffer_py.routes.RouteTable`, driven through the entry points
-``Publisher`` uses: ``dispatch`` per message, ``advance`` on its route timer), a buffer-aware
+``Publisher`` uses: ``dispatch`` per message, or ``dispatch_prepared`` once it has a steady
+answer, ``advance`` on its route timer and after a message a periodic re-plan fell on), a
+buffer-aware
 subscription (the real :class:`~rosidl_buffer_py.routes.Receiver` and
 :class:`~rosidl_buffer_py.routes.StreamTable`, taking samples in the order ``Subscription._next``
 takes them: channels first, held messages released, then the main topic with its duplicates
@@ -129,10 +131,17 @@ class SimView:
 
     def __init__(self, pub: 'Camera') -> None:
         self.pub = pub
+        self.read = None  #: the signature last read
 
     def signature(self, fresh=False):
-        return (len(self.matched_subscriptions()),
-                tuple(int(self.channel_matched(k)) for k in self.pub.table.routes))
+        self.read = (len(self.matched_subscriptions()),
+                     tuple(int(self.channel_matched(k)) for k in self.pub.table.routes))
+        return self.read
+
+    def settled(self, now):
+        # a match changes with a discovery callback, which unsettles the publisher's view
+        read = self.read
+        return read is not None and self.signature() == read
 
     def matched_subscriptions(self) -> List[str]:
         now = self.pub.sim.now
@@ -163,6 +172,8 @@ class Camera:
         self.channel: Optional[Link] = None
         self.timestamp = 0
         self.timer_armed = False
+        #: the steady dispatch its writes were prepared for (``Publisher._lane``)
+        self.lane: Optional[routes.Dispatch] = None
         self.published: List[Tuple[int, float]] = []
         #: fence timestamp -> (fenced message, the writer knew it had reached the reader)
         self.fences: Dict[int, Tuple[int, bool]] = {}
@@ -179,7 +190,12 @@ class Camera:
         self.timestamp += 1
         ts = self.timestamp
         self.published.append((ts, now))
-        dispatch = self.table.dispatch(now, ts, self.view)
+        if self.lane is not None:
+            dispatch = self.table.dispatch_prepared(self.lane, now, ts, self.view)
+        else:
+            dispatch = self.table.dispatch(now, ts, self.view)
+        if dispatch is self.table.steady:
+            self.lane = dispatch
         self._probes(dispatch.probes, previous or ts - 1)
         if dispatch.timer is not None:
             self.arm(dispatch.timer)
@@ -194,6 +210,10 @@ class Camera:
             for key, link in self.main_links.items():
                 if key not in dispatch.withheld:
                     link.write(now, Sample('p', ts, 'data'))
+        if self.table.replan_due:  # the periodic re-plan, after the message's writes
+            probes, timer = self.table.advance(now, self.view)
+            self._probes(probes, ts)
+            self.arm(timer)
 
     def _probes(self, probes, timestamp: int) -> None:
         for _, count in probes:

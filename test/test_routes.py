@@ -312,18 +312,40 @@ def test_dispatch_prepared_answers_the_prepared_object_while_the_steady_dispatch
     assert table.dispatch_prepared(steady, 0.1, 4, view) is steady  # the view read, same counts
     assert view.asked == ['settled', 'signature'] and table.last_published == 4
     view.calm, view.asked = True, []
-    assert table.dispatch_prepared(steady, RECHECK_SECONDS, 5, view) is steady  # re-planned
+    # past the periodic recheck: still the prepared answer, the re-plan due after its writes
+    assert not table.replan_due
+    assert table.dispatch_prepared(steady, RECHECK_SECONDS, 5, view) is steady
+    assert view.asked == ['settled'] and table.replan_due and table.last_published == 5
+    assert table.advance(RECHECK_SECONDS, view) == ((), False)  # what the publisher does then
     assert 'fresh signature' in view.asked and table.steady_until == 2 * RECHECK_SECONDS
-    assert table.last_published == 5
-    view.matched.append('legacy')  # found by the next recheck: a main-topic write per message
-    moved = table.dispatch_prepared(steady, 2 * RECHECK_SECONDS, 6, view)
+    assert table.steady is steady and not table.replan_due
+    view.matched.append('legacy')  # found by the next re-plan: a main-topic write per message
+    assert table.dispatch_prepared(steady, 2 * RECHECK_SECONDS, 6, view) is steady
+    table.advance(2 * RECHECK_SECONDS, view)
+    assert table.steady is None
+    moved = table.dispatch_prepared(steady, 2 * RECHECK_SECONDS + 0.1, 7, view)
     assert moved is not steady and moved.main and moved.channel == (('a', None),)
-    assert table.steady is None and table.last_published == 6
+    assert table.last_published == 7 and not table.replan_due
     table, view = _steady_table()
     steady = table.steady
     table.gone('a')
     gone = table.dispatch_prepared(steady, 0.2, 3, view)
     assert gone is not steady and gone.channel == () and table.last_published == 3
+
+
+def test_a_timed_transition_due_is_planned_before_the_message_not_after():
+    """Only the periodic recheck waits for the message's writes: a plan whose recheck is a
+    route's timed transition is planned again before the message, by dispatch()."""
+    table, view = _steady_table()
+    steady = table.steady
+    table.routes['a'].next_tick = lambda now: now + 0.2  # (a transition, as a fence's)
+    table.invalidate()
+    assert table.dispatch(0.0, 2, view) is not steady
+    steady = table.steady
+    assert steady is not None and table.steady_until == 0.2 and not table._cached.plan.periodic
+    view.asked.clear()
+    table.dispatch_prepared(steady, 0.2, 3, view)
+    assert 'fresh signature' in view.asked and not table.replan_due
 
 
 def test_a_replan_to_the_steady_answer_is_that_object_unless_it_writes_probes_or_needs_the_timer():
@@ -825,6 +847,11 @@ class RouteProtocol(RuleBasedStateMachine):
         if dispatch is self.table.steady:
             self.lane = dispatch
         self._write_probes(dispatch.probes, previous or ts - 1)
+        self._write_dispatch(dispatch, ts)
+        if self.table.replan_due:  # the periodic re-plan, after the message's writes
+            self._advance()
+
+    def _write_dispatch(self, dispatch, ts) -> None:
         if dispatch.timer is not None:
             self.timer_armed = dispatch.timer
         for key, fence in dispatch.channel:
@@ -841,6 +868,9 @@ class RouteProtocol(RuleBasedStateMachine):
     def route_timer_fires(self):
         """The publisher's route timer (armed while a route is being brought up) runs between
         messages, as ``Publisher._advance`` does."""
+        self._advance()
+
+    def _advance(self) -> None:
         probes, timer = self.table.advance(self.now, self.view)
         self._write_probes(probes, self.timestamp)
         self.timer_armed = timer
