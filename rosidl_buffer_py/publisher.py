@@ -415,7 +415,9 @@ class Publisher(rclpy.publisher.Publisher):
             self._arm_route_timer(dispatch.timer)
         self._write(encoder, timestamp, dispatch)
         if dispatch is self._table.steady and dispatch is not self._lane_tried and \
-                len(encoder.buffers) == 1:
+                len(encoder.buffers) == 1 and self._peers.reannouncer.retired:
+            # (tried once per steady answer, which a re-plan that keeps it keeps: not before
+            # the node is known to spin, which comes later than the answer in a new graph)
             self._lane_tried = dispatch
             self._lane = self._prepare_lane(dispatch, encoder)
         if dispatch.main:
@@ -479,11 +481,10 @@ class Publisher(rclpy.publisher.Publisher):
                       ) -> Optional[_SteadyLane]:
         """The steady lane for ``dispatch`` (the table's steady one), for messages like
         ``encoder``'s: its one payload a Buffer of a backend that every served peer accepts and
-        that has a steady describer for each. None otherwise, and while the node is not known to
-        spin (publish() then polls discovery: the re-announcer's retirement lasts until a new
-        peer comes, which moves the peer table's version). Under the lock."""
-        if self._single is None or self._described_program is None or \
-                not dispatch.channel or not self._peers.reannouncer.retired:
+        that has a steady describer for each; None otherwise. Asked only once the node is known
+        to spin (until then publish() polls discovery; the re-announcer's retirement lasts
+        until a new peer comes, which moves the peer table's version). Under the lock."""
+        if self._single is None or self._described_program is None or not dispatch.channel:
             return None
         backend = encoder.buffers[0].buffer.backend_type
         vendor = self._core.backends.get(backend)

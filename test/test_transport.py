@@ -682,6 +682,37 @@ def test_a_quiet_publishers_channel_costs_no_take_per_message_of_another(context
     node.destroy_node()
 
 
+def test_a_camera_that_publishes_at_once_takes_its_lane_once_its_node_is_known_to_spin(
+        context):
+    """A camera that publishes as soon as its subscriber is served (``wait_for_buffer_peers``)
+    meets the route table's steady answer before its node is known to spin (the
+    re-announcer's retirement, which the lane needs). A re-plan keeps that answer, the same
+    object: the lane is tried for it once the node is known to spin, not given up for good at
+    the first message (every message then took the full path)."""
+    topic = '/camera_lane'
+    node = rclpy.create_node('camera_lane_pub', context=context)
+    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    count = 60
+    with Run() as run:
+        run.start('sub', 'image_subscriber', **_sub_params(
+            topic, count, acceptable_buffer_backends='demo', depth=100))
+        assert pub.wait_for_buffer_peers(1, timeout_sec=30.0), run.diagnostics()
+        next_at = time.monotonic()
+        for counter in range(count):
+            next_at += 1 / 30
+            pub.publish(frame(counter, 'demo'))
+            executor.spin_once(timeout_sec=max(0.0, next_at - time.monotonic()))
+        assert run.wait(['sub'], 60), run.diagnostics()
+        report = run.nodes['sub'].report
+    stats = pub.statistics()
+    assert stats.published_on_lane > 0, stats
+    assert report['distinct'] == report['received'] == count, report
+    assert report['backends'].get('demo', 0) > 0, report
+    node.destroy_node()
+
+
 def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing(context):
     """Once its routes are steady, publish() writes the descriptors it prepared for the
     table's steady dispatch (``Publisher._publish_steady``); a new subscriber (another
