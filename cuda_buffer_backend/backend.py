@@ -1,7 +1,7 @@
 """CudaBackend: the ``cuda`` buffer backend plugin (entry point
 ``cuda = cuda_buffer_backend:CudaBackend``)."""
 import re
-from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from demo_buffer_backend import handover
 from demo_buffer_backend.endpoints import ServedEndpoints
@@ -113,6 +113,46 @@ class CudaBackend(BufferBackend):
             return None
         buffer.record_writes()
         return pool.describe(pin, ledger)
+
+    def steady_describer(self, endpoint_info: EndpointInfo
+                         ) -> Optional[Callable[[Buffer], Optional[bytes]]]:
+        """:meth:`create_descriptor_with_endpoint`'s steady case, for a publisher's lane: the
+        writes recorded, then the pool's native describe (``Pool.steady_describer``) with the
+        peer's ledger of each device resolved once; None for a peer that sees none of the
+        devices whose pools this process made. A Buffer of another kind, of another device, or
+        one the native describe declines gets None, the event aside (recording it again is
+        what the full describe does first)."""
+        describers = {}
+        for device, pool in lifecycle.pools().items():
+            ledger = self._served[device].ledger_of(endpoint_info)
+            if ledger is not None:
+                describers[device] = pool.steady_describer(ledger)
+        if not describers:
+            return None
+
+        def describer(buffer: Buffer) -> Optional[bytes]:
+            if type(buffer) is not CudaBuffer or buffer.pin is None:
+                return None
+            describe = describers.get(buffer.device)
+            if describe is None:
+                return None
+            buffer.record_writes()  # before the descriptor leaves: readers wait for this
+            return describe(buffer)
+        return describer
+
+    def steady_opener(self, endpoint_info: EndpointInfo
+                      ) -> Optional[Callable[[bytes], Optional[CudaBuffer]]]:
+        """:meth:`from_descriptor_with_endpoint`'s steady case, for a subscription's steady
+        step: the pools' native open (``Pool.open_steady``) made a read-only CudaBuffer; None,
+        having opened nothing, where the full open is to run."""
+        def opener(descriptor: bytes) -> Optional[CudaBuffer]:
+            for pool in lifecycle.pools().values():
+                opened = pool.open_steady(descriptor)
+                if opened is not None:
+                    memory, hold = opened
+                    return CudaBuffer(memory, keepalive=hold, readonly=True)
+            return None
+        return opener
 
     def from_descriptor_with_endpoint(self, descriptor: bytes,
                                       endpoint_info: EndpointInfo) -> CudaBuffer:

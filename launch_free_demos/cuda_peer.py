@@ -161,6 +161,8 @@ def publish(args) -> Dict[str, Any]:
     report = {'role': 'pub', 'mode': args.mode, 'frames': args.frames,
               'cpu_ms_per_frame': 1000 * cpu / max(1, args.frames),
               'slot_addresses': len(addresses)}
+    if args.mode not in ('stock', 'small'):  # frames written through the steady lane
+        report['published_on_lane'] = pub.statistics().published_on_lane
     if args.mode == 'cuda':
         from rosidl_buffer_py.registry import get_backend
         report['stats'] = get_backend('cuda').stats()
@@ -268,14 +270,16 @@ def subscribe(args) -> Dict[str, Any]:
         if got['frames'] >= args.frames:
             done.set()
 
+    aware = None  # the buffer-aware subscription
     if args.mode == 'legacy':
         node.create_subscription(Image, args.topic, on_image, args.depth, raw=True)
     elif args.mode in ('stock', 'small'):
         node.create_subscription(Image, args.topic, on_image, args.depth)
     else:
         accept = {'cuda': 'cuda', 'cpu': 'cpu', 'demo': 'demo'}[args.mode]
-        rosidl_buffer_py.create_subscription(node, Image, args.topic, on_image, args.depth,
-                                             acceptable_buffer_backends=accept)
+        aware = rosidl_buffer_py.create_subscription(node, Image, args.topic, on_image,
+                                                     args.depth,
+                                                     acceptable_buffer_backends=accept)
     if args.ready_file:
         open(args.ready_file, 'w').close()
     cpu0 = None
@@ -300,6 +304,8 @@ def subscribe(args) -> Dict[str, Any]:
         with gpu.context():
             got['held_failures'] = [i for i, _, array in held if not gpu.check(array, value(i))]
     got['types'] = dict(got['types'])
+    if aware is not None:  # frames its steady step delivered, opened by the steady opener
+        got['delivered_steady'] = aware.statistics().delivered_steady
     got['addresses'] = len(got['addresses'])
     lat = sorted(got.pop('latency_ms'))
     if lat:

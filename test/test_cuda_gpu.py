@@ -120,6 +120,22 @@ def test_a_consumer_on_its_own_stream_never_sees_a_half_written_frame(peers, con
     assert sub['held'] == 4 and sub['held_failures'] == []
 
 
+def test_a_steady_cuda_publisher_writes_through_its_lane_and_frames_stay_whole(peers):
+    """Once the routes are steady the publisher writes through its lane (the backend's steady
+    describer records the slot's event, then describes) and the subscription delivers through
+    its steady step (the backend's steady opener): every frame zero-copy, none torn though
+    each is written by slow kernels and published at once."""
+    frames = ['--frames', '90', '--rate', '30', '--width', '640', '--height', '480']
+    peers.start('sub', 'sub', '--mode', 'cuda', '--own-stream', *frames)
+    peers.start('pub', 'pub', '--mode', 'cuda', '--slow', '300000', '--wait-buffer-peers',
+                '1', *frames)
+    sub, pub = peers.final('sub'), peers.final('pub')
+    assert sub['frames'] == 90 and sub['types'] == {'CudaBuffer': 90}
+    assert sub['failures'] == [] and sub['pointer_matches'] == 90
+    assert pub['published_on_lane'] > 0, pub
+    assert sub['delivered_steady'] > 0, sub
+
+
 def test_frames_a_subscriber_holds_stay_valid_after_its_publisher_is_sigkilled(peers):
     frames = ['--frames', '10', '--rate', '20', '--width', '640', '--height', '480']
     sub = peers.start('sub', 'sub', '--mode', 'cuda', '--hold', '5', '--recheck-after', '3',

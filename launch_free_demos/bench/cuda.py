@@ -71,7 +71,8 @@ def run_ros(mode: str, width: int, height: int, frames: int, rate: float) -> Dic
     return {'p50': sub_r.get('latency_p50_ms'), 'p99': sub_r.get('latency_p99_ms'),
             'pub_cpu': pub_r['cpu_ms_per_frame'], 'sub_cpu': sub_r.get('cpu_ms_per_frame'),
             'frames': sub_r['frames'], 'failures': len(sub_r['failures']),
-            'types': sub_r['types']}
+            'types': sub_r['types'], 'on_lane': pub_r.get('published_on_lane'),
+            'delivered_steady': sub_r.get('delivered_steady')}
 
 
 class _SlotView:
