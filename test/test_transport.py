@@ -682,6 +682,15 @@ def test_a_quiet_publishers_channel_costs_no_take_per_message_of_another(context
     node.destroy_node()
 
 
+def _demo_publisher(context, name: str, topic: str):
+    """A buffer-aware Image publisher on its own node, and an executor that spins that node."""
+    node = rclpy.create_node(name, context=context)
+    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return node, pub, executor
+
+
 def test_a_camera_that_publishes_at_once_takes_its_lane_once_its_node_is_known_to_spin(
         context):
     """A camera that publishes as soon as its subscriber is served (``wait_for_buffer_peers``)
@@ -690,10 +699,7 @@ def test_a_camera_that_publishes_at_once_takes_its_lane_once_its_node_is_known_t
     object: the lane is tried for it once the node is known to spin, not given up for good at
     the first message (every message then took the full path)."""
     topic = '/camera_lane'
-    node = rclpy.create_node('camera_lane_pub', context=context)
-    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    node, pub, executor = _demo_publisher(context, 'camera_lane_pub', topic)
     count = 60
     with Run() as run:
         run.start('sub', 'image_subscriber', **_sub_params(
@@ -726,10 +732,7 @@ def test_a_steady_publisher_writes_through_its_lane_and_transitions_lose_nothing
     out back to back, a burst that overflows KEEP_LAST 10 readers; stock endpoints in this
     graph lose frames in 6 runs of 8.)"""
     topic = '/lane_image'
-    node = rclpy.create_node('lane_pub', context=context)
-    pub = rosidl_buffer_py.create_publisher(node, Image, topic, RELIABLE)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    node, pub, executor = _demo_publisher(context, 'lane_pub', topic)
     counter = 0
 
     def publish(count: int, pause: float = 0.0) -> None:
