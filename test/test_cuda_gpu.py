@@ -184,6 +184,54 @@ def test_a_subscriber_sigkilled_while_holding_frames_gives_the_publisher_its_slo
     assert pub['stats']['cuda:0']['slots'] <= 6
 
 
+def test_the_recorder_writes_a_cuda_topics_frames_as_the_bytes_stock_would_serialize(
+        peers, tmp_path):
+    """buffer_record takes a cuda publisher's frames (a buffer-aware subscription accepting
+    every backend: zero-copy on this GPU) and writes each as its legacy CDR, the bytes copied
+    from the device: what ``serialize_message`` of the CPU frame gives, padding zeroed."""
+    from mcap.reader import make_reader
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image
+
+    from launch_free_demos.cuda_peer import value
+    from rosidl_buffer_py import codec
+    from rosidl_buffer_py.report import last_report
+    count, width, height = 20, 320, 240
+    bag = tmp_path / 'bag'
+    recorder = subprocess.Popen(
+        [sys.executable, '-m', 'rosidl_buffer_py.tools.record', peers.topic, '-o', str(bag),
+         '--qos-depth', '100'], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED='1'))
+    try:
+        peers.start('pub', 'pub', '--mode', 'cuda', '--frames', str(count), '--rate', '20',
+                    '--width', str(width), '--height', str(height), '--depth', '100',
+                    '--wait-buffer-peers', '1', '--linger', '1')
+        pub = peers.final('pub')
+        time.sleep(1.0)  # the last frames reach the recorder's queue
+        recorder.send_signal(signal.SIGINT)
+        out, err = recorder.communicate(timeout=60)
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+            recorder.communicate()
+    assert recorder.returncode == 0 and 'Traceback' not in err, err[-3000:]
+    topic = last_report(out.splitlines())['topics'][peers.topic]
+    assert topic['written'] == count and topic['backends'] == {'cuda': count}, topic
+    assert pub['stats']['cuda:0']['slots'] >= 1
+    raws = []
+    for path in sorted(bag.glob('*.mcap')):
+        with open(path, 'rb') as stream:
+            raws += [message.data for _, _, message in make_reader(stream).iter_messages()]
+    assert len(raws) == count
+    for i, raw in enumerate(raws):
+        decoded = deserialize_message(raw, Image)
+        assert decoded.header.frame_id == str(i)
+        expected = Image(height=height, width=width, encoding='rgb8', step=width * 3,
+                         header=decoded.header)
+        expected.data = bytes([value(i)]) * (width * height * 3)
+        assert raw == bytes(codec.encode(expected)), i
+
+
 def test_allocating_more_than_the_device_has_is_a_clear_memory_error():
     from cuda_buffer_backend import CudaBuffer
     with pytest.raises(MemoryError, match='cuda:0'):
