@@ -131,9 +131,8 @@ class CudaBackend(BufferBackend):
             return None
 
         def describer(buffer: Buffer) -> Optional[bytes]:
-            if type(buffer) is not CudaBuffer or buffer.pin is None:
-                return None
-            describe = describers.get(buffer.device)
+            # (a Buffer without a pin records nothing, and the native describe declines it)
+            describe = describers.get(buffer.device) if type(buffer) is CudaBuffer else None
             if describe is None:
                 return None
             buffer.record_writes()  # before the descriptor leaves: readers wait for this
@@ -143,11 +142,17 @@ class CudaBackend(BufferBackend):
     def steady_opener(self, endpoint_info: EndpointInfo
                       ) -> Optional[Callable[[bytes], Optional[CudaBuffer]]]:
         """:meth:`from_descriptor_with_endpoint`'s steady case, for a subscription's steady
-        step: the pools' native open (``Pool.open_steady``) made a read-only CudaBuffer; None,
-        having opened nothing, where the full open is to run."""
+        step: the native open (``Pool.open_steady``) of the pools this process made, resolved
+        once as the demo backend's opener resolves its pool, made a read-only CudaBuffer; None,
+        having opened nothing, where the full open is to run. None (the full open for every
+        descriptor) while this process has no pool."""
+        opens = tuple(pool.open_steady for pool in lifecycle.pools().values())
+        if not opens:
+            return None
+
         def opener(descriptor: bytes) -> Optional[CudaBuffer]:
-            for pool in lifecycle.pools().values():
-                opened = pool.open_steady(descriptor)
+            for open_steady in opens:
+                opened = open_steady(descriptor)
                 if opened is not None:
                     memory, hold = opened
                     return CudaBuffer(memory, keepalive=hold, readonly=True)
